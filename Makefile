@@ -1,0 +1,29 @@
+# `make demo` and `make test` work on a fresh Debian machine with Python ≥ 3.10: they make
+# .venv, install the package with all its extras, and the Debian libraries its wheels need.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: install demo test bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[all,test]'
+	bash tools/system-libs.sh $(BIN)/python
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/reconstruct demo -o demo_output
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python benchmarks/accuracy.py
+
+clean:
+	rm -rf $(VENV) demo_output .pytest_cache

@@ -1,0 +1,223 @@
+"""The ``reconstruct`` command: a thin layer over :mod:`reconstruct.pipeline`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from ptmcore import __version__
+from ptmcore.errors import InputError
+
+EXIT_BAD_INPUT = 2
+
+DESCRIPTION = """\
+Turn reflectance photographs (RTI captures) into surface normals, a height map and a
+textured 3D mesh.
+
+A capture is a folder of photographs taken with a fixed camera under different light
+directions, plus an .lp file listing, for each photograph, the unit vector towards its light
+(x right, y up, z towards the camera).
+
+Start with `reconstruct demo` to see the whole pipeline on a synthetic clay tablet, then
+`reconstruct run MY_CAPTURE -o results --pixel-size 0.05`.
+"""
+
+RUN_EPILOG = """\
+outputs (in the -o folder):
+  normals.npy, normals.png   unit normals (float32) and a 16-bit OpenGL-style normal map
+  albedo.png                 the surface colour without shading (8-bit sRGB)
+  height.tif                 float32 height map; millimetres with --pixel-size, else pixels
+  mesh.ply, mesh.obj         textured mesh (OBJ with mesh.mtl and mesh_texture.png)
+  mask.png                   the mask, when --mask is given
+  report.json                inputs, parameters, timings, memory, warnings, accuracy
+
+example:
+  reconstruct run tablet/ -o tablet_out --pixel-size 0.04 --normals ps --integrator dct
+"""
+
+
+def _positive_float(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text!r}")
+    return v
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
+    return v
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="reconstruct", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"reconstruct (ptm-reconstruct) {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    run = sub.add_parser(
+        "run",
+        help="reconstruct one capture: normals, height map and mesh",
+        description="Reconstruct one capture folder (photographs + .lp light file).",
+        epilog=RUN_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    run.add_argument("capture", type=Path, help="capture folder (photographs and one .lp file), or an .lp file")
+    run.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
+    _add_run_options(run)
+
+    demo = sub.add_parser(
+        "demo",
+        help="render a synthetic clay tablet, reconstruct it and report the accuracy",
+        description="Render a synthetic capture with known ground truth, reconstruct it, and print "
+        "where the results are and how accurate they are.",
+    )
+    demo.add_argument("-o", "--output", type=Path, default=Path("demo_output"), help="folder for the capture and results (default: demo_output)")
+    demo.add_argument("--size", default="480x360", help="image size WxH (default: 480x360)")
+    demo.add_argument("--lights", type=_positive_int, default=48, help="number of dome lights (default: 48)")
+    demo.add_argument("--encoding", choices=("tiff16", "jpeg8"), default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
+    demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
+    demo.add_argument("--normals", choices=("ps", "ptm"), default="ps", help="normal method (default: ps)")
+    demo.add_argument("--integrator", choices=("dct", "fc"), default="dct", help="integrator (default: dct)")
+    return parser
+
+
+def _add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--lp", type=Path, help="light file to use (default: the .lp file in the capture folder)")
+    p.add_argument(
+        "--pixel-size", type=_positive_float, metavar="MM",
+        help="size of one pixel on the object in millimetres; heights and meshes are then in mm (else in pixels)",
+    )
+    p.add_argument(
+        "--normals", choices=("ps", "ptm"), default="ps",
+        help="ps: photometric stereo (default, the more accurate); ptm: maximum of each pixel's PTM",
+    )
+    p.add_argument(
+        "--integrator", choices=("dct", "fc"), default="dct",
+        help="normal integration: dct = Poisson with free (Neumann) boundary (default); fc = Frankot-Chellappa",
+    )
+    p.add_argument(
+        "--step", type=_positive_int, metavar="K",
+        help="mesh vertex every K pixels (default: the smallest K keeping the mesh under 4 million vertices)",
+    )
+    p.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object; height and mesh stay inside it")
+    p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
+    p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
+    p.add_argument("--ground-truth", type=Path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+
+
+@contextmanager
+def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None] | None]:
+    if not enabled:
+        yield None
+        return
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    labels = {
+        "decode": "Decoding photographs",
+        "fit_ptm": "Fitting the PTM",
+        "normals": "Estimating normals",
+    }
+    tasks: dict[str, int] = {}
+    with Progress(
+        TextColumn("{task.description:<22}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(), transient=False, console=_stderr_console(),
+    ) as bar:
+
+        def update(stage: str, done: int, total: int) -> None:
+            if stage not in tasks:
+                tasks[stage] = bar.add_task(labels.get(stage, stage), total=total)
+            bar.update(tasks[stage], completed=done)
+
+        yield update
+
+
+def _stderr_console():
+    from rich.console import Console
+
+    return Console(stderr=True)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from reconstruct.pipeline import RunOptions, run_capture
+
+    options = RunOptions(
+        lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
+        step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
+        ground_truth=args.ground_truth,
+    )
+    with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
+        result = run_capture(args.capture, args.output, options, progress=progress)
+    _print_summary(result.report, result.output)
+    return 0
+
+
+def _print_summary(report: dict, out: Path) -> None:
+    total = sum(s["seconds"] for s in report["stages"].values())
+    print(f"Results in {out}/ ({report['inputs']['photographs']} photographs, "
+          f"{report['inputs']['width']}×{report['inputs']['height']}, {total:.1f} s)")
+    print(f"  heights in {report['height_unit']}; mesh: {report['mesh']['vertices']:,} vertices, "
+          f"{report['mesh']['faces']:,} triangles (step {report['mesh']['step']})")
+    acc = report.get("accuracy")
+    if acc:
+        n = acc["normals"]
+        line = f"  accuracy: normals {n['mean_deg']:.2f}° mean, {n['median_deg']:.2f}° median"
+        if "height_rmse_mm" in acc:
+            line += f"; height RMSE {acc['height_rmse_mm']:.4f} mm"
+        print(line)
+    for w in report["warnings"]:
+        print(f"  warning: {w}")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from data_synthetic import write_capture
+    from reconstruct.pipeline import RunOptions, run_capture
+
+    try:
+        w, h = (int(v) for v in args.size.lower().split("x"))
+        if w < 16 or h < 16:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"--size must be WxH with both at least 16, got {args.size!r}") from None
+    capture_dir = args.output / "capture"
+    print(f"Rendering a synthetic clay tablet ({w}×{h}, {args.lights} lights, {args.encoding}) in {capture_dir}/ ...")
+    info = write_capture(capture_dir, scene="tablet", shape=(h, w), n_lights=args.lights, encoding=args.encoding, seed=args.seed)
+    options = RunOptions(pixel_size=info.pixel_size, normals=args.normals, integrator=args.integrator)
+    with _progress_display(sys.stderr.isatty()) as progress:
+        result = run_capture(capture_dir, args.output / "result", options, progress=progress)
+    _print_summary(result.report, result.output)
+    print("Open result/mesh.obj or result/mesh.ply in MeshLab, Blender or CloudCompare.")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``reconstruct`` command; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return EXIT_BAD_INPUT
+    try:
+        return {"run": _cmd_run, "demo": _cmd_demo}[args.command](args)
+    except InputError as exc:
+        print(f"reconstruct: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except KeyboardInterrupt:
+        print("reconstruct: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""Fitting Polynomial Texture Maps (Malzbender, Gelb, Wolters, SIGGRAPH 2001).
+
+Per pixel, the luminance under a light whose direction projects to (lu, lv) is modelled as
+``L = a0·lu² + a1·lv² + a2·lu·lv + a3·lu + a4·lv + a5``. Over N photographs this is the linear
+system ``Λ a = L`` with one row ``[lu², lv², lu·lv, lu, lv, 1]`` of the N×6 light matrix Λ per
+photograph. Λ is the same for every pixel, so the least-squares solution for all pixels is one
+6×N matrix, the Moore–Penrose pseudoinverse Λ⁺, applied to the stack: a matrix product done in
+bands of rows in float32.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .images import ImageStack, band_rows
+
+
+def light_matrix(directions: np.ndarray) -> np.ndarray:
+    """The N×6 PTM light matrix ``[lu², lv², lu·lv, lu, lv, 1]``.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (N, 3) or (N, 2)
+        Unit vectors towards the lights (only x = lu and y = lv are used).
+
+    Returns
+    -------
+    ndarray, shape (N, 6), float64
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    lu, lv = d[:, 0], d[:, 1]
+    return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=1)
+
+
+def fit_matrix(directions: np.ndarray) -> np.ndarray:
+    """The 6×N matrix Λ⁺ that maps N luminances to the six PTM coefficients."""
+    return np.linalg.pinv(light_matrix(directions))
+
+
+@dataclass
+class PTM:
+    """An LRGB Polynomial Texture Map.
+
+    Attributes
+    ----------
+    coefficients : ndarray, shape (H, W, 6), float32
+        a0..a5 per pixel, in the units of the luminance that was fitted (linear, 0..1).
+    chroma : ndarray, shape (H, W, 3), float32
+        Per-pixel colour of unit luminance: the RGB under a light is ``chroma · L``.
+    """
+
+    coefficients: np.ndarray
+    chroma: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.coefficients.shape[:2]
+
+    def luminance(self, light: np.ndarray) -> np.ndarray:
+        """Luminance ``(H, W)`` under one light direction (x, y, z) or (lu, lv)."""
+        row = light_matrix(np.asarray(light, dtype=np.float64)[None, :2]).astype(np.float32)[0]
+        return self.coefficients @ row
+
+    def relight(self, light: np.ndarray) -> np.ndarray:
+        """Linear RGB image ``(H, W, 3)`` under one light direction."""
+        return self.chroma * self.luminance(light)[..., None]
+
+
+def fit_ptm(
+    stack: ImageStack,
+    directions: np.ndarray,
+    *,
+    progress: Callable[[int], None] | None = None,
+) -> PTM:
+    """Fit an LRGB PTM to a stack by least squares.
+
+    Parameters
+    ----------
+    stack : ImageStack
+        The photographs' luminance.
+    directions : ndarray, shape (N, 3)
+        Unit light directions, one per photograph.
+    progress : callable, optional
+        Called with the number of rows done after each band.
+
+    Returns
+    -------
+    PTM
+    """
+    n = len(stack)
+    h, w = stack.shape
+    directions = np.asarray(directions, dtype=np.float64)
+    if directions.shape != (n, 3):
+        raise ValueError(f"expected {n} light directions, got array of shape {directions.shape}")
+    pinv = fit_matrix(directions).astype(np.float32)
+    coef = np.empty((h, w, 6), dtype=np.float32)
+    step = band_rows(n, w)
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        values, _ = stack.band(r0, r1)
+        # (6, N) @ (N, rows·W): one BLAS call per band.
+        coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, 6)
+        if progress is not None:
+            progress(r1 - r0)
+    return PTM(coef, stack.chroma())

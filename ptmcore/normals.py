@@ -1,0 +1,283 @@
+"""Surface normals from a PTM's maximum and from Lambertian photometric stereo.
+
+Both are vectorised over pixels and work in bands of rows, so memory stays bounded.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .images import ImageStack, band_rows
+
+_CIRCLE_SAMPLES = 72
+_NEWTON_STEPS = 4
+
+
+def _circle_maximum(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Direction (lu, lv) on the unit circle that maximises each PTM polynomial.
+
+    ``a`` is (P, 6). On the circle, L(θ) = a0 c² + a1 s² + a2 c s + a3 c + a4 s + a5 has no
+    closed-form maximum (its stationary points solve a quartic), so it is sampled every 5° and
+    the best sample is refined by Newton's method on L'(θ).
+    """
+    a = a.astype(np.float64)
+    theta = np.linspace(0.0, 2 * np.pi, _CIRCLE_SAMPLES, endpoint=False)
+    c, s = np.cos(theta), np.sin(theta)
+    basis = np.stack([c * c, s * s, c * s, c, s, np.zeros_like(c)])  # a5 does not move the maximum
+    t = theta[np.argmax(a @ basis, axis=1)]
+    d_a = a[:, 1] - a[:, 0]
+    for _ in range(_NEWTON_STEPS):
+        c, s = np.cos(t), np.sin(t)
+        c2, s2 = np.cos(2 * t), np.sin(2 * t)
+        d1 = d_a * s2 + a[:, 2] * c2 - a[:, 3] * s + a[:, 4] * c
+        d2 = 2 * d_a * c2 - 2 * a[:, 2] * s2 - a[:, 3] * c - a[:, 4] * s
+        # Only step where the curvature says we are near a maximum; the sample is already
+        # within 2.5° of it.
+        ok = d2 < 0
+        t = np.where(ok, t - np.clip(d1 / np.where(ok, d2, -1.0), -0.05, 0.05), t)
+    return np.cos(t), np.sin(t)
+
+
+def ptm_maximum(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Light direction (lu0, lv0) of each PTM polynomial's maximum over the unit disk.
+
+    Where the polynomial is strictly concave and its stationary point lies inside the disk,
+    the closed form of Malzbender et al. is used::
+
+        lu0 = (a2·a4 − 2·a1·a3) / (4·a0·a1 − a2²)
+        lv0 = (a2·a3 − 2·a0·a4) / (4·a0·a1 − a2²)
+
+    Elsewhere (not concave, or the stationary point outside the disk) the maximum over the
+    disk is on its boundary and is found there, rather than by clamping the stationary point.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (..., 6)
+
+    Returns
+    -------
+    lu0, lv0 : ndarray, shape (...)
+        float32.
+    interior : ndarray, shape (...), bool
+        Where the maximum is the interior closed-form one.
+    """
+    a = np.asarray(coefficients, dtype=np.float64).reshape(-1, 6)
+    a0, a1, a2, a3, a4 = (a[:, k] for k in range(5))
+    den = 4 * a0 * a1 - a2 * a2
+    concave = (a0 < 0) & (den > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lu = np.where(concave, (a2 * a4 - 2 * a1 * a3) / den, 0.0)
+        lv = np.where(concave, (a2 * a3 - 2 * a0 * a4) / den, 0.0)
+    interior = concave & (lu * lu + lv * lv < 1.0)
+    boundary = ~interior
+    if boundary.any():
+        lu[boundary], lv[boundary] = _circle_maximum(a[boundary])
+    shape = np.shape(coefficients)[:-1]
+    return (
+        lu.reshape(shape).astype(np.float32),
+        lv.reshape(shape).astype(np.float32),
+        interior.reshape(shape),
+    )
+
+
+def normals_from_ptm(coefficients: np.ndarray) -> np.ndarray:
+    """Normals ``(lu0, lv0, √(1 − lu0² − lv0²))`` from each PTM's maximum.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (H, W, 6)
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3), float32
+        Unit normals.
+    """
+    h, w = coefficients.shape[:2]
+    out = np.empty((h, w, 3), dtype=np.float32)
+    step = band_rows(1, w, 6 * 8 * 4)
+    for r0 in range(0, h, step):
+        lu, lv, _ = ptm_maximum(coefficients[r0 : r0 + step])
+        out[r0 : r0 + step, :, 0] = lu
+        out[r0 : r0 + step, :, 1] = lv
+        out[r0 : r0 + step, :, 2] = np.sqrt(np.clip(1.0 - lu * lu - lv * lv, 0.0, 1.0))
+    return out
+
+
+@dataclass
+class PhotometricStereo:
+    """Result of Lambertian photometric stereo.
+
+    Attributes
+    ----------
+    normals : ndarray, shape (H, W, 3), float32
+        Unit normals; (0, 0, 1) where they could not be determined.
+    albedo : ndarray, shape (H, W), float32
+        Linear luminance albedo (reflectance × light intensity).
+    samples : ndarray, shape (H, W), uint16
+        How many photographs were used at each pixel.
+    valid : ndarray, shape (H, W), bool
+        Where at least three well-spread samples determined the normal.
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    samples: np.ndarray
+    valid: np.ndarray
+
+
+def _weighted_normal_solve(
+    dirs: np.ndarray, outer: np.ndarray, values: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Solve the per-pixel 3×3 weighted normal equations; return (g (3, P), well_posed (P,))."""
+    m = (outer.T @ weights).astype(np.float64)  # (6, P): xx, yy, zz, xy, xz, yz
+    b = (dirs.T @ (weights * values)).astype(np.float64)  # (3, P)
+    m0, m1, m2, m3, m4, m5 = m
+    c00 = m1 * m2 - m5 * m5
+    c01 = m4 * m5 - m3 * m2
+    c02 = m3 * m5 - m4 * m1
+    c11 = m0 * m2 - m4 * m4
+    c12 = m3 * m4 - m0 * m5
+    c22 = m0 * m1 - m3 * m3
+    det = m0 * c00 + m3 * c01 + m4 * c02
+    # Relative to the cube of the mean eigenvalue, a small determinant means the used lights
+    # are (nearly) coplanar: the normal along their plane's normal is undetermined.
+    scale = ((m0 + m1 + m2) / 3.0) ** 3
+    well_posed = det > 1e-6 * np.maximum(scale, 1e-30)
+    safe = np.where(well_posed, det, 1.0)
+    g = np.stack(
+        [
+            c00 * b[0] + c01 * b[1] + c02 * b[2],
+            c01 * b[0] + c11 * b[1] + c12 * b[2],
+            c02 * b[0] + c12 * b[1] + c22 * b[2],
+        ]
+    ) / safe
+    return g, well_posed
+
+
+def photometric_stereo(
+    stack: ImageStack,
+    directions: np.ndarray,
+    *,
+    dark_fraction: float = 0.1,
+    min_shading: float = 0.05,
+    cast_shadow_ratio: float = 0.4,
+    iterations: int = 2,
+    progress: Callable[[int], None] | None = None,
+) -> PhotometricStereo:
+    """Lambertian photometric stereo, excluding shadowed and saturated samples per pixel.
+
+    Each pixel's normal and albedo solve ``I_i = ρ n·l_i`` by weighted least squares over the
+    samples that the Lambertian model explains. Saturated samples are always left out. A first
+    pass leaves out samples darker than ``dark_fraction`` × the pixel's median (shadows); each
+    further pass leaves out the samples the current estimate predicts in attached shadow
+    (``n·l < min_shading``) and those much darker than predicted (cast shadow: below
+    ``cast_shadow_ratio`` × the prediction).
+
+    Parameters
+    ----------
+    stack : ImageStack
+    directions : ndarray, shape (N, 3)
+        Unit light directions.
+    dark_fraction, min_shading, cast_shadow_ratio : float
+        Thresholds described above.
+    iterations : int
+        Refinement passes after the first.
+    progress : callable, optional
+        Called with the number of rows done after each band.
+
+    Returns
+    -------
+    PhotometricStereo
+    """
+    n = len(stack)
+    h, w = stack.shape
+    dirs = np.asarray(directions, dtype=np.float32)
+    if dirs.shape != (n, 3):
+        raise ValueError(f"expected {n} light directions, got array of shape {dirs.shape}")
+    x, y, z = dirs.T
+    outer = np.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=1)  # (N, 6)
+    normals = np.empty((h, w, 3), dtype=np.float32)
+    albedo = np.empty((h, w), dtype=np.float32)
+    samples = np.empty((h, w), dtype=np.uint16)
+    valid = np.empty((h, w), dtype=bool)
+    step = band_rows(n, w, 4 * 6)
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        values, saturated = stack.band(r0, r1)
+        v = values.reshape(n, -1)
+        usable = ~saturated.reshape(n, -1)
+        # Clipped samples read as 1, which is what they are at least: the median stays robust.
+        med = np.median(v, axis=0)
+        used = usable & (v > dark_fraction * med) & (v > 1e-4)
+        g, ok = _weighted_normal_solve(dirs, outer, v, used.astype(np.float32))
+        for _ in range(iterations):
+            rho = np.linalg.norm(g, axis=0)
+            shading = dirs @ (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)  # (N, P)
+            keep = usable & (shading > min_shading) & (v >= cast_shadow_ratio * shading * rho.astype(np.float32))
+            g_new, ok_new = _weighted_normal_solve(dirs, outer, v, keep.astype(np.float32))
+            # Keep the previous estimate where the refined selection left too little.
+            g = np.where(ok_new, g_new, g)
+            used = np.where(ok_new, keep, used)
+            ok |= ok_new
+        rho = np.linalg.norm(g, axis=0)
+        good = ok & (rho > 0) & np.isfinite(rho)
+        nrm = np.where(good, g / np.where(good, rho, 1.0), np.array([[0.0], [0.0], [1.0]]))
+        normals[r0:r1] = nrm.T.reshape(r1 - r0, w, 3)
+        albedo[r0:r1] = np.where(good, rho, 0.0).reshape(r1 - r0, w)
+        samples[r0:r1] = used.sum(axis=0).reshape(r1 - r0, w)
+        valid[r0:r1] = good.reshape(r1 - r0, w)
+        if progress is not None:
+            progress(r1 - r0)
+    return PhotometricStereo(normals, albedo, samples, valid)
+
+
+def lambertian_albedo(
+    stack: ImageStack, directions: np.ndarray, normals: np.ndarray, *, min_shading: float = 0.05
+) -> np.ndarray:
+    """Luminance albedo ρ that best explains the stack given the normals.
+
+    Least squares of ``I_i = ρ n·l_i`` over the unsaturated samples with ``n·l_i ≥ min_shading``.
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32
+    """
+    n = len(stack)
+    h, w = stack.shape
+    dirs = np.asarray(directions, dtype=np.float32)
+    out = np.empty((h, w), dtype=np.float32)
+    step = band_rows(n, w, 4 * 4)
+    for r0 in range(0, h, step):
+        r1 = min(h, r0 + step)
+        values, saturated = stack.band(r0, r1)
+        v = values.reshape(n, -1)
+        shading = dirs @ normals[r0:r1].reshape(-1, 3).T  # (N, P)
+        wts = (~saturated.reshape(n, -1)) & (shading >= min_shading)
+        s = np.where(wts, shading, 0.0)
+        num = (s * v).sum(axis=0)
+        den = (s * s).sum(axis=0)
+        out[r0:r1] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0).reshape(r1 - r0, w)
+    return out
+
+
+def angular_error(normals: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Angle in degrees between two normal maps.
+
+    Parameters
+    ----------
+    normals, reference : ndarray, shape (H, W, 3)
+    mask : ndarray, shape (H, W), bool, optional
+        If given, only the errors inside it are returned (as a flat array).
+
+    Returns
+    -------
+    ndarray
+        ``(H, W)`` float32 degrees, or the masked values.
+    """
+    a = normals / np.linalg.norm(normals, axis=-1, keepdims=True)
+    b = reference / np.linalg.norm(reference, axis=-1, keepdims=True)
+    err = np.degrees(np.arccos(np.clip((a * b).sum(axis=-1), -1.0, 1.0))).astype(np.float32)
+    return err if mask is None else err[mask]

@@ -1,0 +1,69 @@
+"""Accuracy against ground truth (synthetic captures, or a benchmark's reference normals)."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.errors import InputError
+from ptmcore.images import read_image
+from ptmcore.normals import angular_error
+
+
+@dataclass
+class GroundTruth:
+    """Reference data of a capture, as ``data_synthetic`` writes it in ``ground_truth/``.
+
+    Attributes
+    ----------
+    normals : ndarray, shape (H, W, 3), float32
+    mask : ndarray, shape (H, W), bool
+        Where the object is.
+    height : ndarray, shape (H, W), float32, or None
+        Height in millimetres.
+    """
+
+    normals: np.ndarray
+    mask: np.ndarray
+    height: np.ndarray | None = None
+
+
+def load_ground_truth(folder: str | os.PathLike) -> GroundTruth:
+    """Read ``normals.npy``, ``mask.png`` and (if present) ``height.npy`` from a folder."""
+    folder = Path(folder)
+    try:
+        normals = np.load(folder / "normals.npy").astype(np.float32)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read ground-truth normals ({exc})", folder / "normals.npy") from None
+    mask_file = folder / "mask.png"
+    mask = read_image(mask_file) > 0 if mask_file.exists() else np.ones(normals.shape[:2], bool)
+    if mask.ndim == 3:
+        mask = mask.any(axis=2)
+    height_file = folder / "height.npy"
+    height = np.load(height_file).astype(np.float32) if height_file.exists() else None
+    return GroundTruth(normals, mask, height)
+
+
+def normal_accuracy(normals: np.ndarray, truth: GroundTruth) -> dict[str, float]:
+    """Mean, median and 95th percentile of the angular error (degrees) inside the mask."""
+    if normals.shape != truth.normals.shape:
+        raise InputError(f"ground truth is {truth.normals.shape[:2]} but the result is {normals.shape[:2]}")
+    err = angular_error(normals, truth.normals, truth.mask)
+    return {
+        "mean_deg": float(err.mean()),
+        "median_deg": float(np.median(err)),
+        "p95_deg": float(np.percentile(err, 95)),
+        "pixels": int(err.size),
+    }
+
+
+def height_rmse(height: np.ndarray, truth: GroundTruth) -> float | None:
+    """RMS height error inside the mask after removing the mean offset (height's unit)."""
+    if truth.height is None:
+        return None
+    m = truth.mask & np.isfinite(height)
+    d = height[m].astype(np.float64) - truth.height[m]
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))

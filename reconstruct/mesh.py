@@ -1,0 +1,406 @@
+"""Triangle meshes from height maps, and their PLY and OBJ exports.
+
+A height map becomes a regular grid mesh: one vertex per sampled pixel at
+(x, y, z) = (col·s, −row·s, height), s the pixel size (or 1), so that the mesh seen from +z
+looks like the photograph (``docs/CONVENTIONS.md``). Triangles are counter-clockwise seen
+from +z, so their normals point towards the camera. Texture coordinates follow the OBJ/PLY
+convention (v up): u = (col + 0.5)/W, v = 1 − (row + 0.5)/H, so texture images are stored
+unflipped.
+
+The writers are our own rather than trimesh's exporters: trimesh's PLY export cannot write
+per-vertex ``texture_u``/``texture_v`` together with a ``comment TextureFile`` (what MeshLab
+reads), and both of its exporters build whole-file Python strings or copies, while these
+write binary records and text in bounded chunks. All files are written atomically.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from typing import IO
+
+import numpy as np
+from PIL import Image
+
+from ptmcore.errors import InputError
+from reconstruct.atomic import atomic_write
+
+__all__ = ["GridMesh", "grid_mesh", "write_ply", "write_obj"]
+
+# Rows per chunk when writing: bounds the temporary copies (a few tens of MB) while keeping
+# the per-chunk Python overhead negligible.
+_CHUNK = 100_000
+
+_DEFAULT_COLOR = 255  # untextured meshes are white, the neutral colour for shaded viewing
+
+
+@dataclass
+class GridMesh:
+    """A triangle mesh made from a height map.
+
+    Attributes
+    ----------
+    vertices : numpy.ndarray
+        ``(V, 3)`` float32 positions (x right, y up, z towards the camera).
+    faces : numpy.ndarray
+        ``(F, 3)`` int32 (int64 for more than 2³¹ − 1 vertices) vertex indices,
+        counter-clockwise seen from +z.
+    uv : numpy.ndarray
+        ``(V, 2)`` float32 texture coordinates, v up.
+    colors : numpy.ndarray
+        ``(V, 3)`` uint8 sRGB vertex colours (white without a texture).
+    normals : numpy.ndarray or None
+        ``(V, 3)`` float32 unit vertex normals, if known.
+    unit : str
+        Unit of the positions: ``"mm"`` or ``"pixel"``.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    colors: np.ndarray
+    normals: np.ndarray | None = None
+    unit: str = "pixel"
+
+
+def _samples(n: int, step: int) -> np.ndarray:
+    """Indices 0, step, 2·step, … plus the last index, so the mesh spans the whole image."""
+    idx = np.arange(0, n, step)
+    if idx[-1] != n - 1:
+        idx = np.append(idx, n - 1)
+    return idx
+
+
+def _as_rgb(texture: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A texture as ``(H, W, 3)`` uint8, checking its size."""
+    texture = np.asarray(texture)
+    if texture.ndim == 2:
+        texture = texture[..., None]
+    if texture.ndim != 3 or texture.shape[2] not in (1, 3, 4):
+        raise ValueError(f"texture must be (H, W), (H, W, 3) or (H, W, 4), not {texture.shape}")
+    if texture.shape[:2] != tuple(shape):
+        raise ValueError(f"texture is {texture.shape[:2]}, the height map {tuple(shape)}")
+    if texture.dtype != np.uint8:
+        raise ValueError(f"texture must be uint8 sRGB, not {texture.dtype}")
+    if texture.shape[2] == 1:
+        return np.repeat(texture, 3, axis=2)
+    return texture[..., :3]
+
+
+def grid_mesh(
+    height: np.ndarray,
+    *,
+    texture: np.ndarray | None = None,
+    step: int = 1,
+    pixel_size: float | None = None,
+    normals: np.ndarray | None = None,
+) -> GridMesh:
+    """Build a grid mesh from a height map.
+
+    Parameters
+    ----------
+    height : numpy.ndarray
+        ``(H, W)`` heights, in mm when `pixel_size` is given, else in pixels. NaN marks
+        pixels outside the object: their vertices and every triangle touching them are
+        left out.
+    texture : numpy.ndarray, optional
+        ``(H, W, 3)`` uint8 sRGB image (grey ``(H, W)`` and RGBA are accepted) sampled for
+        the vertex colours.
+    step : int
+        Sample every `step`-th row and column; the last row and column are always included
+        so that the mesh covers the whole image.
+    pixel_size : float, optional
+        Pixel size in mm/pixel. Without it the unit is the pixel.
+    normals : numpy.ndarray, optional
+        ``(H, W, 3)`` normals in the project frame, sampled as vertex normals.
+
+    Returns
+    -------
+    GridMesh
+        Vertices numbered row by row over the kept samples; two triangles per grid cell,
+        split along the top-left to bottom-right diagonal.
+
+    Raises
+    ------
+    ValueError
+        If the shapes do not match, `step` < 1 or `pixel_size` is not positive.
+    """
+    height = np.asarray(height)
+    if height.ndim != 2 or height.size == 0:
+        raise ValueError(f"height must be a non-empty 2-D array, not {height.shape}")
+    if int(step) != step or step < 1:
+        raise ValueError(f"step must be a positive integer, not {step}")
+    if pixel_size is not None and not (np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be a positive number, not {pixel_size}")
+    h_img, w_img = height.shape
+    rows = _samples(h_img, int(step))
+    cols = _samples(w_img, int(step))
+    s = np.float32(1.0 if pixel_size is None else pixel_size)
+
+    z = height[np.ix_(rows, cols)].astype(np.float32)
+    valid = np.isfinite(z)
+    n_valid = int(np.count_nonzero(valid))
+    index_dtype = np.int32 if n_valid <= np.iinfo(np.int32).max else np.int64
+    # Compact numbering of the kept vertices; −1 marks a dropped one.
+    index = np.full(z.shape, -1, dtype=index_dtype)
+    index[valid] = np.arange(n_valid, dtype=index_dtype)
+
+    rr, cc = np.nonzero(valid)  # row-major, the same order as the compact numbering
+    vertices = np.empty((n_valid, 3), dtype=np.float32)
+    vertices[:, 0] = cols[cc] * s
+    vertices[:, 1] = -rows[rr] * s  # negate the integers first: no "-0" in text exports
+    vertices[:, 2] = z[valid]
+
+    uv = np.empty((n_valid, 2), dtype=np.float32)
+    uv[:, 0] = (cols[cc] + 0.5) / w_img
+    uv[:, 1] = 1.0 - (rows[rr] + 0.5) / h_img
+
+    if texture is None:
+        colors = np.full((n_valid, 3), _DEFAULT_COLOR, dtype=np.uint8)
+    else:
+        colors = _as_rgb(texture, height.shape)[rows[rr], cols[cc]]
+
+    vertex_normals = None
+    if normals is not None:
+        normals = np.asarray(normals)
+        if normals.shape != (h_img, w_img, 3):
+            raise ValueError(f"normals are {normals.shape}, expected {(h_img, w_img, 3)}")
+        vertex_normals = normals[rows[rr], cols[cc]].astype(np.float32)
+        length = np.linalg.norm(vertex_normals, axis=1, keepdims=True)
+        good = np.isfinite(length[:, 0]) & (length[:, 0] > 0)
+        vertex_normals[good] /= length[good]
+        # A vertex with a height but no usable normal gets the camera direction rather than
+        # NaN, which most viewers render as black or reject.
+        vertex_normals[~good] = (0.0, 0.0, 1.0)
+
+    # Cell corners: a top-left, b top-right, c bottom-left, d bottom-right. With y up,
+    # (a, c, d) and (a, d, b) are counter-clockwise seen from +z.
+    a = index[:-1, :-1]
+    b = index[:-1, 1:]
+    c = index[1:, :-1]
+    d = index[1:, 1:]
+    faces = np.stack(
+        [np.stack([a, c, d], axis=-1), np.stack([a, d, b], axis=-1)], axis=2
+    ).reshape(-1, 3)
+    faces = faces[(faces >= 0).all(axis=1)]
+
+    return GridMesh(
+        vertices=vertices,
+        faces=faces,
+        uv=uv,
+        colors=colors,
+        normals=vertex_normals,
+        unit="pixel" if pixel_size is None else "mm",
+    )
+
+
+def _check_comment(text: str) -> str:
+    """A header comment must stay on one line or it corrupts the file."""
+    text = str(text)
+    if "\n" in text or "\r" in text:
+        raise ValueError(f"comments must be single lines, not {text!r}")
+    return text
+
+
+def _ply_vertex_fields(with_normals: bool) -> list[tuple[str, str, str]]:
+    """(name, numpy type, PLY type) of each vertex property, in file order."""
+    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if with_normals else [])
+    fields = [(n, "<f4", "float") for n in names]
+    fields += [(n, "u1", "uchar") for n in ("red", "green", "blue")]
+    fields += [(n, "<f4", "float") for n in ("texture_u", "texture_v")]
+    return fields
+
+
+def write_ply(
+    path: str | os.PathLike,
+    mesh: GridMesh,
+    *,
+    texture_file: str | os.PathLike | None = None,
+    comments: Iterable[str] = (),
+) -> None:
+    """Write a mesh as a binary little-endian PLY file.
+
+    Vertex properties: ``x y z`` (float), ``nx ny nz`` (float, if the mesh has normals),
+    ``red green blue`` (uchar), ``texture_u texture_v`` (float); faces as
+    ``list uchar int vertex_indices``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file.
+    mesh : GridMesh
+        The mesh.
+    texture_file : str or os.PathLike, optional
+        Texture image for the UVs, announced as ``comment TextureFile <name>`` (read by
+        MeshLab and trimesh). It is written relative to the PLY's folder.
+    comments : iterable of str
+        Extra header comments, one line each. ``comment unit <unit>`` is always written.
+
+    Raises
+    ------
+    InputError
+        If the file cannot be written (see :func:`reconstruct.atomic.atomic_write`).
+    ValueError
+        For a multi-line comment, or more vertices than a PLY ``int`` index can address.
+    """
+    n_vertices = len(mesh.vertices)
+    if n_vertices > np.iinfo(np.int32).max:
+        raise ValueError("too many vertices for PLY int32 indices")
+    header = ["ply", "format binary_little_endian 1.0"]
+    if texture_file is not None:
+        header.append(f"comment TextureFile {_relative_name(texture_file, path)}")
+    header.append(f"comment unit {_check_comment(mesh.unit)}")
+    header += [f"comment {_check_comment(c)}" for c in comments]
+    fields = _ply_vertex_fields(mesh.normals is not None)
+    # A structured dtype without alignment is packed, like PLY's binary records.
+    vertex_dtype = np.dtype([(name, np_type) for name, np_type, _ in fields])
+    header.append(f"element vertex {n_vertices}")
+    header += [f"property {ply_type} {name}" for name, _, ply_type in fields]
+    header.append(f"element face {len(mesh.faces)}")
+    header.append("property list uchar int vertex_indices")
+    header.append("end_header")
+    face_dtype = np.dtype([("count", "u1"), ("index", "<i4", (3,))])
+
+    with atomic_write(path, "wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode("utf-8"))
+        for start in range(0, n_vertices, _CHUNK):
+            sl = slice(start, start + _CHUNK)
+            record = np.empty(len(mesh.vertices[sl]), dtype=vertex_dtype)
+            record["x"], record["y"], record["z"] = mesh.vertices[sl].T
+            if mesh.normals is not None:
+                record["nx"], record["ny"], record["nz"] = mesh.normals[sl].T
+            record["red"], record["green"], record["blue"] = mesh.colors[sl].T
+            record["texture_u"], record["texture_v"] = mesh.uv[sl].T
+            handle.write(record.tobytes())
+        for start in range(0, len(mesh.faces), _CHUNK):
+            block = mesh.faces[start : start + _CHUNK]
+            record = np.empty(len(block), dtype=face_dtype)
+            record["count"] = 3
+            record["index"] = block
+            handle.write(record.tobytes())
+
+
+def _relative_name(target: str | os.PathLike, relative_to_file: str | os.PathLike) -> str:
+    """`target` as referenced from the folder of `relative_to_file`, with '/' separators."""
+    target = os.fspath(target)
+    if not os.path.isabs(target):
+        return target.replace(os.sep, "/")
+    folder = os.path.dirname(os.path.abspath(relative_to_file))
+    try:
+        rel = os.path.relpath(target, folder)
+    except ValueError:  # another drive on Windows
+        return target.replace(os.sep, "/")
+    return rel.replace(os.sep, "/")
+
+
+def _write_rows(
+    handle: IO[str], fmt: str, n_rows: int, rows: Callable[[slice], np.ndarray]
+) -> None:
+    """Write `n_rows` lines ``fmt % row``, getting the rows a chunk at a time from `rows`.
+
+    One ``%`` on a repeated format string formats a whole chunk in C, many times faster than
+    numpy.savetxt's per-row Python loop; chunking bounds the temporaries.
+    """
+    for start in range(0, n_rows, _CHUNK):
+        block = rows(slice(start, start + _CHUNK))
+        handle.write((fmt * len(block)) % tuple(block.ravel().tolist()))
+
+
+def write_obj(
+    path: str | os.PathLike,
+    mesh: GridMesh,
+    texture: str | os.PathLike | np.ndarray | None = None,
+    *,
+    comments: Iterable[str] = (),
+) -> None:
+    """Write a mesh as a Wavefront OBJ with its MTL material and PNG texture.
+
+    For ``folder/name.obj`` the files are ``folder/name.obj``, ``folder/name.mtl`` (material
+    ``name``) and ``folder/name_texture.png``, so several meshes can share a folder. The
+    material is white (``Ka``/``Kd`` 1, ``Ks`` 0, ``illum 1``) so that viewers show the
+    texture's own colours. The texture is stored as given: with v up in the UVs, image row 0
+    is the top of the mesh.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output ``.obj`` file.
+    mesh : GridMesh
+        The mesh.
+    texture : str, os.PathLike or numpy.ndarray, optional
+        Texture image: a file readable by Pillow (converted to PNG) or an ``(H, W, 3)``
+        uint8 sRGB array. Without one no MTL or PNG is written and the vertex colours are
+        written as ``v x y z r g b`` (an extension MeshLab and trimesh read).
+    comments : iterable of str
+        Extra comment lines for the OBJ header.
+
+    Raises
+    ------
+    InputError
+        If the texture file cannot be read or an output cannot be written.
+    ValueError
+        For a multi-line comment or a malformed texture array.
+    """
+    path = os.fspath(path)
+    folder = os.path.dirname(path)
+    stem = os.path.splitext(os.path.basename(path))[0]
+    n_vertices = len(mesh.vertices)
+    header = ["# ptm-reconstruct grid mesh", f"# unit {_check_comment(mesh.unit)}"]
+    header += [f"# {_check_comment(c)}" for c in comments]
+
+    if texture is not None:
+        image = _texture_image(texture)
+        mtl_name = f"{stem}.mtl"
+        png_name = f"{stem}_texture.png"
+        with atomic_write(os.path.join(folder, png_name), "wb") as handle:
+            image.save(handle, format="PNG")
+        with atomic_write(os.path.join(folder, mtl_name), "w") as handle:
+            handle.write(
+                f"# ptm-reconstruct material for {stem}.obj\n"
+                f"newmtl {stem}\n"
+                "Ka 1 1 1\nKd 1 1 1\nKs 0 0 0\nd 1\nillum 1\n"
+                f"map_Kd {png_name}\n"
+            )
+        header += [f"mtllib {mtl_name}"]
+
+    # The OBJ goes last: once it exists, the files it references do too.
+    with atomic_write(path, "w") as handle:
+        handle.write("\n".join(header) + "\n")
+        if texture is None:
+            _write_rows(
+                handle,
+                "v %.7g %.7g %.7g %.4g %.4g %.4g\n",
+                n_vertices,
+                lambda sl: np.hstack([mesh.vertices[sl], mesh.colors[sl] / np.float32(255)]),
+            )
+        else:
+            _write_rows(handle, "v %.7g %.7g %.7g\n", n_vertices, lambda sl: mesh.vertices[sl])
+        _write_rows(handle, "vt %.7g %.7g\n", n_vertices, lambda sl: mesh.uv[sl])
+        if mesh.normals is not None:
+            _write_rows(handle, "vn %.6g %.6g %.6g\n", n_vertices, lambda sl: mesh.normals[sl])
+        if texture is not None:
+            handle.write(f"usemtl {stem}\n")
+        # Vertex, UV and normal share their index (OBJ counts from 1).
+        if mesh.normals is not None:
+            fmt, repeat = "f %d/%d/%d %d/%d/%d %d/%d/%d\n", 3
+        else:
+            fmt, repeat = "f %d/%d %d/%d %d/%d\n", 2
+        _write_rows(
+            handle,
+            fmt,
+            len(mesh.faces),
+            lambda sl: np.repeat(mesh.faces[sl].astype(np.int64) + 1, repeat, axis=1),
+        )
+
+
+def _texture_image(texture: str | os.PathLike | np.ndarray) -> Image.Image:
+    """The texture as an RGB Pillow image, from a file or an array."""
+    if isinstance(texture, np.ndarray):
+        rgb = _as_rgb(texture, texture.shape[:2])
+        return Image.fromarray(np.ascontiguousarray(rgb))
+    try:
+        with Image.open(texture) as image:
+            return image.convert("RGB")
+    except (OSError, Image.DecompressionBombError) as exc:
+        raise InputError(f"cannot read the texture image ({exc})", texture) from exc

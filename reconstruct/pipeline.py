@@ -1,0 +1,326 @@
+"""The whole reconstruction of one capture: photographs → PTM → normals → height → mesh.
+
+:func:`run_capture` is what ``reconstruct run`` calls. Each step is also a plain function that
+a notebook user can call alone (:func:`ptmcore.load_stack`, :func:`ptmcore.fit_ptm`,
+:func:`ptmcore.photometric_stereo`, :func:`reconstruct.integrate.integrate`,
+:func:`reconstruct.mesh.grid_mesh`, ...).
+
+Output folder layout (stable; later versions add files, never rename them)::
+
+    normals.npy        H×W×3 float32 unit normals (x right, y up, z towards the camera)
+    normals.png        16-bit RGB normal map, OpenGL convention (R=x, G=y, B=z)
+    albedo.png         8-bit sRGB albedo
+    height.tif         float32 height map, NaN outside the mask; unit in report.json
+    mesh.ply           binary PLY: vertex colours, texture coordinates, normals
+    mesh.obj           OBJ with mesh.mtl and mesh_texture.png
+    mask.png           the mask used (only when one was given)
+    report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import platform
+import shutil
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import ptmcore
+from ptmcore.errors import InputError
+from ptmcore.fit import fit_ptm
+from ptmcore.images import load_stack, read_image
+from ptmcore.lp import read_lp
+from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+
+from . import outputs
+from .accuracy import load_ground_truth, height_rmse, normal_accuracy
+from .integrate import integrate
+from .mesh import grid_mesh, write_obj, write_ply
+from .profiling import StageTimer
+
+#: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
+NORMAL_METHODS = ("ps", "ptm")
+INTEGRATORS = ("dct", "fc")
+#: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
+#: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
+AUTO_MESH_VERTICES = 4_000_000
+
+ProgressFn = Callable[[str, int, int], None]
+
+
+@dataclass
+class RunOptions:
+    """Parameters of :func:`run_capture`.
+
+    Attributes
+    ----------
+    lp : Path or None
+        The light file; default: the single ``.lp`` file in the capture folder.
+    pixel_size : float or None
+        Millimetres per pixel; heights and meshes are in millimetres when given, else in pixels.
+    normals : {"ps", "ptm"}
+        Photometric stereo, or the maximum of each pixel's PTM polynomial.
+    integrator : {"dct", "fc"}
+        Poisson with Neumann boundary by DCT, or Frankot–Chellappa.
+    step : int or None
+        Mesh subsampling; None picks the smallest step that keeps the mesh under
+        :data:`AUTO_MESH_VERTICES` vertices.
+    linearize : bool
+        Take 8-bit photographs as sRGB and linearise them.
+    mask : Path or None
+        Image whose non-zero pixels are the object; height and mesh are restricted to it.
+    threads : int or None
+        Decoding threads (default: all CPUs).
+    ground_truth : Path or None
+        Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
+        default: ``CAPTURE/ground_truth`` when it exists.
+    """
+
+    lp: Path | None = None
+    pixel_size: float | None = None
+    normals: str = "ps"
+    integrator: str = "dct"
+    step: int | None = None
+    linearize: bool = True
+    mask: Path | None = None
+    threads: int | None = None
+    ground_truth: Path | None = None
+
+
+@dataclass
+class RunResult:
+    """What :func:`run_capture` produced: the output folder, its files and the report."""
+
+    output: Path
+    files: dict[str, Path]
+    report: dict = field(default_factory=dict)
+
+
+def find_lp(capture: Path, lp: Path | None = None) -> Path:
+    """The light file of a capture: ``lp`` if given, the capture itself if it is an ``.lp``
+    file, else the single ``.lp`` file in the capture folder."""
+    if lp is not None:
+        return Path(lp)
+    capture = Path(capture)
+    if capture.is_file():
+        if capture.suffix.lower() == ".lp":
+            return capture
+        raise InputError("not a capture folder or .lp file", capture)
+    if not capture.is_dir():
+        raise InputError("capture folder not found", capture)
+    found = sorted(p for p in capture.iterdir() if p.suffix.lower() == ".lp" and p.is_file())
+    if not found:
+        raise InputError("no .lp light file in the capture folder (give one with --lp)", capture)
+    if len(found) > 1:
+        names = ", ".join(p.name for p in found)
+        raise InputError(f"several .lp files ({names}); choose one with --lp", capture)
+    return found[0]
+
+
+def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """Read a mask image (non-zero = object) and check it matches the photographs."""
+    m = read_image(path)
+    if m.ndim == 3:
+        m = m.max(axis=2)
+    if m.shape != shape:
+        raise InputError(f"mask is {m.shape[1]}×{m.shape[0]} but the photographs are {shape[1]}×{shape[0]}", path)
+    m = m > 0
+    if not m.any():
+        raise InputError("mask is empty (no non-zero pixel)", path)
+    return m
+
+
+def auto_step(shape: tuple[int, int], max_vertices: int = AUTO_MESH_VERTICES) -> int:
+    """Smallest grid step whose mesh has at most ``max_vertices`` vertices."""
+    return max(1, math.ceil(math.sqrt(shape[0] * shape[1] / max_vertices)))
+
+
+def _versions() -> dict[str, str]:
+    import importlib.metadata as md
+
+    out = {"python": platform.python_version(), "ptm-reconstruct": ptmcore.__version__}
+    for pkg in ("numpy", "scipy", "simplejpeg", "opencv-python-headless", "tifffile", "trimesh"):
+        try:
+            out[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            pass
+    return out
+
+
+def _prepare_output(out: Path) -> Path:
+    """Create the output folder and a staging folder inside it; fail early if unwritable."""
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        staging = out / f".partial-{os.getpid()}"
+        staging.mkdir(exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot write the output folder ({exc.strerror})", out) from None
+    return staging
+
+
+def run_capture(
+    capture: str | os.PathLike,
+    output: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    progress: ProgressFn | None = None,
+) -> RunResult:
+    """Reconstruct one capture and write the output folder.
+
+    Parameters
+    ----------
+    capture : path
+        A capture folder (photographs and one ``.lp`` file) or an ``.lp`` file.
+    output : path
+        Output folder; created if needed. Files are written to a staging folder inside it and
+        moved into place only when every stage succeeded, so a failed run leaves earlier
+        results untouched and nothing half-written.
+    options : RunOptions, optional
+    progress : callable, optional
+        ``progress(stage, done, total)`` as work advances.
+
+    Returns
+    -------
+    RunResult
+
+    Raises
+    ------
+    InputError
+        For any problem with the inputs or the output folder.
+    """
+    opt = options or RunOptions()
+    if opt.normals not in NORMAL_METHODS:
+        raise InputError(f"unknown normal method {opt.normals!r}; choose from {', '.join(NORMAL_METHODS)}")
+    if opt.integrator not in INTEGRATORS:
+        raise InputError(f"unknown integrator {opt.integrator!r}; choose from {', '.join(INTEGRATORS)}")
+    if opt.pixel_size is not None and not (math.isfinite(opt.pixel_size) and opt.pixel_size > 0):
+        raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
+    if opt.step is not None and opt.step < 1:
+        raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    capture = Path(capture)
+    out = Path(output)
+    lp_path = find_lp(capture, opt.lp)
+    lights = read_lp(lp_path)
+    gt_dir = opt.ground_truth
+    if gt_dir is None:
+        guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
+        gt_dir = guess if (guess / "normals.npy").exists() else None
+
+    def tick(stage: str, total: int) -> Callable[[int], None]:
+        done = [0]
+        if progress is not None:
+            progress(stage, 0, total)
+
+        def advance(k: int) -> None:
+            done[0] += k
+            if progress is not None:
+                progress(stage, done[0], total)
+
+        return advance
+
+    staging = _prepare_output(out)
+    warnings: list[str] = []
+    timer = StageTimer()
+    files: dict[str, Path] = {}
+    try:
+        with timer.stage("decode"):
+            stack = load_stack(
+                lights.paths, linearize=opt.linearize, threads=opt.threads, progress=tick("decode", len(lights))
+            )
+        h, w = stack.shape
+        bit_depth = stack.bit_depth
+        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
+        if len(stack) < 6:
+            warnings.append(
+                f"only {len(stack)} photographs: a PTM has 6 coefficients, so its fit is underdetermined"
+            )
+        saturated = float(np.mean(stack.luminance == 65535))
+        if saturated > 0.01:
+            warnings.append(f"{saturated:.1%} of the samples are saturated (left out of photometric stereo)")
+
+        with timer.stage("fit_ptm"):
+            ptm = fit_ptm(stack, lights.directions, progress=tick("fit_ptm", h))
+
+        with timer.stage("normals"):
+            if opt.normals == "ps":
+                ps = photometric_stereo(stack, lights.directions, progress=tick("normals", h))
+                normals, albedo = ps.normals, ps.albedo
+                undetermined = int((~ps.valid).sum())
+                if undetermined:
+                    warnings.append(
+                        f"{undetermined} pixels ({undetermined / ps.valid.size:.2%}) had too few lit, "
+                        "unsaturated photographs for photometric stereo; their normal is set to (0, 0, 1)"
+                    )
+            else:
+                normals = normals_from_ptm(ptm.coefficients)
+                albedo = lambertian_albedo(stack, lights.directions, normals)
+            albedo_rgb = ptm.chroma * albedo[..., None]
+        del stack
+
+        with timer.stage("integrate"):
+            height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
+        unit = "mm" if opt.pixel_size else "pixel"
+
+        step = opt.step or auto_step((h, w))
+        with timer.stage("mesh"):
+            texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
+            mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
+            write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png")
+            write_obj(staging / "mesh.obj", mesh, texture)
+        for name in ("mesh.ply", "mesh.obj", "mesh.mtl", "mesh_texture.png"):
+            files[name] = staging / name
+
+        with timer.stage("write"):
+            outputs.write_npy(staging / "normals.npy", normals)
+            outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals))
+            outputs.write_png(staging / "albedo.png", texture)
+            outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size)
+            files.update({k: staging / k for k in ("normals.npy", "normals.png", "albedo.png", "height.tif")})
+            if mask is not None:
+                outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
+                files["mask.png"] = staging / "mask.png"
+
+        accuracy = None
+        if gt_dir is not None:
+            truth = load_ground_truth(gt_dir)
+            accuracy = {"ground_truth": str(gt_dir), "normals": normal_accuracy(normals, truth)}
+            rmse = height_rmse(height, truth) if opt.pixel_size else None
+            if rmse is not None:
+                accuracy["height_rmse_mm"] = rmse
+
+        report = {
+            "inputs": {
+                "capture": str(capture.resolve()),
+                "lp": str(lp_path.resolve()),
+                "photographs": len(lights),
+                "width": w,
+                "height": h,
+                "bit_depth": bit_depth,
+                "mask": str(opt.mask) if opt.mask else None,
+            },
+            "parameters": {**{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opt).items()}, "step": step},
+            "height_unit": unit,
+            "albedo_scale": albedo_scale,
+            "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step},
+            "stages": timer.stages,
+            "peak_rss_scope": "per stage" if timer.per_stage_peak else "process since start",
+            "versions": _versions(),
+            "warnings": warnings,
+            "accuracy": accuracy,
+        }
+        outputs.write_json(staging / "report.json", report)
+        files["report.json"] = staging / "report.json"
+
+        final = {}
+        for name, path in files.items():
+            os.replace(path, out / name)
+            final[name] = out / name
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return RunResult(out, final, report)

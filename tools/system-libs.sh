@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# Install the Debian libraries that the Python wheels of open3d and VTK load at import time
+# but do not ship (open3d's wheel needs libusb-1.0-0, for example). It imports each module,
+# reads the name of a missing shared library from the error, installs the package that holds
+# it, and tries again. Needs root for apt-get; otherwise it says what to install.
+set -u
+python=${1:-.venv/bin/python}
+declare -A pkg=(
+  [libusb-1.0.so.0]=libusb-1.0-0 [libgomp.so.1]=libgomp1 [libGL.so.1]=libgl1
+  [libEGL.so.1]=libegl1 [libOSMesa.so.8]=libosmesa6 [libX11.so.6]=libx11-6
+  [libXrender.so.1]=libxrender1 [libXext.so.6]=libxext6 [libXcursor.so.1]=libxcursor1
+  [libXfixes.so.3]=libxfixes3 [libXi.so.6]=libxi6 [libxcb.so.1]=libxcb1
+  [libudev.so.1]=libudev1 [libglib-2.0.so.0]=libglib2.0-0 [libsm.so.6]=libsm6
+)
+updated=0
+for module in open3d vtk; do
+  for _ in 1 2 3 4 5 6; do
+    err=$("$python" -c "import $module" 2>&1) && break
+    lib=$(printf '%s\n' "$err" | grep -o 'lib[A-Za-z0-9_.+-]*\.so[.0-9]*' | head -n 1)
+    deb=${pkg[$lib]:-}
+    if [ -z "$lib" ] || [ -z "$deb" ]; then
+      printf 'cannot import %s:\n%s\n' "$module" "$err" >&2; exit 1
+    fi
+    if [ "$(id -u)" != 0 ]; then
+      echo "$module needs the Debian package $deb ($lib): run 'sudo apt-get install $deb'" >&2; exit 1
+    fi
+    if [ "$updated" = 0 ]; then apt-get update -qq >/dev/null && updated=1; fi
+    echo "installing $deb (needed by $module for $lib)"
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$deb" >/dev/null || exit 1
+  done
+done
