@@ -36,10 +36,11 @@ def dome_lights(
 ) -> np.ndarray:
     """Lights on several rings of a dome, like a real RTI dome.
 
-    Ring elevations are evenly spaced from ``min_elevation_deg`` to ``max_elevation_deg``
-    (about √(n/3) rings, at least two from 6 lights on, so the biquadratic PTM basis is
-    well conditioned; fewer lights share one ring at the mean elevation); each ring gets lights in proportion to its circumference, evenly
-    spread in azimuth, alternate rings staggered by half a spacing.
+    Ring elevations are evenly spaced from ``min_elevation_deg`` to ``max_elevation_deg``:
+    about √(n/3) rings, at least two from 6 lights on so the biquadratic PTM basis has full
+    rank (fewer lights share one ring at the mean elevation). Each ring gets lights in
+    proportion to its circumference, evenly spread in azimuth, alternate rings staggered by
+    half a spacing.
 
     Parameters
     ----------

@@ -132,8 +132,8 @@ def normals_from_height(height: np.ndarray, pixel_size: float) -> np.ndarray:
     Returns
     -------
     np.ndarray
-        (H, W, 3) float32 unit normals ∝ (−∂z/∂x, −∂z/∂y, 1); rows go down while y goes up,
-        hence ∂z/∂y = −∂z/∂row.
+        (H, W, 3) float32 unit normals ∝ (−∂z/∂x, −∂z/∂y, 1); rows go down while y goes
+        up, hence ∂z/∂y = −∂z/∂row.
     """
     d_row, d_col = np.gradient(np.asarray(height, dtype=np.float64), edge_order=2)
     n = np.stack([-d_col / pixel_size, d_row / pixel_size, np.ones_like(d_row)], axis=-1)

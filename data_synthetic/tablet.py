@@ -81,13 +81,15 @@ def clay_tablet(
     pillow = np.clip(1 - (x / half_w) ** 2, 0, None) * np.clip(1 - (y / half_h) ** 2, 0, None)
     body = rim * (rim_height + dome_height * pillow)
 
-    top_w, top_h = half_w - rim_width - 3.0 * scale, half_h - rim_width - 3.0 * scale
+    top_w, top_h = half_w - rim_width - 1.0 * scale, half_h - rim_width - 1.0 * scale
     wedges = random_inscription(rng, (-top_w, top_w), (-top_h, top_h), scale)
     impressions = rasterize_wedges(wedges, x, y, s)
     # Pressed clay has rounded creases; smoothing over about a pixel also keeps the sampled
     # field smooth enough for finite-difference normals at any resolution.
     impressions = ndimage.gaussian_filter(impressions, max(0.75, 0.08 * scale / s))
-    height = (body - impressions).astype(np.float32)
+    # At very coarse pixel sizes the smoothing can carry a wedge past the rim; the table
+    # stays flat regardless.
+    height = np.maximum(body - impressions, 0.0).astype(np.float32)
 
     mask = inset > 0
     variation = 1.0 + 0.08 * smooth_noise(shape, 6, rng)

@@ -43,6 +43,15 @@ class Wedge:
         """Radius around (x, y) that contains the whole impression."""
         return self.head_length + self.tail_length + self.head_half_width
 
+    def bounds(self) -> tuple[float, float, float, float]:
+        """Tight box (x_min, x_max, y_min, y_max) around the impression, in mm."""
+        length = self.head_length + self.tail_length
+        u = np.array([0.0, 0.0, length])
+        v = np.array([-self.head_half_width, self.head_half_width, 0.0])
+        c, s = np.cos(self.angle), np.sin(self.angle)
+        xs, ys = self.x + u * c - v * s, self.y + u * s + v * c
+        return float(xs.min()), float(xs.max()), float(ys.min()), float(ys.max())
+
 
 def random_inscription(
     rng: np.random.Generator,
@@ -57,7 +66,7 @@ def random_inscription(
     rng : np.random.Generator
         Source of randomness.
     x_range, y_range : tuple of float
-        The area (mm, centred frame) the wedge heads may occupy.
+        The area (mm, centred frame) every wedge must fit in entirely.
     scale : float
         Size factor; 1 gives heads of 1.6–3.2 mm, depths of 0.3–1 mm and lines 6 mm apart.
 
@@ -78,7 +87,13 @@ def random_inscription(
             ys = line_y + rng.uniform(-0.3, 0.3, count) * line_gap
             heads.extend(zip(xs, ys))
             cursor += width + rng.uniform(1.0, 2.5) * scale
-    return _random_shapes(rng, np.array(heads).reshape(-1, 2), scale)
+    wedges = _random_shapes(rng, np.array(heads).reshape(-1, 2), scale)
+    # Wedges running over the edge of the writing area would cut into the tablet's rim.
+    return [
+        wedge for wedge in wedges
+        if (x_range[0] <= (box := wedge.bounds())[0] and box[1] <= x_range[1]
+            and y_range[0] <= box[2] and box[3] <= y_range[1])
+    ]
 
 
 def _random_shapes(rng: np.random.Generator, heads: np.ndarray, scale: float) -> list[Wedge]:

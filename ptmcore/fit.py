@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .images import ImageStack, band_rows
+from .bands import band_rows, run_bands
+from .images import ImageStack
 
 
 def light_matrix(directions: np.ndarray) -> np.ndarray:
@@ -73,6 +74,7 @@ def fit_ptm(
     stack: ImageStack,
     directions: np.ndarray,
     *,
+    threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> PTM:
     """Fit an LRGB PTM to a stack by least squares.
@@ -83,6 +85,8 @@ def fit_ptm(
         The photographs' luminance.
     directions : ndarray, shape (N, 3)
         Unit light directions, one per photograph.
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
     progress : callable, optional
         Called with the number of rows done after each band.
 
@@ -97,12 +101,11 @@ def fit_ptm(
         raise ValueError(f"expected {n} light directions, got array of shape {directions.shape}")
     pinv = fit_matrix(directions).astype(np.float32)
     coef = np.empty((h, w, 6), dtype=np.float32)
-    step = band_rows(n, w)
-    for r0 in range(0, h, step):
-        r1 = min(h, r0 + step)
+
+    def work(r0: int, r1: int) -> None:
         values, _ = stack.band(r0, r1)
         # (6, N) @ (N, rows·W): one BLAS call per band.
         coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, 6)
-        if progress is not None:
-            progress(r1 - r0)
+
+    run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
     return PTM(coef, stack.chroma())

@@ -32,7 +32,6 @@ LUMA_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 #: Code of a stored luminance sample that was clipped in some channel.
 SATURATED = np.uint16(65535)
 _LUM_SCALE = 65534.0
-_BAND_BYTES = 64 << 20
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
@@ -155,10 +154,6 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     raise InputError(f"unsupported sample type {img.dtype}", path)
 
 
-def _full_scale(img: np.ndarray) -> float:
-    return {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
-
-
 @dataclass
 class ImageStack:
     """A capture's photographs reduced to what the fit needs.
@@ -168,7 +163,7 @@ class ImageStack:
     luminance : ndarray, shape (N, H, W), uint16
         Linear luminance × 65534 per photograph; :data:`SATURATED` where a channel clipped.
     rgb_sum : ndarray, shape (H, W, 3), float32
-        Sum over the photographs of linear RGB (clipped samples included).
+        Sum over the photographs of linear R, G, B (full scale 1; clipped samples included).
     paths : list of Path
         The photographs, in order.
     bit_depth : int
@@ -220,50 +215,55 @@ class ImageStack:
         return out
 
 
-def band_rows(n_images: int, width: int, bytes_per_sample: int = 4, budget: int = _BAND_BYTES) -> int:
-    """Rows per band so that one band of the stack takes about ``budget`` bytes."""
-    return max(1, int(budget // max(1, n_images * width * bytes_per_sample)))
-
-
-def _to_linear(block: np.ndarray, full_scale: float, linearize: bool, lut: np.ndarray | None) -> np.ndarray:
-    if lut is not None:
-        return lut[block]
-    v = block.astype(np.float32) * np.float32(1.0 / full_scale)
-    return srgb_to_linear(v) if linearize and block.dtype == np.uint8 else v
+def _channel_table(dtype: np.dtype, linearize: bool) -> np.ndarray | None:
+    """256-entry table of each channel's contribution to luminance, × 65534, for 8-bit input."""
+    if dtype != np.uint8:
+        return None
+    v = np.arange(256, dtype=np.float32) / np.float32(255.0)
+    lin = srgb_to_linear(v) if linearize else v
+    return np.round(lin[None, :, None] * LUMA_WEIGHTS * _LUM_SCALE).astype(np.uint16)  # (1, 256, 3)
 
 
 def _reduce_into(
-    img: np.ndarray, lum_out: np.ndarray, rgb_sum: np.ndarray, lock: threading.Lock, linearize: bool
+    img: np.ndarray, lum_out: np.ndarray, channel_sum: np.ndarray, lock: threading.Lock, linearize: bool
 ) -> None:
-    """Write one photograph's luminance into ``lum_out`` and add its RGB to ``rgb_sum``."""
-    full = _full_scale(img)
-    lut = None
-    if img.dtype == np.uint8:
-        lut = np.arange(256, dtype=np.float32) / np.float32(255.0)
-        if linearize:
-            lut = srgb_to_linear(lut)
-    clip_level = full if img.dtype != np.float32 else 1.0
+    """Write one photograph's luminance into ``lum_out`` and add its channels to ``channel_sum``.
+
+    Integer images go through OpenCV's vectorised kernels (a table look-up for 8-bit sRGB,
+    a channel transform, a saturating sum): in NumPy this reduction took several times longer
+    than decoding the JPEG. Each channel is first mapped to its luminance contribution
+    ``w_c · linear_c · 65534`` as uint16, so their saturating sum is the luminance and clipped
+    samples can be marked without a float image.
+    """
+    import cv2
+
     h, w = img.shape[:2]
-    step = band_rows(3, w, 4, 16 << 20)
+    grey = img.ndim == 2
+    table = _channel_table(img.dtype, linearize)
+    top = 254 if img.dtype == np.uint8 else 65534
+    weights16 = (LUMA_WEIGHTS * np.float32(_LUM_SCALE / 65535.0))[None, :]  # for 16-bit input
+    step = max(1, (1 << 20) // w)
     for r0 in range(0, h, step):
-        block = img[r0 : r0 + step]
-        lin = _to_linear(block, full, linearize, lut)
-        if block.ndim == 2:
-            clipped = block >= clip_level
-            lum = lin
-            rgb = np.repeat(lin[..., None], 3, axis=2)
+        block = np.ascontiguousarray(img[r0 : r0 + step])
+        if block.dtype == np.float32:
+            lin = np.clip(block, 0.0, 1.0)
+            contrib = (lin[..., None] if grey else lin) * (LUMA_WEIGHTS * np.float32(_LUM_SCALE))
+            contrib = np.round(contrib).astype(np.uint16)
+            clipped = (block >= 1.0) if grey else (block >= 1.0).any(axis=2)
         else:
-            clipped = (block >= clip_level).any(axis=2)
-            lum = lin @ LUMA_WEIGHTS
-            rgb = lin
-        q = np.clip(lum, 0.0, 1.0)
-        q *= np.float32(_LUM_SCALE)
-        q += np.float32(0.5)
-        out = q.astype(np.uint16)
-        out[clipped] = SATURATED
-        lum_out[r0 : r0 + step] = out
+            if grey:
+                block = cv2.merge([block, block, block])
+            if table is not None:
+                contrib = cv2.LUT(block, table)
+            else:
+                contrib = cv2.transform(block, np.diag(weights16[0]))
+            clipped = cv2.inRange(block, (0, 0, 0), (top, top, top)) == 0
+        lum = cv2.transform(contrib, np.ones((1, 3), np.float32))
+        np.minimum(lum, np.uint16(_LUM_SCALE), out=lum)
+        np.copyto(lum, SATURATED, where=clipped)
+        lum_out[r0 : r0 + step] = lum
         with lock:
-            rgb_sum[r0 : r0 + step] += rgb
+            cv2.accumulate(contrib, channel_sum[r0 : r0 + step])
 
 
 def load_stack(
@@ -303,7 +303,7 @@ def load_stack(
     h, w = first.shape[:2]
     n = len(paths)
     luminance = np.empty((n, h, w), dtype=np.uint16)
-    rgb_sum = np.zeros((h, w, 3), dtype=np.float32)
+    channel_sum = np.zeros((h, w, 3), dtype=np.float32)
     lock = threading.Lock()
     depths: list[int] = [0] * n
 
@@ -317,7 +317,7 @@ def load_stack(
                 paths[k],
             )
         depths[k] = img.dtype.itemsize * 8
-        _reduce_into(img, luminance[k], rgb_sum, lock, linearize)
+        _reduce_into(img, luminance[k], channel_sum, lock, linearize)
         if progress is not None:
             progress(1)
 
@@ -333,4 +333,6 @@ def load_stack(
             for f in futures:
                 f.cancel()
             raise
-    return ImageStack(luminance, rgb_sum, paths, max(depths), linearize)
+    # Back from luminance contributions to the sum of each linear channel (full scale = 1).
+    channel_sum /= LUMA_WEIGHTS * np.float32(_LUM_SCALE)
+    return ImageStack(luminance, channel_sum, paths, max(depths), linearize)

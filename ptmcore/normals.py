@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .images import ImageStack, band_rows
+from .bands import band_rows, run_bands
+from .images import ImageStack
 
 _CIRCLE_SAMPLES = 72
 _NEWTON_STEPS = 4
@@ -130,10 +131,15 @@ class PhotometricStereo:
 
 def _weighted_normal_solve(
     dirs: np.ndarray, outer: np.ndarray, values: np.ndarray, weights: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Solve the per-pixel 3×3 weighted normal equations; return (g (3, P), well_posed (P,))."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Solve the per-pixel 3×3 weighted normal equations ``(Σ w l lᵀ) g = Σ w I l``.
+
+    Returns ``g`` (3, P), where the system is well posed (P,), and the number of samples used
+    (P,), which is the trace of the normal matrix since the light directions are unit vectors.
+    """
     m = (outer.T @ weights).astype(np.float64)  # (6, P): xx, yy, zz, xy, xz, yz
-    b = (dirs.T @ (weights * values)).astype(np.float64)  # (3, P)
+    weights *= values  # the weights are not needed again: reuse their memory
+    b = (dirs.T @ weights).astype(np.float64)  # (3, P)
     m0, m1, m2, m3, m4, m5 = m
     c00 = m1 * m2 - m5 * m5
     c01 = m4 * m5 - m3 * m2
@@ -142,10 +148,10 @@ def _weighted_normal_solve(
     c12 = m3 * m4 - m0 * m5
     c22 = m0 * m1 - m3 * m3
     det = m0 * c00 + m3 * c01 + m4 * c02
+    count = m0 + m1 + m2
     # Relative to the cube of the mean eigenvalue, a small determinant means the used lights
     # are (nearly) coplanar: the normal along their plane's normal is undetermined.
-    scale = ((m0 + m1 + m2) / 3.0) ** 3
-    well_posed = det > 1e-6 * np.maximum(scale, 1e-30)
+    well_posed = det > 1e-6 * np.maximum((count / 3.0) ** 3, 1e-30)
     safe = np.where(well_posed, det, 1.0)
     g = np.stack(
         [
@@ -154,27 +160,28 @@ def _weighted_normal_solve(
             c02 * b[0] + c12 * b[1] + c22 * b[2],
         ]
     ) / safe
-    return g, well_posed
+    return g, well_posed, count
 
 
 def photometric_stereo(
     stack: ImageStack,
     directions: np.ndarray,
     *,
-    dark_fraction: float = 0.1,
+    dark_fraction: float = 0.05,
     min_shading: float = 0.05,
     cast_shadow_ratio: float = 0.4,
-    iterations: int = 2,
+    iterations: int = 1,
+    threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> PhotometricStereo:
     """Lambertian photometric stereo, excluding shadowed and saturated samples per pixel.
 
     Each pixel's normal and albedo solve ``I_i = ρ n·l_i`` by weighted least squares over the
     samples that the Lambertian model explains. Saturated samples are always left out. A first
-    pass leaves out samples darker than ``dark_fraction`` × the pixel's median (shadows); each
-    further pass leaves out the samples the current estimate predicts in attached shadow
-    (``n·l < min_shading``) and those much darker than predicted (cast shadow: below
-    ``cast_shadow_ratio`` × the prediction).
+    pass leaves out samples darker than ``dark_fraction`` × the pixel's brightest unsaturated
+    sample (shadows); each further pass leaves out the samples the current estimate predicts
+    in attached shadow (``n·l < min_shading``) and those much darker than predicted (cast
+    shadow: below ``cast_shadow_ratio`` × the prediction).
 
     Parameters
     ----------
@@ -185,6 +192,8 @@ def photometric_stereo(
         Thresholds described above.
     iterations : int
         Refinement passes after the first.
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
     progress : callable, optional
         Called with the number of rows done after each band.
 
@@ -203,39 +212,46 @@ def photometric_stereo(
     albedo = np.empty((h, w), dtype=np.float32)
     samples = np.empty((h, w), dtype=np.uint16)
     valid = np.empty((h, w), dtype=bool)
-    step = band_rows(n, w, 4 * 6)
-    for r0 in range(0, h, step):
-        r1 = min(h, r0 + step)
+
+    def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
         v = values.reshape(n, -1)
         usable = ~saturated.reshape(n, -1)
-        # Clipped samples read as 1, which is what they are at least: the median stays robust.
-        med = np.median(v, axis=0)
-        used = usable & (v > dark_fraction * med) & (v > 1e-4)
-        g, ok = _weighted_normal_solve(dirs, outer, v, used.astype(np.float32))
+        brightest = np.where(usable, v, 0.0).max(axis=0)
+        wts = (v > np.maximum(dark_fraction * brightest, 1e-4)) & usable
+        g, ok, count = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
         for _ in range(iterations):
             rho = np.linalg.norm(g, axis=0)
-            shading = dirs @ (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)  # (N, P)
-            keep = usable & (shading > min_shading) & (v >= cast_shadow_ratio * shading * rho.astype(np.float32))
-            g_new, ok_new = _weighted_normal_solve(dirs, outer, v, keep.astype(np.float32))
+            unit = (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)
+            shading = dirs @ unit  # (N, P)
+            wts = shading > min_shading
+            wts &= usable
+            shading *= (cast_shadow_ratio * rho).astype(np.float32)  # now the darkest plausible value
+            wts &= v >= shading
+            g_new, ok_new, count_new = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
             # Keep the previous estimate where the refined selection left too little.
             g = np.where(ok_new, g_new, g)
-            used = np.where(ok_new, keep, used)
+            count = np.where(ok_new, count_new, count)
             ok |= ok_new
         rho = np.linalg.norm(g, axis=0)
         good = ok & (rho > 0) & np.isfinite(rho)
         nrm = np.where(good, g / np.where(good, rho, 1.0), np.array([[0.0], [0.0], [1.0]]))
         normals[r0:r1] = nrm.T.reshape(r1 - r0, w, 3)
         albedo[r0:r1] = np.where(good, rho, 0.0).reshape(r1 - r0, w)
-        samples[r0:r1] = used.sum(axis=0).reshape(r1 - r0, w)
+        samples[r0:r1] = np.round(count).reshape(r1 - r0, w)
         valid[r0:r1] = good.reshape(r1 - r0, w)
-        if progress is not None:
-            progress(r1 - r0)
+
+    run_bands(h, band_rows(n, w, 4 * 4), work, threads=threads, progress=progress)
     return PhotometricStereo(normals, albedo, samples, valid)
 
 
 def lambertian_albedo(
-    stack: ImageStack, directions: np.ndarray, normals: np.ndarray, *, min_shading: float = 0.05
+    stack: ImageStack,
+    directions: np.ndarray,
+    normals: np.ndarray,
+    *,
+    min_shading: float = 0.05,
+    threads: int | None = None,
 ) -> np.ndarray:
     """Luminance albedo ρ that best explains the stack given the normals.
 
@@ -249,17 +265,17 @@ def lambertian_albedo(
     h, w = stack.shape
     dirs = np.asarray(directions, dtype=np.float32)
     out = np.empty((h, w), dtype=np.float32)
-    step = band_rows(n, w, 4 * 4)
-    for r0 in range(0, h, step):
-        r1 = min(h, r0 + step)
+
+    def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
         v = values.reshape(n, -1)
         shading = dirs @ normals[r0:r1].reshape(-1, 3).T  # (N, P)
-        wts = (~saturated.reshape(n, -1)) & (shading >= min_shading)
-        s = np.where(wts, shading, 0.0)
-        num = (s * v).sum(axis=0)
-        den = (s * s).sum(axis=0)
+        shading[(shading < min_shading) | saturated.reshape(n, -1)] = 0.0
+        num = (shading * v).sum(axis=0)
+        den = (shading * shading).sum(axis=0)
         out[r0:r1] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0).reshape(r1 - r0, w)
+
+    run_bands(h, band_rows(n, w, 4 * 4), work, threads=threads)
     return out
 
 

@@ -9,11 +9,13 @@ Two global integrators are provided, both O(N log N) with real-to-real or real-t
 transforms of scipy.fft that stay in float32 for float32 input:
 
 * :func:`poisson_dct` — least squares with the natural (Neumann) boundary, solved exactly
-  with the DCT (Simchony, Chellappa & Shao 1990). The default: most accurate and no
-  assumption about what lies beyond the image border.
+  with the DCT (Simchony, Chellappa & Shao 1990). The default: the exact least-squares
+  solution of the discrete problem (second-order accurate, exact for planes), no ringing
+  at creases or steps, and no assumption about what lies beyond the image border.
 * :func:`frankot_chellappa` — projection of the gradient field onto integrable Fourier
   fields (Frankot & Chellappa 1988), either on the mirror-extended field (default) or
-  periodic.
+  periodic. Spectrally accurate on smooth surfaces, but it rings near creases, steps and
+  the border slopes of tilted surfaces.
 
 Both assume a gradient field on the whole rectangle: masked pixels are given a zero gradient
 (a flat surface) before integration. See the functions' notes for the consequences.
@@ -83,7 +85,9 @@ def _prepare(
     p = np.asarray(p)
     q = np.asarray(q)
     if p.ndim != 2 or p.shape != q.shape or p.size == 0:
-        raise ValueError(f"p and q must be non-empty 2-D arrays of one shape, not {p.shape} and {q.shape}")
+        raise ValueError(
+            f"p and q must be non-empty 2-D arrays of one shape, not {p.shape} and {q.shape}"
+        )
     if not (math.isfinite(pixel_size) and pixel_size > 0):
         raise ValueError(f"pixel_size must be a positive number, not {pixel_size}")
     keep = np.isfinite(p) & np.isfinite(q)
@@ -246,7 +250,6 @@ def frankot_chellappa(
     if boundary not in ("mirror", "periodic"):
         raise ValueError(f"boundary must be 'mirror' or 'periodic', not {boundary!r}")
     g_row, g_col, mask = _prepare(p, q, mask, pixel_size)
-    h, w = g_row.shape
     if boundary == "periodic":
         height = _fc_periodic(g_row, g_col, workers)
     else:
@@ -367,7 +370,9 @@ def integrate(
     try:
         integrator = _METHODS[method]
     except (KeyError, TypeError):
-        raise ValueError(f"unknown integration method {method!r}; use one of {sorted(_METHODS)}") from None
+        raise ValueError(
+            f"unknown integration method {method!r}; use one of {sorted(_METHODS)}"
+        ) from None
     normals = np.asarray(normals)
     if mask is None:
         finite = np.isfinite(normals).all(axis=-1) if normals.ndim == 3 else None

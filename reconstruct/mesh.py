@@ -7,10 +7,11 @@ from +z, so their normals point towards the camera. Texture coordinates follow t
 convention (v up): u = (col + 0.5)/W, v = 1 − (row + 0.5)/H, so texture images are stored
 unflipped.
 
-The writers are our own rather than trimesh's exporters: trimesh's PLY export cannot write
-per-vertex ``texture_u``/``texture_v`` together with a ``comment TextureFile`` (what MeshLab
-reads), and both of its exporters build whole-file Python strings or copies, while these
-write binary records and text in bounded chunks. All files are written atomically.
+The writers are our own rather than trimesh's exporters: a trimesh mesh holds either UVs
+or vertex colours (its visuals are one or the other), its PLY exporter writes UVs as ``s t``
+with neither a ``comment TextureFile`` (what MeshLab uses to find the texture) nor our own
+comments, and converting to a trimesh object first would copy every array. These writers
+emit numpy records and text in bounded chunks instead. All files are written atomically.
 """
 
 from __future__ import annotations
@@ -70,6 +71,33 @@ def _samples(n: int, step: int) -> np.ndarray:
     if idx[-1] != n - 1:
         idx = np.append(idx, n - 1)
     return idx
+
+
+def _subsample(image: np.ndarray, step: int) -> np.ndarray:
+    """``image`` at the rows and columns of :func:`_samples`, by slicing (fancy indexing with
+    numpy.ix_ is an order of magnitude slower); a view when the step hits the last ones."""
+    out = image[::step]
+    if (image.shape[0] - 1) % step:
+        out = np.concatenate([out, image[-1:]], axis=0)
+    part = out[:, ::step]
+    if (image.shape[1] - 1) % step:
+        part = np.concatenate([part, out[:, -1:]], axis=1)
+    return part
+
+
+def _take(grid: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Rows ``grid[keep]`` of an ``(h, w, k)`` array as ``(n, k)``; a view when all are kept.
+
+    The selection goes through a void view of k-element records: numpy's boolean indexing
+    then copies one record per kept entry, several times faster than selecting rows of a
+    2-D array (which loops over the trailing axis).
+    """
+    k = grid.shape[-1]
+    if keep.all():
+        return grid.reshape(-1, k)
+    grid = np.ascontiguousarray(grid)
+    records = grid.view(np.dtype((np.void, grid.itemsize * k))).reshape(keep.shape)
+    return records[keep].view(grid.dtype).reshape(-1, k)
 
 
 def _as_rgb(texture: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -138,52 +166,68 @@ def grid_mesh(
     cols = _samples(w_img, int(step))
     s = np.float32(1.0 if pixel_size is None else pixel_size)
 
-    z = height[np.ix_(rows, cols)].astype(np.float32)
+    z = _subsample(height, int(step)).astype(np.float32, copy=False)
     valid = np.isfinite(z)
     n_valid = int(np.count_nonzero(valid))
     index_dtype = np.int32 if n_valid <= np.iinfo(np.int32).max else np.int64
-    # Compact numbering of the kept vertices; −1 marks a dropped one.
+    # Compact numbering of the kept vertices, row by row; −1 marks a dropped one.
     index = np.full(z.shape, -1, dtype=index_dtype)
     index[valid] = np.arange(n_valid, dtype=index_dtype)
+    grid = z.shape
 
-    rr, cc = np.nonzero(valid)  # row-major, the same order as the compact numbering
-    vertices = np.empty((n_valid, 3), dtype=np.float32)
-    vertices[:, 0] = cols[cc] * s
-    vertices[:, 1] = -rows[rr] * s  # negate the integers first: no "-0" in text exports
-    vertices[:, 2] = z[valid]
+    # Per-vertex attributes are laid out on the sample grid by broadcasting, then the kept
+    # vertices are taken in the same row-major order as the numbering.
+    xyz = np.empty(grid + (3,), dtype=np.float32)
+    xyz[..., 0] = (cols * s)[None, :]
+    xyz[..., 1] = (-rows * s)[:, None]  # negate the integers first: no "-0" in text exports
+    xyz[..., 2] = z
+    vertices = _take(xyz, valid)
+    del xyz
 
-    uv = np.empty((n_valid, 2), dtype=np.float32)
-    uv[:, 0] = (cols[cc] + 0.5) / w_img
-    uv[:, 1] = 1.0 - (rows[rr] + 0.5) / h_img
+    uv = np.empty(grid + (2,), dtype=np.float32)
+    uv[..., 0] = ((cols + 0.5) / w_img)[None, :]
+    uv[..., 1] = (1.0 - (rows + 0.5) / h_img)[:, None]
+    uv = _take(uv, valid)
 
     if texture is None:
         colors = np.full((n_valid, 3), _DEFAULT_COLOR, dtype=np.uint8)
     else:
-        colors = _as_rgb(texture, height.shape)[rows[rr], cols[cc]]
+        # Copied, so that the mesh never shares memory with the caller's image.
+        colors = _take(_subsample(_as_rgb(texture, height.shape), int(step)), valid).copy()
 
     vertex_normals = None
     if normals is not None:
         normals = np.asarray(normals)
         if normals.shape != (h_img, w_img, 3):
             raise ValueError(f"normals are {normals.shape}, expected {(h_img, w_img, 3)}")
-        vertex_normals = normals[rows[rr], cols[cc]].astype(np.float32)
-        length = np.linalg.norm(vertex_normals, axis=1, keepdims=True)
-        good = np.isfinite(length[:, 0]) & (length[:, 0] > 0)
-        vertex_normals[good] /= length[good]
+        # A copy (astype), as it is normalised in place below.
+        vertex_normals = _take(_subsample(normals, int(step)), valid).astype(np.float32)
+        length = np.sqrt(np.einsum("ij,ij->i", vertex_normals, vertex_normals))
+        good = np.isfinite(length) & (length > 0)
+        vertex_normals /= np.where(good, length, 1.0)[:, None]
         # A vertex with a height but no usable normal gets the camera direction rather than
         # NaN, which most viewers render as black or reject.
         vertex_normals[~good] = (0.0, 0.0, 1.0)
 
     # Cell corners: a top-left, b top-right, c bottom-left, d bottom-right. With y up,
     # (a, c, d) and (a, d, b) are counter-clockwise seen from +z.
-    a = index[:-1, :-1]
-    b = index[:-1, 1:]
-    c = index[1:, :-1]
-    d = index[1:, 1:]
-    faces = np.stack(
-        [np.stack([a, c, d], axis=-1), np.stack([a, d, b], axis=-1)], axis=2
-    ).reshape(-1, 3)
-    faces = faces[(faces >= 0).all(axis=1)]
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    cells = (grid[0] - 1, grid[1] - 1)
+    faces = np.empty(cells + (2, 3), dtype=index_dtype)
+    for k, corner in enumerate((a, c, d)):
+        faces[:, :, 0, k] = corner
+    for k, corner in enumerate((a, d, b)):
+        faces[:, :, 1, k] = corner
+    if n_valid < valid.size:
+        va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
+        keep = np.empty(cells + (2,), dtype=bool)
+        np.logical_and(va, vd, out=keep[..., 0])
+        keep[..., 1] = keep[..., 0]
+        keep[..., 0] &= vc
+        keep[..., 1] &= vb
+        faces = _take(faces.reshape(cells[0], cells[1] * 2, 3), keep.reshape(cells[0], -1))
+    else:
+        faces = faces.reshape(-1, 3)
 
     return GridMesh(
         vertices=vertices,
@@ -249,7 +293,7 @@ def write_ply(
         raise ValueError("too many vertices for PLY int32 indices")
     header = ["ply", "format binary_little_endian 1.0"]
     if texture_file is not None:
-        header.append(f"comment TextureFile {_relative_name(texture_file, path)}")
+        header.append(f"comment TextureFile {_check_comment(_relative_name(texture_file, path))}")
     header.append(f"comment unit {_check_comment(mesh.unit)}")
     header += [f"comment {_check_comment(c)}" for c in comments]
     fields = _ply_vertex_fields(mesh.normals is not None)

@@ -66,9 +66,13 @@ def write_height_tiff(path: str | os.PathLike, height: np.ndarray, unit: str, pi
     """Write a float32 TIFF height map; NaN outside the mask; unit in the image description."""
     import tifffile
 
+    import io
+
     meta = {"unit": unit, "pixel_size_mm": pixel_size, "frame": "x right, y up, z towards camera"}
+    buf = io.BytesIO()  # tifffile wants a named file; atomic_write's handle has none
+    tifffile.imwrite(buf, height.astype(np.float32, copy=False), metadata=meta)
     with atomic_write(path, "wb") as f:
-        tifffile.imwrite(f, height.astype(np.float32), metadata=meta, compression=None)
+        f.write(buf.getbuffer())
 
 
 def write_json(path: str | os.PathLike, data: dict) -> None:

@@ -1,0 +1,277 @@
+"""Write a complete synthetic RTI capture folder: images, ``.lp`` file, ground truth, scan."""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.errors import InputError
+
+from ._atomic import write_text_atomic
+from .encoding import write_jpeg8, write_mask_png, write_npy, write_tiff16
+from .lights import dome_lights
+from .render import render
+from .scan import sample_scan, write_ply
+from .surfaces import SCENES
+
+#: Image writer and file extension for each encoding.
+ENCODINGS = {"tiff16": (write_tiff16, ".tif"), "jpeg8": (write_jpeg8, ".jpg")}
+
+FRAME = ("x right, y up, z towards the camera; pixel (row, col) lies at "
+         "(col*pixel_size, -row*pixel_size, height) in mm")
+
+
+@dataclass(frozen=True)
+class CaptureInfo:
+    """Where a written capture lives and what it is.
+
+    Attributes
+    ----------
+    folder : Path
+        The capture folder.
+    lp_path : Path
+        The light-position file, ``folder/lights.lp``.
+    ground_truth_dir : Path
+        ``folder/ground_truth``.
+    scan_path : Path or None
+        ``folder/scan.ply``, or None if no scan was written.
+    image_paths : tuple of Path
+        The images, in light order.
+    pixel_size : float
+        Millimetres per pixel.
+    shape : tuple of int
+        (H, W) of the images.
+    """
+
+    folder: Path
+    lp_path: Path
+    ground_truth_dir: Path
+    scan_path: Path | None
+    image_paths: tuple[Path, ...]
+    pixel_size: float
+    shape: tuple[int, int]
+
+
+def format_lp(filenames: list[str], lights: np.ndarray) -> str:
+    """Text of an ``.lp`` file: the count, then ``filename x y z`` per image.
+
+    Parameters
+    ----------
+    filenames : list of str
+        Image file names, relative to the ``.lp`` file.
+    lights : np.ndarray
+        (N, 3) unit directions towards the lights.
+
+    Returns
+    -------
+    str
+        The file content, ``\\n`` line ends.
+    """
+    lines = [str(len(filenames))]
+    lines += [f"{name} {x:.6f} {y:.6f} {z:.6f}" for name, (x, y, z) in zip(filenames, lights)]
+    return "\n".join(lines) + "\n"
+
+
+def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, seed: int,
+              lights: np.ndarray | None, numbers: dict[str, float | None],
+              ) -> tuple[tuple[int, int], np.ndarray | None]:
+    """Turn bad arguments into InputError; return the checked shape and lights."""
+    if scene not in SCENES:
+        raise InputError(f"unknown scene {scene!r}; choose from {', '.join(SCENES)}")
+    if encoding not in ENCODINGS:
+        raise InputError(f"unknown encoding {encoding!r}; choose from {', '.join(ENCODINGS)}")
+    try:
+        h, w = (int(v) for v in shape)
+    except (TypeError, ValueError):
+        raise InputError(f"shape must be (height, width), got {shape!r}") from None
+    if h < 8 or w < 8:
+        raise InputError(f"images must be at least 8×8 pixels, got {h}×{w}")
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
+    for name, value in numbers.items():
+        if value is not None and not (np.isfinite(value) and value >= 0):
+            raise InputError(f"{name} must be a non-negative number, got {value!r}")
+    if numbers["pixel_size"] == 0 or numbers["shininess"] == 0:
+        raise InputError("pixel_size and shininess must be positive")
+    if lights is not None:
+        lights = np.asarray(lights, dtype=np.float64)
+        if lights.ndim != 2 or lights.shape[1] != 3 or len(lights) < 1:
+            raise InputError(f"lights must be an (N, 3) array, got shape {lights.shape}")
+        if np.any(lights[:, 2] <= 0):
+            raise InputError("every light must be above the object plane (z > 0)")
+        return (h, w), lights
+    if n_lights < 3:
+        raise InputError(f"need at least 3 lights, got {n_lights}")
+    low, high = numbers["min_elevation_deg"], numbers["max_elevation_deg"]
+    if not 0 < low <= high <= 90:
+        raise InputError(f"dome elevations need 0 < min ≤ max ≤ 90 degrees, got {low}, {high}")
+    return (h, w), None
+
+
+def _prepare_folder(out_dir: Path) -> Path:
+    """Create the capture and ground-truth folders, reporting problems as InputError."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError("exists and is not a folder", out_dir)
+    gt_dir = out_dir / "ground_truth"
+    try:
+        gt_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the capture folder: {exc.strerror}", out_dir) from None
+    if not os.access(out_dir, os.W_OK) or not os.access(gt_dir, os.W_OK):
+        raise InputError("folder is not writable", out_dir)
+    return gt_dir
+
+
+def write_capture(
+    out_dir: str | os.PathLike,
+    scene: str = "tablet",
+    shape: tuple[int, int] = (384, 512),
+    n_lights: int = 48,
+    encoding: str = "tiff16",
+    seed: int = 0,
+    *,
+    pixel_size: float | None = None,
+    specular: float = 0.0,
+    shininess: float = 30.0,
+    cast_shadows: bool = True,
+    ambient: float = 0.0,
+    noise: float = 0.005,
+    min_elevation_deg: float = 15.0,
+    max_elevation_deg: float = 75.0,
+    lights: np.ndarray | None = None,
+    scan_points: int | None = None,
+    scan_noise_mm: float = 0.02,
+) -> CaptureInfo:
+    """Render a synthetic scene and write a complete capture folder.
+
+    Layout of ``out_dir``::
+
+        img_000.tif …         one image per light (img_000.jpg … for jpeg8)
+        lights.lp             N, then "filename x y z" per image (x right, y up, z to camera)
+        scan.ply              synthetic laser scan, mm, moved by the scan transform
+        ground_truth/
+            normals.npy       (H, W, 3) float32 unit normals
+            height.npy        (H, W) float32, mm
+            albedo.npy        (H, W, 3) float32 linear RGB
+            mask.png          8-bit, 255 on the object
+            scan_transform.txt  4×4 matrix mapping the ground-truth frame onto scan.ply
+            scene.json        everything needed to reproduce the capture
+
+    The surface is ``SCENES[scene](shape, pixel_size=pixel_size, seed=seed)`` and the images
+    are ``render(surface, lights, ..., seed=seed)`` clipped to [0, 1], like a camera.
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+        The capture folder; created if missing. Existing files of the same names are replaced.
+    scene : str
+        A key of ``SCENES``: "tablet" or "sphere".
+    shape : tuple of int
+        (H, W) of the images.
+    n_lights : int
+        Number of dome lights (ignored when ``lights`` is given).
+    encoding : str
+        "tiff16": 16-bit linear RGB TIFF; "jpeg8": 8-bit sRGB JPEG, quality 95.
+    seed : int
+        Drives the scene, the sensor noise and the scan; same arguments, same files.
+    pixel_size : float, optional
+        Millimetres per pixel; default 80 mm across the longer side.
+    specular, shininess, cast_shadows, ambient, noise
+        Passed to :func:`data_synthetic.render.render`.
+    min_elevation_deg, max_elevation_deg : float
+        Elevation range of the dome's rings.
+    lights : np.ndarray, optional
+        (N, 3) directions to use instead of a dome, e.g. ``ring_lights(...)``.
+    scan_points : int, optional
+        Number of scan points; default one per four pixels; 0 writes no scan.
+    scan_noise_mm : float
+        Depth noise of the scan.
+
+    Returns
+    -------
+    CaptureInfo
+
+    Raises
+    ------
+    InputError
+        For an unknown scene or encoding, a bad shape, seed, option value or light set, or an
+        output folder that cannot be created or written.
+    """
+    numbers = {"pixel_size": pixel_size, "specular": specular, "shininess": shininess,
+               "ambient": ambient, "noise": noise, "min_elevation_deg": min_elevation_deg,
+               "max_elevation_deg": max_elevation_deg, "scan_points": scan_points,
+               "scan_noise_mm": scan_noise_mm}
+    shape, custom_lights = _validate(scene, shape, n_lights, encoding, seed, lights, numbers)
+    folder = Path(out_dir)
+    gt_dir = _prepare_folder(folder)
+    surface = SCENES[scene](shape, pixel_size=pixel_size, seed=seed)
+    light_dirs = (custom_lights if custom_lights is not None
+                  else dome_lights(n_lights, min_elevation_deg, max_elevation_deg))
+    light_dirs = light_dirs / np.linalg.norm(light_dirs, axis=1, keepdims=True)
+    # Plain Python types, so scene.json can record exactly what was rendered.
+    options = {"specular": float(specular), "shininess": float(shininess),
+               "cast_shadows": bool(cast_shadows), "ambient": float(ambient),
+               "noise": float(noise)}
+    radiance = render(surface, light_dirs, **options, seed=seed)
+
+    writer, ext = ENCODINGS[encoding]
+    digits = max(3, len(str(len(light_dirs) - 1)))
+    names = [f"img_{i:0{digits}d}{ext}" for i in range(len(light_dirs))]
+    for name, image in zip(names, radiance):
+        writer(folder / name, image)
+    del radiance
+    lp_path = folder / "lights.lp"
+    write_text_atomic(lp_path, format_lp(names, light_dirs))
+
+    write_npy(gt_dir / "normals.npy", surface.normals)
+    write_npy(gt_dir / "height.npy", surface.height)
+    write_npy(gt_dir / "albedo.npy", surface.albedo)
+    write_mask_png(gt_dir / "mask.png", surface.mask)
+
+    scan_path = None
+    transform = np.eye(4)
+    n_scan = 0
+    if scan_points is None or scan_points > 0:
+        points, transform = sample_scan(surface, scan_points, noise_mm=scan_noise_mm, seed=seed)
+        n_scan = len(points)
+        scan_path = folder / "scan.ply"
+        write_ply(scan_path, points, "ptm-reconstruct synthetic laser scan, units mm")
+    matrix_text = "\n".join(" ".join(repr(float(v)) for v in row) for row in transform)
+    write_text_atomic(gt_dir / "scan_transform.txt", matrix_text + "\n")
+
+    description = {
+        "scene": scene,
+        "shape": list(shape),
+        "pixel_size_mm": surface.pixel_size,
+        "height_units": "mm",
+        "frame": FRAME,
+        "seed": int(seed),
+        "lights": {
+            "count": len(light_dirs),
+            "layout": "custom" if custom_lights is not None else "dome",
+            "min_elevation_deg": None if custom_lights is not None else float(min_elevation_deg),
+            "max_elevation_deg": None if custom_lights is not None else float(max_elevation_deg),
+            "file": lp_path.name,
+        },
+        "encoding": encoding,
+        "render": {**options, "light_intensity": 1.0, "view": [0.0, 0.0, 1.0],
+                   "clipped_to": [0.0, 1.0]},
+        "scan": {"file": scan_path.name if scan_path else None, "points": n_scan,
+                 "noise_mm": float(scan_noise_mm),
+                 "transform_maps": "ground-truth frame -> scan.ply coordinates"},
+        "scan_transform": transform.tolist(),
+    }
+    write_text_atomic(gt_dir / "scene.json", json.dumps(description, indent=2) + "\n")
+    return CaptureInfo(
+        folder=folder,
+        lp_path=lp_path,
+        ground_truth_dir=gt_dir,
+        scan_path=scan_path,
+        image_paths=tuple(folder / n for n in names),
+        pixel_size=surface.pixel_size,
+        shape=shape,
+    )

@@ -1,0 +1,226 @@
+"""The ``reconstruct`` command end to end, and every kind of bad input."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from cli.main import main
+from ptmcore.lp import write_lp
+
+from helpers import dome, sphere_normals
+
+
+def _make_capture(folder: Path, n: int = 12, h: int = 40, w: int = 48, ext: str = "tif") -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    normals, _ = sphere_normals(h, w, 18.0)
+    dirs = dome(n, seed=1)
+    names = []
+    for k, d in enumerate(dirs):
+        shade = np.clip(normals @ d, 0, None) * 0.7
+        img = np.round(np.repeat(shade[..., None], 3, axis=2) * 65535).astype(np.uint16)
+        names.append(f"img {k:02d}.{ext}")
+        tifffile.imwrite(folder / names[-1], img)
+    write_lp(folder / "lights.lp", names, dirs)
+    return folder
+
+
+@pytest.fixture
+def capture(tmp_path):
+    return _make_capture(tmp_path / "cap")
+
+
+def _run(argv, capsys):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def _assert_one_line_error(code, err, *needles):
+    assert code == 2
+    lines = [ln for ln in err.strip().splitlines() if ln]
+    assert len(lines) == 1, err
+    assert "Traceback" not in err
+    for needle in needles:
+        assert needle in lines[0], lines[0]
+
+
+def test_run_writes_the_documented_layout(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    code, stdout, err = _run(["run", capture, "-o", out, "--pixel-size", "0.1", "-q"], capsys)
+    assert code == 0, err
+    for name in ("normals.npy", "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj",
+                 "mesh.mtl", "mesh_texture.png", "report.json"):
+        assert (out / name).is_file(), name
+    assert not [p for p in out.iterdir() if p.name.startswith(".")], "staging left behind"
+    report = json.loads((out / "report.json").read_text())
+    assert report["height_unit"] == "mm"
+    assert report["inputs"]["photographs"] == 12
+    assert set(report["stages"]) >= {"decode", "fit_ptm", "normals", "integrate", "mesh", "write"}
+    normals = np.load(out / "normals.npy")
+    assert normals.shape == (40, 48, 3) and normals.dtype == np.float32
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-4)
+    height = tifffile.imread(out / "height.tif")
+    assert height.dtype == np.float32 and height.shape == (40, 48)
+    # The sphere bulges towards the camera: its centre is higher than its rim.
+    assert height[20, 24] > height[20, 8] + 0.3
+    assert "Results in" in stdout
+
+
+def test_mask_restricts_height_and_is_written(capture, tmp_path, capsys):
+    from PIL import Image
+
+    m = np.zeros((40, 48), np.uint8)
+    m[5:35, 6:42] = 255
+    Image.fromarray(m).save(tmp_path / "m.png")
+    out = tmp_path / "out"
+    code, _, err = _run(["run", capture, "-o", out, "--mask", tmp_path / "m.png", "-q"], capsys)
+    assert code == 0, err
+    height = tifffile.imread(out / "height.tif")
+    assert np.isnan(height[0, 0]) and np.isfinite(height[20, 20])
+    assert (out / "mask.png").exists()
+    assert json.loads((out / "report.json").read_text())["height_unit"] == "pixel"
+
+
+def test_version_and_help(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0
+    assert "ptm-reconstruct" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        main(["run", "--help"])
+    text = capsys.readouterr().out
+    assert "--pixel-size" in text and "normals.png" in text
+
+
+def test_console_script_exit_status(capture, tmp_path):
+    # The real process: one line on stderr, status 2, no traceback.
+    exe = Path(sys.executable).with_name("reconstruct")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "cli.main"]
+    r = subprocess.run(cmd + ["run", str(tmp_path / "nothing"), "-o", str(tmp_path / "o")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert "capture folder not found" in r.stderr
+
+
+# --- bad input -------------------------------------------------------------------------------
+
+def test_missing_image(capture, tmp_path, capsys):
+    (capture / "img 03.tif").unlink()
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 03.tif", "not found")
+    assert not (tmp_path / "o" / "report.json").exists()
+
+
+def test_corrupt_image(capture, tmp_path, capsys):
+    p = capture / "img 04.tif"
+    p.write_bytes(p.read_bytes()[:100])
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 04.tif")
+
+
+def test_differing_sizes(capture, tmp_path, capsys):
+    tifffile.imwrite(capture / "img 05.tif", np.zeros((41, 48, 3), np.uint16))
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 05.tif", "same size")
+
+
+@pytest.mark.parametrize(
+    "edit, needle",
+    [
+        (lambda lines: ["13"] + lines[1:], "declares 13 photographs but lists 12"),
+        (lambda lines: lines[:3] + ["img 02.tif 0.1 x 0.9"] + lines[4:], "not three numbers"),
+        (lambda lines: lines[:3] + ["img 02.tif 0 0 0"] + lines[4:], "zero length"),
+        (lambda lines: lines[:3] + ["img 02.tif 0.9 0 -0.1"] + lines[4:], "horizon"),
+        (lambda lines: lines[:3] + ["img 02.tif nan 0 1"] + lines[4:], "not finite"),
+    ],
+)
+def test_malformed_lp(capture, tmp_path, capsys, edit, needle):
+    lp = capture / "lights.lp"
+    lp.write_text("\n".join(edit(lp.read_text().splitlines())) + "\n")
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "lights.lp", needle)
+
+
+def test_too_few_images(tmp_path, capsys):
+    cap = _make_capture(tmp_path / "cap", n=2)
+    code, _, err = _run(["run", cap, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "at least 3")
+
+
+def test_five_images_warn_but_run(tmp_path, capsys):
+    cap = _make_capture(tmp_path / "cap", n=5)
+    code, stdout, err = _run(["run", cap, "-o", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+    assert "underdetermined" in stdout
+
+
+def test_nan_in_image(capture, tmp_path, capsys):
+    bad = np.full((40, 48, 3), 0.5, np.float32)
+    bad[3, 3, 1] = np.nan
+    tifffile.imwrite(capture / "img 06.tif", bad, photometric="rgb")
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 06.tif", "NaN")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root can write anywhere")
+def test_unwritable_output_as_user(capture, tmp_path, capsys):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    code, _, err = _run(["run", capture, "-o", ro / "out"], capsys)
+    _assert_one_line_error(code, err, "out")
+
+
+def test_output_is_a_file(capture, tmp_path, capsys):
+    f = tmp_path / "file.txt"
+    f.write_text("keep me")
+    code, _, err = _run(["run", capture, "-o", f], capsys)
+    _assert_one_line_error(code, err, "file.txt", "not a folder")
+    assert f.read_text() == "keep me"
+
+
+def test_output_under_a_file(capture, tmp_path, capsys):
+    f = tmp_path / "file.txt"
+    f.write_text("keep me")
+    code, _, err = _run(["run", capture, "-o", f / "sub"], capsys)
+    _assert_one_line_error(code, err, "cannot write the output folder")
+
+
+def test_failed_run_keeps_earlier_results(capture, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert _run(["run", capture, "-o", out, "-q"], capsys)[0] == 0
+    before = (out / "mesh.ply").read_bytes()
+    (capture / "img 00.tif").write_bytes(b"garbage")
+    code, _, err = _run(["run", capture, "-o", out], capsys)
+    assert code == 2
+    assert (out / "mesh.ply").read_bytes() == before
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]
+
+
+def test_no_lp_and_several_lp(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    code, _, err = _run(["run", empty, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "no .lp light file")
+    cap = _make_capture(tmp_path / "cap")
+    (cap / "other.lp").write_text((cap / "lights.lp").read_text())
+    code, _, err = _run(["run", cap, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "several .lp files")
+    code, _, err = _run(["run", cap, "--lp", cap / "other.lp", "-o", tmp_path / "o", "-q"], capsys)
+    assert code == 0, err
+
+
+def test_bad_option_values(capture, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(capture), "-o", str(tmp_path / "o"), "--pixel-size", "-1"])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        main(["run", str(capture), "-o", str(tmp_path / "o"), "--step", "0"])
+    assert e.value.code == 2
