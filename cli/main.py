@@ -129,6 +129,9 @@ def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None]
         "decode": "Decoding photographs",
         "fit_ptm": "Fitting the PTM",
         "normals": "Estimating normals",
+        "integrate": "Integrating heights",
+        "mesh": "Writing meshes",
+        "write": "Writing images",
     }
     tasks: dict[str, int] = {}
     with Progress(

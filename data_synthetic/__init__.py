@@ -7,7 +7,6 @@ capture folder with images, ``.lp`` file, ground truth and a laser scan
 """
 
 from .capture import CaptureInfo, write_capture
-from .encoding import linear_to_srgb, srgb_to_linear
 from .lights import dome_lights, ring_lights
 from .render import render
 from .scan import sample_scan
@@ -21,12 +20,10 @@ __all__ = [
     "cast_shadow_mask",
     "clay_tablet",
     "dome_lights",
-    "linear_to_srgb",
     "normals_from_height",
     "render",
     "ring_lights",
     "sample_scan",
     "sphere_cap",
-    "srgb_to_linear",
     "write_capture",
 ]

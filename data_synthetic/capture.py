@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
+from ptmcore.lp import write_lp
 
 from ._atomic import write_text_atomic
 from .encoding import write_jpeg8, write_mask_png, write_npy, write_tiff16
@@ -54,26 +55,6 @@ class CaptureInfo:
     image_paths: tuple[Path, ...]
     pixel_size: float
     shape: tuple[int, int]
-
-
-def format_lp(filenames: list[str], lights: np.ndarray) -> str:
-    """Text of an ``.lp`` file: the count, then ``filename x y z`` per image.
-
-    Parameters
-    ----------
-    filenames : list of str
-        Image file names, relative to the ``.lp`` file.
-    lights : np.ndarray
-        (N, 3) unit directions towards the lights.
-
-    Returns
-    -------
-    str
-        The file content, ``\\n`` line ends.
-    """
-    lines = [str(len(filenames))]
-    lines += [f"{name} {x:.6f} {y:.6f} {z:.6f}" for name, (x, y, z) in zip(filenames, lights)]
-    return "\n".join(lines) + "\n"
 
 
 def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, seed: int,
@@ -225,7 +206,7 @@ def write_capture(
         writer(folder / name, image)
     del radiance
     lp_path = folder / "lights.lp"
-    write_text_atomic(lp_path, format_lp(names, light_dirs))
+    write_lp(lp_path, names, light_dirs)
 
     write_npy(gt_dir / "normals.npy", surface.normals)
     write_npy(gt_dir / "height.npy", surface.height)

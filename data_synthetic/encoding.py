@@ -8,43 +8,9 @@ import numpy as np
 import tifffile
 from PIL import Image
 
+from ptmcore.images import linear_to_srgb
+
 from ._atomic import atomic_write
-
-
-def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
-    """The sRGB transfer function (IEC 61966-2-1), exact piecewise form.
-
-    Parameters
-    ----------
-    linear : np.ndarray
-        Linear values in [0, 1].
-
-    Returns
-    -------
-    np.ndarray
-        Encoded values in [0, 1], float64.
-    """
-    v = np.asarray(linear, dtype=np.float64)
-    curve = 1.055 * np.power(np.maximum(v, 0.0031308), 1 / 2.4) - 0.055
-    return np.where(v <= 0.0031308, 12.92 * v, curve)
-
-
-def srgb_to_linear(encoded: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`linear_to_srgb`.
-
-    Parameters
-    ----------
-    encoded : np.ndarray
-        sRGB-encoded values in [0, 1].
-
-    Returns
-    -------
-    np.ndarray
-        Linear values in [0, 1], float64.
-    """
-    e = np.asarray(encoded, dtype=np.float64)
-    curve = np.power((np.maximum(e, 0.04045) + 0.055) / 1.055, 2.4)
-    return np.where(e <= 0.04045, e / 12.92, curve)
 
 
 def to_uint16_linear(radiance: np.ndarray) -> np.ndarray:

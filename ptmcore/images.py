@@ -34,16 +34,29 @@ SATURATED = np.uint16(65535)
 _LUM_SCALE = 65534.0
 
 
+def _float(v: np.ndarray) -> np.ndarray:
+    v = np.asarray(v)
+    return v if v.dtype == np.float64 else v.astype(np.float32, copy=False)
+
+
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
-    """Decode sRGB values in [0, 1] to linear light (IEC 61966-2-1)."""
-    v = np.asarray(v, dtype=np.float32)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    """Decode sRGB values in [0, 1] to linear light (IEC 61966-2-1, exact piecewise form).
+
+    float64 input stays float64; anything else is computed in float32.
+    """
+    v = _float(v)
+    curve = ((np.maximum(v, 0.04045) + 0.055) / 1.055) ** 2.4
+    return np.where(v <= 0.04045, v / 12.92, curve).astype(v.dtype, copy=False)
 
 
 def linear_to_srgb(v: np.ndarray) -> np.ndarray:
-    """Encode linear values in [0, 1] as sRGB (IEC 61966-2-1)."""
-    v = np.clip(np.asarray(v, dtype=np.float32), 0.0, 1.0)
-    return np.where(v <= 0.0031308, v * 12.92, 1.055 * v ** (1 / 2.4) - 0.055).astype(np.float32)
+    """Encode linear values as sRGB (IEC 61966-2-1), clipping to [0, 1] first.
+
+    float64 input stays float64; anything else is computed in float32.
+    """
+    v = np.clip(_float(v), 0.0, 1.0)
+    curve = 1.055 * np.maximum(v, 0.0031308) ** (1 / 2.4) - 0.055
+    return np.where(v <= 0.0031308, v * 12.92, curve).astype(v.dtype, copy=False)
 
 
 def _decode_jpeg(data: bytes, path: Path) -> np.ndarray:

@@ -23,7 +23,8 @@ import math
 import os
 import platform
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -212,27 +213,31 @@ def run_capture(
         guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
         gt_dir = guess if (guess / "normals.npy").exists() else None
 
-    def tick(stage: str, total: int) -> Callable[[int], None]:
+    timer = StageTimer()
+
+    @contextmanager
+    def stage(name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
+        """Time a stage and report its progress; stages without steps show 0/1 then 1/1."""
         done = [0]
-        if progress is not None:
-            progress(stage, 0, total)
 
         def advance(k: int) -> None:
             done[0] += k
             if progress is not None:
-                progress(stage, done[0], total)
+                progress(name, done[0], total)
 
-        return advance
+        if progress is not None:
+            progress(name, 0, total)
+        with timer.stage(name):
+            yield advance
+        if done[0] < total:
+            advance(total - done[0])
 
     staging = _prepare_output(out)
     warnings: list[str] = []
-    timer = StageTimer()
     files: dict[str, Path] = {}
     try:
-        with timer.stage("decode"):
-            stack = load_stack(
-                lights.paths, linearize=opt.linearize, threads=opt.threads, progress=tick("decode", len(lights))
-            )
+        with stage("decode", len(lights)) as advance:
+            stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
         h, w = stack.shape
         bit_depth = stack.bit_depth
         mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
@@ -244,12 +249,12 @@ def run_capture(
         if saturated > 0.01:
             warnings.append(f"{saturated:.1%} of the samples are saturated (left out of photometric stereo)")
 
-        with timer.stage("fit_ptm"):
-            ptm = fit_ptm(stack, lights.directions, progress=tick("fit_ptm", h))
+        with stage("fit_ptm", h) as advance:
+            ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
 
-        with timer.stage("normals"):
+        with stage("normals", h) as advance:
             if opt.normals == "ps":
-                ps = photometric_stereo(stack, lights.directions, progress=tick("normals", h))
+                ps = photometric_stereo(stack, lights.directions, threads=opt.threads, progress=advance)
                 normals, albedo = ps.normals, ps.albedo
                 undetermined = int((~ps.valid).sum())
                 if undetermined:
@@ -259,16 +264,16 @@ def run_capture(
                     )
             else:
                 normals = normals_from_ptm(ptm.coefficients)
-                albedo = lambertian_albedo(stack, lights.directions, normals)
+                albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
             albedo_rgb = ptm.chroma * albedo[..., None]
         del stack
 
-        with timer.stage("integrate"):
+        with stage("integrate"):
             height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
         unit = "mm" if opt.pixel_size else "pixel"
 
         step = opt.step or auto_step((h, w))
-        with timer.stage("mesh"):
+        with stage("mesh"):
             texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
             mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
             write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png")
@@ -276,7 +281,7 @@ def run_capture(
         for name in ("mesh.ply", "mesh.obj", "mesh.mtl", "mesh_texture.png"):
             files[name] = staging / name
 
-        with timer.stage("write"):
+        with stage("write"):
             outputs.write_npy(staging / "normals.npy", normals)
             outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals))
             outputs.write_png(staging / "albedo.png", texture)
