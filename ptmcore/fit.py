@@ -108,4 +108,4 @@ def fit_ptm(
         coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, 6)
 
     run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
-    return PTM(coef, stack.chroma())
+    return PTM(coef, stack.chroma)

@@ -7,7 +7,7 @@ at a time, and reduced to what the later stages need:
 
 * its linear luminance as ``uint16`` (value × 65534; 65535 marks a sample where a channel
   clipped), which is finer than an 8-bit sRGB step everywhere and half the size of float32;
-* a running per-pixel sum of its linear RGB, from which the colour (chromaticity) comes.
+* a running per-pixel sum of its linear RGB, which becomes the pixel's colour (chromaticity).
 
 Decoders: JPEG with simplejpeg (libjpeg-turbo without Pillow's extra copy: 2.4× faster than
 Pillow on a 24-megapixel photograph here) or Pillow if it is missing; PNG with OpenCV because
@@ -175,8 +175,9 @@ class ImageStack:
     ----------
     luminance : ndarray, shape (N, H, W), uint16
         Linear luminance × 65534 per photograph; :data:`SATURATED` where a channel clipped.
-    rgb_sum : ndarray, shape (H, W, 3), float32
-        Sum over the photographs of linear R, G, B (full scale 1; clipped samples included).
+    chroma : ndarray, shape (H, W, 3), float32
+        Per-pixel colour of unit luminance (Σ RGB / Σ luminance over the photographs; neutral
+        grey where all were black): multiplying it by a luminance gives linear RGB.
     paths : list of Path
         The photographs, in order.
     bit_depth : int
@@ -186,7 +187,7 @@ class ImageStack:
     """
 
     luminance: np.ndarray
-    rgb_sum: np.ndarray
+    chroma: np.ndarray
     paths: list[Path]
     bit_depth: int
     linearized: bool
@@ -215,17 +216,6 @@ class ImageStack:
         values *= np.float32(1.0 / _LUM_SCALE)
         np.minimum(values, 1.0, out=values)
         return values, saturated
-
-    def chroma(self) -> np.ndarray:
-        """Per-pixel colour with unit luminance, ``(H, W, 3)`` float32.
-
-        Multiplying it by a luminance gives linear RGB; black pixels get neutral grey.
-        """
-        lum = self.rgb_sum @ LUMA_WEIGHTS
-        out = np.ones_like(self.rgb_sum)
-        ok = lum > 1e-8
-        out[ok] = self.rgb_sum[ok] / lum[ok, None]
-        return out
 
 
 def _channel_table(dtype: np.dtype, linearize: bool) -> np.ndarray | None:
@@ -277,6 +267,24 @@ def _reduce_into(
         lum_out[r0 : r0 + step] = lum
         with lock:
             cv2.accumulate(contrib, channel_sum[r0 : r0 + step])
+
+
+def _chroma_in_place(channel_sum: np.ndarray) -> np.ndarray:
+    """Turn sums of luminance contributions ``w_c · C_c`` into colour of unit luminance.
+
+    Done in place and in bands: at 24 megapixels a whole-image expression would need a
+    gigabyte of temporaries.
+    """
+    h, w = channel_sum.shape[:2]
+    inv_w = (1.0 / LUMA_WEIGHTS).astype(np.float32)
+    for r0 in range(0, h, max(1, (1 << 18) // w)):
+        band = channel_sum[r0 : r0 + max(1, (1 << 18) // w)]
+        lum = band.sum(axis=2, keepdims=True)
+        black = lum[..., 0] <= 0
+        band /= np.where(lum > 0, lum, 1.0)
+        band *= inv_w
+        band[black] = 1.0
+    return channel_sum
 
 
 def load_stack(
@@ -346,6 +354,4 @@ def load_stack(
             for f in futures:
                 f.cancel()
             raise
-    # Back from luminance contributions to the sum of each linear channel (full scale = 1).
-    channel_sum /= LUMA_WEIGHTS * np.float32(_LUM_SCALE)
-    return ImageStack(luminance, channel_sum, paths, max(depths), linearize)
+    return ImageStack(luminance, _chroma_in_place(channel_sum), paths, max(depths), linearize)

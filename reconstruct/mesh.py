@@ -25,6 +25,7 @@ import numpy as np
 from PIL import Image
 
 from ptmcore.errors import InputError
+from reconstruct import textfmt
 from reconstruct.atomic import atomic_write
 
 __all__ = ["GridMesh", "grid_mesh", "write_ply", "write_obj"]
@@ -34,6 +35,10 @@ __all__ = ["GridMesh", "grid_mesh", "write_ply", "write_obj"]
 _CHUNK = 100_000
 
 _DEFAULT_COLOR = 255  # untextured meshes are white, the neutral colour for shaded viewing
+
+# OBJ numbers are written with six decimals (trailing zeros dropped): 1 nm in millimetres,
+# 10⁻⁶ pixel, and finer than a float32 carries for coordinates above about 10.
+_OBJ_DECIMALS = 6
 
 
 @dataclass
@@ -338,17 +343,38 @@ def _relative_name(target: str | os.PathLike, relative_to_file: str | os.PathLik
     return rel.replace(os.sep, "/")
 
 
-def _write_rows(
-    handle: IO[str], fmt: str, n_rows: int, rows: Callable[[slice], np.ndarray]
+def _write_lines(
+    handle: IO[bytes], n_rows: int, columns: Callable[[slice], list[textfmt.Column]]
 ) -> None:
-    """Write `n_rows` lines ``fmt % row``, getting the rows a chunk at a time from `rows`.
-
-    One ``%`` on a repeated format string formats a whole chunk in C, many times faster than
-    numpy.savetxt's per-row Python loop; chunking bounds the temporaries.
-    """
+    """Write `n_rows` lines, formatting the rows a chunk at a time into the columns that
+    :func:`reconstruct.textfmt.join` concatenates."""
     for start in range(0, n_rows, _CHUNK):
-        block = rows(slice(start, start + _CHUNK))
-        handle.write((fmt * len(block)) % tuple(block.ravel().tolist()))
+        handle.write(textfmt.join(columns(slice(start, start + _CHUNK))))
+
+
+def _number_columns(values: np.ndarray, keyword: bytes) -> list[textfmt.Column]:
+    """``keyword x y …``: one column per field of the ``(n, k)`` `values`.
+
+    Each line starts with its newline (see :func:`write_obj`); trailing zeros are trimmed,
+    which shortens the many round coordinates and keeps 0 and 1 as such.
+    """
+    prefixes = [b"\n" + keyword + b" "] + [b" "] * (values.shape[1] - 1)
+    return [
+        textfmt.format_fixed(values[:, k], _OBJ_DECIMALS, trim=True, prefix=prefix)
+        for k, prefix in enumerate(prefixes)
+    ]
+
+
+def _face_columns(faces: np.ndarray, per_corner: int) -> list[textfmt.Column]:
+    """``f a/a b/b c/c`` (or ``a/a/a`` with `per_corner` 3): vertex, UV and normal share
+    their index, which OBJ counts from 1."""
+    columns = []
+    for corner in range(3):
+        number = textfmt.format_int(faces[:, corner].astype(np.int64) + 1)
+        slash = textfmt.prepend(b"/", number)
+        columns.append(textfmt.prepend(b"\nf " if corner == 0 else b" ", number))
+        columns += [slash] * (per_corner - 1)
+    return columns
 
 
 def write_obj(
@@ -408,34 +434,28 @@ def write_obj(
             )
         header += [f"mtllib {mtl_name}"]
 
-    # The OBJ goes last: once it exists, the files it references do too.
-    with atomic_write(path, "w") as handle:
-        handle.write("\n".join(header) + "\n")
+    # The OBJ goes last: once it exists, the files it references do too. Each line after
+    # the header starts with its newline, so that formatted chunks are plain concatenations.
+    with atomic_write(path, "wb") as handle:
+        handle.write("\n".join(header).encode("utf-8"))
         if texture is None:
-            _write_rows(
+            _write_lines(
                 handle,
-                "v %.7g %.7g %.7g %.4g %.4g %.4g\n",
                 n_vertices,
-                lambda sl: np.hstack([mesh.vertices[sl], mesh.colors[sl] / np.float32(255)]),
+                lambda sl: _number_columns(
+                    np.hstack([mesh.vertices[sl], mesh.colors[sl] / np.float32(255)]), b"v"
+                ),
             )
         else:
-            _write_rows(handle, "v %.7g %.7g %.7g\n", n_vertices, lambda sl: mesh.vertices[sl])
-        _write_rows(handle, "vt %.7g %.7g\n", n_vertices, lambda sl: mesh.uv[sl])
+            _write_lines(handle, n_vertices, lambda sl: _number_columns(mesh.vertices[sl], b"v"))
+        _write_lines(handle, n_vertices, lambda sl: _number_columns(mesh.uv[sl], b"vt"))
         if mesh.normals is not None:
-            _write_rows(handle, "vn %.6g %.6g %.6g\n", n_vertices, lambda sl: mesh.normals[sl])
+            _write_lines(handle, n_vertices, lambda sl: _number_columns(mesh.normals[sl], b"vn"))
         if texture is not None:
-            handle.write(f"usemtl {stem}\n")
-        # Vertex, UV and normal share their index (OBJ counts from 1).
-        if mesh.normals is not None:
-            fmt, repeat = "f %d/%d/%d %d/%d/%d %d/%d/%d\n", 3
-        else:
-            fmt, repeat = "f %d/%d %d/%d %d/%d\n", 2
-        _write_rows(
-            handle,
-            fmt,
-            len(mesh.faces),
-            lambda sl: np.repeat(mesh.faces[sl].astype(np.int64) + 1, repeat, axis=1),
-        )
+            handle.write(f"\nusemtl {stem}".encode("utf-8"))
+        per_corner = 2 if mesh.normals is None else 3
+        _write_lines(handle, len(mesh.faces), lambda sl: _face_columns(mesh.faces[sl], per_corner))
+        handle.write(b"\n")
 
 
 def _texture_image(texture: str | os.PathLike | np.ndarray) -> Image.Image:

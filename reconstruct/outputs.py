@@ -37,9 +37,15 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
 
 
 def normals_to_rgb16(normals: np.ndarray) -> np.ndarray:
-    """Encode unit normals as a 16-bit OpenGL-style normal map (R=x, G=y, B=z; y up)."""
-    n = np.nan_to_num(normals, nan=0.0)
-    return np.round((np.clip(n, -1.0, 1.0) + 1.0) * (65535 / 2)).astype(np.uint16)
+    """Encode unit normals as a 16-bit OpenGL-style normal map (R=x, G=y, B=z; y up).
+
+    Value = round((n + 1) · 65535 / 2), clipped; NaN becomes 0.
+    """
+    import cv2
+
+    # One saturating, rounding pass in OpenCV; NumPy needs five passes over the image.
+    n = np.ascontiguousarray(normals, dtype=np.float32)
+    return cv2.addWeighted(n, 65535 / 2, n, 0.0, 65535 / 2, dtype=cv2.CV_16U)
 
 
 def albedo_to_srgb8(albedo_rgb: np.ndarray) -> tuple[np.ndarray, float]:
@@ -55,11 +61,21 @@ def albedo_to_srgb8(albedo_rgb: np.ndarray) -> tuple[np.ndarray, float]:
     scale : float
         The divisor applied (1 when none).
     """
-    finite = albedo_rgb[np.isfinite(albedo_rgb)]
-    top = float(np.percentile(finite, 99.9)) if finite.size else 1.0
+    import cv2
+
+    # A subsample estimates the percentile as well as all 70 million values of a 24-megapixel
+    # image would, in a fraction of the time.
+    flat = albedo_rgb.reshape(-1)
+    sample = flat[:: max(1, flat.size // 1_000_000)]
+    sample = sample[np.isfinite(sample)]
+    top = float(np.percentile(sample, 99.9)) if sample.size else 1.0
     scale = top if top > 1.0 else 1.0
-    enc = linear_to_srgb(np.nan_to_num(albedo_rgb, nan=0.0) / np.float32(scale))
-    return np.round(enc * 255).astype(np.uint8), scale
+    # Quantise to 16 bits, then encode through a 65536-entry table: the sRGB curve costs a
+    # power function per value otherwise. The step (1/65535) is below 0.06 of an 8-bit level.
+    a = np.ascontiguousarray(albedo_rgb, dtype=np.float32)
+    index = cv2.addWeighted(a, 65535.0 / scale, a, 0.0, 0.0, dtype=cv2.CV_16U)
+    table = np.round(linear_to_srgb(np.arange(65536, dtype=np.float64) / 65535.0) * 255).astype(np.uint8)
+    return table[index], scale
 
 
 def write_height_tiff(path: str | os.PathLike, height: np.ndarray, unit: str, pixel_size: float | None) -> None:

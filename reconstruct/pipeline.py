@@ -24,6 +24,7 @@ import os
 import platform
 import shutil
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -275,21 +276,27 @@ def run_capture(
         step = opt.step or auto_step((h, w))
         with stage("mesh"):
             texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
+            del albedo_rgb
             mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
-            write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png")
-            write_obj(staging / "mesh.obj", mesh, texture)
-        for name in ("mesh.ply", "mesh.obj", "mesh.mtl", "mesh_texture.png"):
-            files[name] = staging / name
 
         with stage("write"):
-            outputs.write_npy(staging / "normals.npy", normals)
-            outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals))
             outputs.write_png(staging / "albedo.png", texture)
-            outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size)
-            files.update({k: staging / k for k in ("normals.npy", "normals.png", "albedo.png", "height.tif")})
+            jobs: dict[str, Callable[[], None]] = {
+                # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
+                # writes release it and proceed alongside.
+                "mesh.obj": lambda: write_obj(staging / "mesh.obj", mesh, staging / "albedo.png"),
+                "normals.png": lambda: outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals)),
+                "mesh.ply": lambda: write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png"),
+                "normals.npy": lambda: outputs.write_npy(staging / "normals.npy", normals),
+                "height.tif": lambda: outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size),
+            }
             if mask is not None:
-                outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
-                files["mask.png"] = staging / "mask.png"
+                jobs["mask.png"] = lambda: outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
+            with ThreadPoolExecutor(max_workers=opt.threads or os.cpu_count() or 1) as pool:
+                for future in [pool.submit(job) for job in jobs.values()]:
+                    future.result()
+            written = ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
+            files.update({name: staging / name for name in written})
 
         accuracy = None
         if gt_dir is not None:

@@ -263,3 +263,14 @@ def test_demo_command(tmp_path, capsys):
     assert code == 0, err
     assert (tmp_path / "demo" / "result" / "mesh.obj").exists()
     assert "accuracy: normals" in stdout and "MeshLab" in stdout
+
+
+def test_runs_on_hp_ptmfitter_fixture(shared_fixture, tmp_path, capsys):
+    # Real photographs and the .lp file that HP's PTMfitter was given.
+    out = tmp_path / "out"
+    code, _, err = _run(["run", shared_fixture, "-o", out, "-q"], capsys)
+    assert code == 0, err
+    normals = np.load(out / "normals.npy")
+    assert normals.shape == (5, 8, 3)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5)
+    assert json.loads((out / "report.json").read_text())["mesh"]["vertices"] == 40

@@ -85,7 +85,7 @@ def test_stack_linearises_8bit_and_flags_saturation(tmp_path):
     assert saturated[:, 0, 0].all() and saturated[2].all() and not saturated[:2, 1:, 1:].any()
     assert stack.luminance[0, 0, 0] == SATURATED
     # Colour: a grey pixel has unit-luminance chroma (1, 1, 1).
-    np.testing.assert_allclose(stack.chroma()[3, 3], 1.0, rtol=1e-4)
+    np.testing.assert_allclose(stack.chroma[3, 3], 1.0, rtol=1e-4)
 
     raw = load_stack(paths, linearize=False)
     np.testing.assert_allclose(raw.band(0, 5)[0][0, 2, 2], 64 / 255, rtol=1e-4)
@@ -100,3 +100,19 @@ def test_stack_rejects_mismatched_sizes_and_too_few(tmp_path):
         load_stack(paths)
     with pytest.raises(InputError, match="at least 3"):
         load_stack(paths[:2])
+
+
+def test_chroma_of_a_coloured_surface(tmp_path):
+    rgb = np.array([0.5, 0.25, 0.125])
+    paths = []
+    for k, light in enumerate([1.0, 0.6, 0.3]):
+        img = np.round(np.broadcast_to(rgb * light, (4, 5, 3)) * 65535).astype(np.uint16)
+        paths.append(tmp_path / f"{k}.tif")
+        tifffile.imwrite(paths[-1], img)
+    stack = load_stack(paths)
+    expected = rgb / (rgb @ [0.2126, 0.7152, 0.0722])
+    # Channels are summed as uint16 luminance contributions (blue's weight is 0.07), so a dim
+    # blue channel keeps about 12 bits: far finer than the 8-bit colour it ends up in.
+    np.testing.assert_allclose(stack.chroma[2, 2], expected, rtol=1e-3)
+    values, _ = stack.band(0, 4)
+    np.testing.assert_allclose(values[:, 1, 1], np.array([1.0, 0.6, 0.3]) * (rgb @ [0.2126, 0.7152, 0.0722]), rtol=1e-4)
