@@ -9,9 +9,10 @@ at a time, and reduced to what the later stages need:
   clipped), which is finer than an 8-bit sRGB step everywhere and half the size of float32;
 * a running per-pixel sum of its linear RGB, which becomes the pixel's colour (chromaticity).
 
-Decoders: JPEG with simplejpeg (libjpeg-turbo without Pillow's extra copy: 2.4× faster than
-Pillow on a 24-megapixel photograph here) or Pillow if it is missing; PNG with OpenCV because
-Pillow reads 16-bit RGB PNG as 8 bits; TIFF with tifffile.
+Decoders: JPEG with simplejpeg (libjpeg-turbo without Pillow's extra copy: 1.6× faster than
+Pillow and 1.5× faster than OpenCV on a 24-megapixel photograph, see benchmarks/decoders.py),
+or Pillow if it is missing; PNG with OpenCV because Pillow reads 16-bit RGB PNG as 8 bits;
+TIFF with tifffile.
 """
 
 from __future__ import annotations

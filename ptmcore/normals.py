@@ -216,16 +216,21 @@ def photometric_stereo(
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
         v = values.reshape(n, -1)
-        usable = ~saturated.reshape(n, -1)
-        brightest = np.where(usable, v, 0.0).max(axis=0)
-        wts = (v > np.maximum(dark_fraction * brightest, 1e-4)) & usable
+        # Most bands have no clipped sample; skip the masking there.
+        usable = ~saturated.reshape(n, -1) if saturated.any() else None
+        # Clipped samples read as 1; counting them in the maximum only raises the first
+        # threshold where the refinement pass re-decides anyway.
+        wts = v > np.maximum(dark_fraction * v.max(axis=0), 1e-4)
+        if usable is not None:
+            wts &= usable
         g, ok, count = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
         for _ in range(iterations):
             rho = np.linalg.norm(g, axis=0)
             unit = (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)
             shading = dirs @ unit  # (N, P)
             wts = shading > min_shading
-            wts &= usable
+            if usable is not None:
+                wts &= usable
             shading *= (cast_shadow_ratio * rho).astype(np.float32)  # now the darkest plausible value
             wts &= v >= shading
             g_new, ok_new, count_new = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
