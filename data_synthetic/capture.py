@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
 
-from ._atomic import write_text_atomic
 from .encoding import write_jpeg8, write_mask_png, write_npy, write_tiff16
 from .lights import dome_lights
 from .render import render
@@ -222,7 +222,8 @@ def write_capture(
         scan_path = folder / "scan.ply"
         write_ply(scan_path, points, "ptm-reconstruct synthetic laser scan, units mm")
     matrix_text = "\n".join(" ".join(repr(float(v)) for v in row) for row in transform)
-    write_text_atomic(gt_dir / "scan_transform.txt", matrix_text + "\n")
+    with atomic_write(gt_dir / "scan_transform.txt", "w") as f:
+        f.write(matrix_text + "\n")
 
     description = {
         "scene": scene,
@@ -246,7 +247,8 @@ def write_capture(
                  "transform_maps": "ground-truth frame -> scan.ply coordinates"},
         "scan_transform": transform.tolist(),
     }
-    write_text_atomic(gt_dir / "scene.json", json.dumps(description, indent=2) + "\n")
+    with atomic_write(gt_dir / "scene.json", "w") as f:
+        f.write(json.dumps(description, indent=2) + "\n")
     return CaptureInfo(
         folder=folder,
         lp_path=lp_path,

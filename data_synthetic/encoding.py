@@ -10,7 +10,7 @@ from PIL import Image
 
 from ptmcore.images import linear_to_srgb
 
-from ._atomic import atomic_write
+from ptmcore.atomic import atomic_write
 
 
 def to_uint16_linear(radiance: np.ndarray) -> np.ndarray:

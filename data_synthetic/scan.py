@@ -7,7 +7,7 @@ import os
 import numpy as np
 from scipy import ndimage
 
-from ._atomic import atomic_write
+from ptmcore.atomic import atomic_write
 from .surface import Surface
 
 # Keeps the random streams of different modules apart for the same user seed.

@@ -22,6 +22,7 @@ from pathlib import Path, PureWindowsPath
 
 import numpy as np
 
+from .atomic import atomic_write
 from .errors import InputError
 
 #: Lights lower than this above the horizon (z ≤ sin 0.5°) are rejected: they light nothing
@@ -153,6 +154,5 @@ def write_lp(path: str | os.PathLike, names: list[str], directions: np.ndarray) 
         raise ValueError("directions must have shape (len(names), 3)")
     lines = [str(len(names))]
     lines += [f"{n} {x:.6f} {y:.6f} {z:.6f}" for n, (x, y, z) in zip(names, directions)]
-    tmp = Path(path).with_name(f".{Path(path).name}.tmp")
-    tmp.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    os.replace(tmp, path)
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(lines) + "\n")

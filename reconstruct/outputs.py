@@ -11,27 +11,31 @@ import os
 
 import numpy as np
 
-from ptmcore.errors import InputError
 from ptmcore.images import linear_to_srgb
 
-from .atomic import atomic_write
+from ptmcore.atomic import atomic_write
 
 
-def _png_bytes(image: np.ndarray, path: str | os.PathLike) -> bytes:
+def encode_png(image: np.ndarray) -> bytes:
+    """Encode an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG bytes.
+
+    OpenCV's encoder releases the GIL (it runs beside other writers) and, unlike Pillow, writes
+    16-bit RGB.
+    """
     import cv2
 
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError("PNG images must be uint8 or uint16")
     img = image[..., ::-1] if image.ndim == 3 else image  # OpenCV stores BGR
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
     if not ok:
-        raise InputError("could not encode PNG", path)
+        raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
     return buf.tobytes()
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG."""
-    if image.dtype not in (np.uint8, np.uint16):
-        raise TypeError("PNG images must be uint8 or uint16")
-    data = _png_bytes(image, path)
+    data = encode_png(image)
     with atomic_write(path, "wb") as f:
         f.write(data)
 
@@ -82,13 +86,9 @@ def write_height_tiff(path: str | os.PathLike, height: np.ndarray, unit: str, pi
     """Write a float32 TIFF height map; NaN outside the mask; unit in the image description."""
     import tifffile
 
-    import io
-
     meta = {"unit": unit, "pixel_size_mm": pixel_size, "frame": "x right, y up, z towards camera"}
-    buf = io.BytesIO()  # tifffile wants a named file; atomic_write's handle has none
-    tifffile.imwrite(buf, height.astype(np.float32, copy=False), metadata=meta)
     with atomic_write(path, "wb") as f:
-        f.write(buf.getbuffer())
+        tifffile.imwrite(f, height.astype(np.float32, copy=False), metadata=meta)
 
 
 def write_json(path: str | os.PathLike, data: dict) -> None:

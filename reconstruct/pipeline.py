@@ -267,7 +267,8 @@ def run_capture(
                 normals = normals_from_ptm(ptm.coefficients)
                 albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
             albedo_rgb = ptm.chroma * albedo[..., None]
-        del stack
+        # The stack is by far the largest array; later stages need neither it nor the PTM.
+        del stack, ptm
 
         with stage("integrate"):
             height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)

@@ -10,7 +10,8 @@ import trimesh
 from PIL import Image
 
 from ptmcore.errors import InputError
-from reconstruct.atomic import atomic_write
+from reconstruct import mesh as mesh_module
+from ptmcore.atomic import atomic_write
 from reconstruct.mesh import GridMesh, grid_mesh, write_obj, write_ply
 
 H, W = 6, 8
@@ -306,6 +307,84 @@ def test_two_meshes_in_one_folder_keep_their_materials(tmp_path):
     assert b.visual.material.image.convert("RGB").getpixel((0, 0)) == (0, 255, 0)
 
 
+def _obj_number(value: float) -> str:
+    """Python's '%.6f' without trailing zeros, and without the sign of a zero."""
+    text = ("%.6f" % value).rstrip("0").rstrip(".")
+    return "0" if text == "-0" else text
+
+
+def _expected_obj(mesh: GridMesh, stem: str | None) -> bytes:
+    """The OBJ text write_obj must produce, formatted by Python one number at a time."""
+    lines = ["# ptm-reconstruct grid mesh", f"# unit {mesh.unit}"]
+    if stem is not None:
+        lines.append(f"mtllib {stem}.mtl")
+        vertex = mesh.vertices
+    else:
+        vertex = np.hstack([mesh.vertices, mesh.colors / np.float32(255)])
+    rows = [("v", vertex), ("vt", mesh.uv)] + ([("vn", mesh.normals)] if mesh.normals is not None else [])
+    for keyword, values in rows:
+        lines += [" ".join([keyword] + [_obj_number(x) for x in row]) for row in values.tolist()]
+    if stem is not None:
+        lines.append(f"usemtl {stem}")
+    corner = "{0}/{0}" if mesh.normals is None else "{0}/{0}/{0}"
+    lines += ["f " + " ".join(corner.format(i + 1) for i in face) for face in mesh.faces.tolist()]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def _big_mesh() -> tuple[GridMesh, np.ndarray]:
+    """Over 10⁴ vertices (face indices of 1 to 5 digits), negative heights, a hole, tilted
+    normals, and a pixel size whose products are not round in float32."""
+    h, w = 113, 97
+    rng = np.random.default_rng(2)
+    row, col = np.mgrid[0:h, 0:w]
+    height = (np.sin(col / 9.0) * 40.0 - row * 0.731 + rng.normal(0, 1e-3, (h, w))).astype(np.float32)
+    height[50:53, 20:30] = np.nan
+    normals = rng.normal(0, 0.3, (h, w, 3)).astype(np.float32)
+    normals[..., 2] = 1.0
+    texture = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    return grid_mesh(height, texture=texture, pixel_size=0.37, normals=normals), texture
+
+
+def test_obj_text_matches_python_formatting(tmp_path, monkeypatch):
+    mesh, texture = _big_mesh()
+    write_obj(tmp_path / "one.obj", mesh, texture)
+    assert (tmp_path / "one.obj").read_bytes() == _expected_obj(mesh, "one")
+    # Many small chunks formatted by several threads give the same bytes.
+    monkeypatch.setattr(mesh_module, "_TEXT_CHUNK", 1000)
+    monkeypatch.setattr(mesh_module, "_WORKERS", 3)
+    monkeypatch.setattr(mesh_module, "_AHEAD", 4)
+    write_obj(tmp_path / "one.obj", mesh, texture)
+    assert (tmp_path / "one.obj").read_bytes() == _expected_obj(mesh, "one")
+    # Without a texture: vertex colours, no material.
+    mesh.normals = None
+    write_obj(tmp_path / "plain.obj", mesh)
+    assert (tmp_path / "plain.obj").read_bytes() == _expected_obj(mesh, None)
+
+
+def test_obj_faces_in_any_order(tmp_path, monkeypatch):
+    # Chunks of shuffled faces use vertices far apart, unlike a grid's rows.
+    monkeypatch.setattr(mesh_module, "_TEXT_CHUNK", 7)
+    mesh = grid_mesh(_height(), texture=_texture())
+    mesh.faces = mesh.faces[np.random.default_rng(0).permutation(len(mesh.faces))]
+    write_obj(tmp_path / "m.obj", mesh, _texture())
+    assert (tmp_path / "m.obj").read_bytes() == _expected_obj(mesh, "m")
+    loaded = trimesh.load(tmp_path / "m.obj", process=False, maintain_order=True)
+    np.testing.assert_array_equal(loaded.faces, mesh.faces)
+
+
+def test_obj_with_nan_or_infinite_numbers_raises_and_writes_no_obj(tmp_path):
+    mesh = grid_mesh(_height(), texture=_texture())
+    mesh.vertices[5, 2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        write_obj(tmp_path / "m.obj", mesh)
+    mesh = grid_mesh(_height(), texture=_texture())
+    mesh.uv[3, 0] = np.inf
+    with pytest.raises(ValueError, match="infinity"):
+        write_obj(tmp_path / "m.obj", mesh, _texture())
+    assert "m.obj" not in os.listdir(tmp_path)
+    assert not [name for name in os.listdir(tmp_path) if name.startswith(".")]  # no temporaries
+
+
 # ---------------------------------------------------------------- atomic writes
 
 
@@ -376,7 +455,9 @@ def test_permission_denied_raises_input_error(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(os, "open", refuse)
+    import ptmcore.atomic
+
+    monkeypatch.setattr(ptmcore.atomic, "open", refuse, raising=False)
     with pytest.raises(InputError, match="not writable") as info:
         write_ply(tmp_path / "m.ply", grid_mesh(_height()))
     assert info.value.path == str(tmp_path)

@@ -79,22 +79,22 @@ def atomic_write(
     folder = os.path.dirname(os.path.abspath(path))
     base = os.path.basename(path)
 
-    # os.open with mode 0o666 (not tempfile.mkstemp, which forces 0o600) so that the final
-    # file gets the usual permissions from the umask, like a file opened with open().
-    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0)
+    # open(..., "x") creates the file exclusively with the usual permissions from the umask
+    # (tempfile.mkstemp would force 0o600) and gives a named handle, which writers such as
+    # tifffile need.
+    text_kwargs = {} if "b" in mode else {"encoding": encoding, "newline": newline}
     while True:
         tmp = os.path.join(folder, f".{base}.{secrets.token_hex(4)}.tmp")
         try:
-            fd = os.open(tmp, flags, 0o666)
+            handle = open(tmp, mode.replace("w", "x"), **text_kwargs)
             break
         except FileExistsError:
             continue
         except OSError as exc:
             raise InputError(_folder_problem(exc), folder) from exc
 
-    text_kwargs = {} if "b" in mode else {"encoding": encoding, "newline": newline}
     try:
-        with os.fdopen(fd, mode, **text_kwargs) as handle:
+        with handle:
             yield handle
             handle.flush()
             # Without fsync a power cut right after os.replace can leave an empty file
