@@ -17,6 +17,7 @@ import numpy as np
 
 from .bands import band_rows, run_bands
 from .images import ImageStack
+from .lp import as_directions
 
 
 def light_matrix(directions: np.ndarray) -> np.ndarray:
@@ -96,10 +97,7 @@ def fit_ptm(
     """
     n = len(stack)
     h, w = stack.shape
-    directions = np.asarray(directions, dtype=np.float64)
-    if directions.shape != (n, 3):
-        raise ValueError(f"expected {n} light directions, got array of shape {directions.shape}")
-    pinv = fit_matrix(directions).astype(np.float32)
+    pinv = fit_matrix(as_directions(directions, n)).astype(np.float32)
     coef = np.empty((h, w, 6), dtype=np.float32)
 
     def work(r0: int, r1: int) -> None:

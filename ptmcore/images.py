@@ -185,6 +185,8 @@ class ImageStack:
         8 or 16 (32 for float TIFF); the highest among the photographs.
     linearized : bool
         Whether 8-bit sRGB values were decoded to linear light.
+    saturated : ndarray, shape (N,), int64
+        Number of clipped pixels in each photograph.
     """
 
     luminance: np.ndarray
@@ -192,6 +194,7 @@ class ImageStack:
     paths: list[Path]
     bit_depth: int
     linearized: bool
+    saturated: np.ndarray
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -230,8 +233,10 @@ def _channel_table(dtype: np.dtype, linearize: bool) -> np.ndarray | None:
 
 def _reduce_into(
     img: np.ndarray, lum_out: np.ndarray, channel_sum: np.ndarray, lock: threading.Lock, linearize: bool
-) -> None:
+) -> int:
     """Write one photograph's luminance into ``lum_out`` and add its channels to ``channel_sum``.
+
+    Returns the number of clipped pixels.
 
     Integer images go through OpenCV's vectorised kernels (a table look-up for 8-bit sRGB,
     a channel transform, a saturating sum): in NumPy this reduction took several times longer
@@ -247,6 +252,7 @@ def _reduce_into(
     top = 254 if img.dtype == np.uint8 else 65534
     weights16 = (LUMA_WEIGHTS * np.float32(_LUM_SCALE / 65535.0))[None, :]  # for 16-bit input
     step = max(1, (1 << 20) // w)
+    clipped_count = 0
     for r0 in range(0, h, step):
         block = np.ascontiguousarray(img[r0 : r0 + step])
         if block.dtype == np.float32:
@@ -265,9 +271,11 @@ def _reduce_into(
         lum = cv2.transform(contrib, np.ones((1, 3), np.float32))
         np.minimum(lum, np.uint16(_LUM_SCALE), out=lum)
         np.copyto(lum, SATURATED, where=clipped)
+        clipped_count += int(np.count_nonzero(clipped))
         lum_out[r0 : r0 + step] = lum
         with lock:
             cv2.accumulate(contrib, channel_sum[r0 : r0 + step])
+    return clipped_count
 
 
 def _chroma_in_place(channel_sum: np.ndarray) -> np.ndarray:
@@ -328,6 +336,7 @@ def load_stack(
     channel_sum = np.zeros((h, w, 3), dtype=np.float32)
     lock = threading.Lock()
     depths: list[int] = [0] * n
+    saturated = np.zeros(n, dtype=np.int64)
 
     def work(k: int, img: np.ndarray | None = None) -> None:
         if img is None:
@@ -339,7 +348,7 @@ def load_stack(
                 paths[k],
             )
         depths[k] = img.dtype.itemsize * 8
-        _reduce_into(img, luminance[k], channel_sum, lock, linearize)
+        saturated[k] = _reduce_into(img, luminance[k], channel_sum, lock, linearize)
         if progress is not None:
             progress(1)
 
@@ -355,4 +364,4 @@ def load_stack(
             for f in futures:
                 f.cancel()
             raise
-    return ImageStack(luminance, _chroma_in_place(channel_sum), paths, max(depths), linearize)
+    return ImageStack(luminance, _chroma_in_place(channel_sum), paths, max(depths), linearize, saturated)

@@ -137,6 +137,20 @@ def read_lp(path: str | os.PathLike) -> LightSet:
     return LightSet(paths=paths, directions=dirs, source=path)
 
 
+def as_directions(directions: np.ndarray, count: int, dtype: type = np.float64) -> np.ndarray:
+    """Check that ``directions`` holds one (x, y, z) light direction per photograph.
+
+    Returns
+    -------
+    ndarray, shape (count, 3)
+        The directions as ``dtype``.
+    """
+    d = np.asarray(directions, dtype=dtype)
+    if d.shape != (count, 3):
+        raise ValueError(f"expected {count} light directions, got array of shape {d.shape}")
+    return d
+
+
 def write_lp(path: str | os.PathLike, names: list[str], directions: np.ndarray) -> None:
     """Write an ``.lp`` light file.
 

@@ -12,6 +12,7 @@ import numpy as np
 
 from .bands import band_rows, run_bands
 from .images import ImageStack
+from .lp import as_directions
 
 _CIRCLE_SAMPLES = 72
 _NEWTON_STEPS = 4
@@ -203,9 +204,7 @@ def photometric_stereo(
     """
     n = len(stack)
     h, w = stack.shape
-    dirs = np.asarray(directions, dtype=np.float32)
-    if dirs.shape != (n, 3):
-        raise ValueError(f"expected {n} light directions, got array of shape {dirs.shape}")
+    dirs = as_directions(directions, n, np.float32)
     x, y, z = dirs.T
     outer = np.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=1)  # (N, 6)
     normals = np.empty((h, w, 3), dtype=np.float32)
@@ -268,7 +267,7 @@ def lambertian_albedo(
     """
     n = len(stack)
     h, w = stack.shape
-    dirs = np.asarray(directions, dtype=np.float32)
+    dirs = as_directions(directions, n, np.float32)
     out = np.empty((h, w), dtype=np.float32)
 
     def work(r0: int, r1: int) -> None:

@@ -246,13 +246,19 @@ def run_capture(
             warnings.append(
                 f"only {len(stack)} photographs: a PTM has 6 coefficients, so its fit is underdetermined"
             )
-        saturated = float(np.mean(stack.luminance == 65535))
-        if saturated > 0.01:
-            warnings.append(f"{saturated:.1%} of the samples are saturated (left out of photometric stereo)")
+        saturated = stack.saturated / (h * w)
+        if saturated.max() > 0.01:
+            worst = int(np.argmax(saturated))
+            warnings.append(
+                f"{np.count_nonzero(saturated > 0.01)} photograph(s) have more than 1% clipped pixels "
+                f"(most: {stack.paths[worst].name}, {saturated[worst]:.1%}); clipped samples are left "
+                "out of photometric stereo"
+            )
 
-        with stage("fit_ptm", h) as advance:
-            ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
-
+        ptm = None
+        if opt.normals == "ptm":
+            with stage("fit_ptm", h) as advance:
+                ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
         with stage("normals", h) as advance:
             if opt.normals == "ps":
                 ps = photometric_stereo(stack, lights.directions, threads=opt.threads, progress=advance)
@@ -266,7 +272,12 @@ def run_capture(
             else:
                 normals = normals_from_ptm(ptm.coefficients)
                 albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
-            albedo_rgb = ptm.chroma * albedo[..., None]
+        if ptm is None:
+            # After photometric stereo, so that the PTM's coefficients and photometric
+            # stereo's band work are never in memory together (the peak of a large run).
+            with stage("fit_ptm", h) as advance:
+                ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
+        albedo_rgb = stack.chroma * albedo[..., None]
         # The stack is by far the largest array; later stages need neither it nor the PTM.
         del stack, ptm
 

@@ -11,7 +11,7 @@ def stack_from_luminance(values: np.ndarray, saturated: np.ndarray | None = None
     if saturated is not None:
         lum[saturated] = 65535
     n, h, w = values.shape
-    return ImageStack(lum, np.ones((h, w, 3), np.float32), [], 16, False)
+    return ImageStack(lum, np.ones((h, w, 3), np.float32), [], 16, False, (lum == 65535).sum(axis=(1, 2)))
 
 
 def dome(n: int = 40, seed: int = 0, min_elev: float = 15.0, max_elev: float = 75.0) -> np.ndarray:

@@ -84,6 +84,7 @@ def test_stack_linearises_8bit_and_flags_saturation(tmp_path):
     np.testing.assert_allclose(values[1, 2, 2], srgb_to_linear(np.float32(128 / 255)), rtol=1e-4)
     assert saturated[:, 0, 0].all() and saturated[2].all() and not saturated[:2, 1:, 1:].any()
     assert stack.luminance[0, 0, 0] == SATURATED
+    assert list(stack.saturated) == [1, 1, 30]  # the red pixel, then the whole white image
     # Colour: a grey pixel has unit-luminance chroma (1, 1, 1).
     np.testing.assert_allclose(stack.chroma[3, 3], 1.0, rtol=1e-4)
 
