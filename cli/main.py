@@ -201,7 +201,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     with _progress_display(sys.stderr.isatty()) as progress:
         result = run_capture(capture_dir, args.output / "result", options, progress=progress)
     _print_summary(result.report, result.output)
-    print("Open result/mesh.obj or result/mesh.ply in MeshLab, Blender or CloudCompare.")
+    print(f"Open {result.output / 'mesh.obj'} or mesh.ply in MeshLab, Blender or CloudCompare;")
+    print(f"the synthetic photographs and their ground truth are in {capture_dir}/.")
     return 0
 
 
