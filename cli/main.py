@@ -154,7 +154,7 @@ def _stderr_console():
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from reconstruct.pipeline import RunOptions, run_capture
+    from reconstruct.pipeline import RunOptions, run
 
     options = RunOptions(
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
@@ -162,7 +162,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         ground_truth=args.ground_truth,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
-        result = run_capture(args.capture, args.output, options, progress=progress)
+        result = run(args.capture, args.output, options, progress=progress)
     _print_summary(result.report, result.output)
     return 0
 

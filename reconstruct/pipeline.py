@@ -34,7 +34,7 @@ import numpy as np
 import ptmcore
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
-from ptmcore.images import load_stack, read_image
+from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
 from ptmcore.lp import read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 
@@ -166,6 +166,117 @@ def _prepare_output(out: Path) -> Path:
     return staging
 
 
+class _Stages:
+    """Times the stages of one run and reports their progress."""
+
+    def __init__(self, progress: ProgressFn | None) -> None:
+        self.timer = StageTimer()
+        self.progress = progress
+
+    @contextmanager
+    def __call__(self, name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
+        """Time a stage; stages without steps of their own show 0/1 then 1/1."""
+        done = [0]
+
+        def advance(k: int) -> None:
+            done[0] += k
+            if self.progress is not None:
+                self.progress(name, done[0], total)
+
+        if self.progress is not None:
+            self.progress(name, 0, total)
+        with self.timer.stage(name):
+            yield advance
+        if done[0] < total:
+            advance(total - done[0])
+
+
+def _check_options(opt: RunOptions) -> None:
+    if opt.normals not in NORMAL_METHODS:
+        raise InputError(f"unknown normal method {opt.normals!r}; choose from {', '.join(NORMAL_METHODS)}")
+    if opt.integrator not in INTEGRATORS:
+        raise InputError(f"unknown integrator {opt.integrator!r}; choose from {', '.join(INTEGRATORS)}")
+    if opt.pixel_size is not None and not (math.isfinite(opt.pixel_size) and opt.pixel_size > 0):
+        raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
+    if opt.step is not None and opt.step < 1:
+        raise InputError(f"mesh step must be at least 1, got {opt.step}")
+
+
+def _surface_and_files(
+    normals: np.ndarray,
+    texture: np.ndarray,
+    mask: np.ndarray | None,
+    opt: RunOptions,
+    staging: Path,
+    stage: _Stages,
+) -> tuple[np.ndarray, dict, list[str]]:
+    """Integrate, mesh and write the files every run has; return height, mesh facts, file names."""
+    h, w = normals.shape[:2]
+    with stage("integrate"):
+        height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
+    unit = "mm" if opt.pixel_size else "pixel"
+    step = opt.step or auto_step((h, w))
+    with stage("mesh"):
+        mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
+    with stage("write"):
+        outputs.write_png(staging / "albedo.png", texture)
+        jobs: dict[str, Callable[[], None]] = {
+            # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
+            # writes release it and proceed alongside.
+            "mesh.obj": lambda: write_obj(staging / "mesh.obj", mesh, staging / "albedo.png"),
+            "normals.png": lambda: outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals)),
+            "mesh.ply": lambda: write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png"),
+            "normals.npy": lambda: outputs.write_npy(staging / "normals.npy", normals),
+            "height.tif": lambda: outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size),
+        }
+        if mask is not None:
+            jobs["mask.png"] = lambda: outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
+        with ThreadPoolExecutor(max_workers=opt.threads or os.cpu_count() or 1) as pool:
+            for future in [pool.submit(job) for job in jobs.values()]:
+                future.result()
+    facts = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step}
+    return height, facts, ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
+
+
+def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings: list[str], **extra) -> dict:
+    return {
+        "inputs": inputs,
+        "parameters": {**{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opt).items()}, "step": mesh["step"]},
+        "height_unit": mesh["unit"],
+        **extra,
+        "mesh": mesh,
+        "stages": stage.timer.stages,
+        "peak_rss_scope": "per stage" if stage.timer.per_stage_peak else "process since start",
+        "versions": _versions(),
+        "warnings": warnings,
+    }
+
+
+def _publish(staging: Path, out: Path, names: list[str]) -> dict[str, Path]:
+    """Move the finished files from the staging folder into the output folder."""
+    final = {}
+    for name in names:
+        os.replace(staging / name, out / name)
+        final[name] = out / name
+    return final
+
+
+def run(
+    source: str | os.PathLike,
+    output: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    progress: ProgressFn | None = None,
+) -> RunResult:
+    """Reconstruct a capture folder, an ``.lp`` file or an existing ``.ptm`` file.
+
+    See :func:`run_capture` and :func:`run_ptm`.
+    """
+    if Path(source).suffix.lower() == ".ptm" and Path(source).is_file():
+        return run_ptm(source, output, options, progress=progress)
+    return run_capture(source, output, options, progress=progress)
+
+
 def run_capture(
     capture: str | os.PathLike,
     output: str | os.PathLike,
@@ -197,14 +308,7 @@ def run_capture(
         For any problem with the inputs or the output folder.
     """
     opt = options or RunOptions()
-    if opt.normals not in NORMAL_METHODS:
-        raise InputError(f"unknown normal method {opt.normals!r}; choose from {', '.join(NORMAL_METHODS)}")
-    if opt.integrator not in INTEGRATORS:
-        raise InputError(f"unknown integrator {opt.integrator!r}; choose from {', '.join(INTEGRATORS)}")
-    if opt.pixel_size is not None and not (math.isfinite(opt.pixel_size) and opt.pixel_size > 0):
-        raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
-    if opt.step is not None and opt.step < 1:
-        raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    _check_options(opt)
     capture = Path(capture)
     out = Path(output)
     lp_path = find_lp(capture, opt.lp)
@@ -214,28 +318,9 @@ def run_capture(
         guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
         gt_dir = guess if (guess / "normals.npy").exists() else None
 
-    timer = StageTimer()
-
-    @contextmanager
-    def stage(name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
-        """Time a stage and report its progress; stages without steps show 0/1 then 1/1."""
-        done = [0]
-
-        def advance(k: int) -> None:
-            done[0] += k
-            if progress is not None:
-                progress(name, done[0], total)
-
-        if progress is not None:
-            progress(name, 0, total)
-        with timer.stage(name):
-            yield advance
-        if done[0] < total:
-            advance(total - done[0])
-
+    stage = _Stages(progress)
     staging = _prepare_output(out)
     warnings: list[str] = []
-    files: dict[str, Path] = {}
     try:
         with stage("decode", len(lights)) as advance:
             stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
@@ -277,38 +362,11 @@ def run_capture(
             # stereo's band work are never in memory together (the peak of a large run).
             with stage("fit_ptm", h) as advance:
                 ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
-        albedo_rgb = stack.chroma * albedo[..., None]
+        texture, albedo_scale = outputs.albedo_to_srgb8(stack.chroma * albedo[..., None])
         # The stack is by far the largest array; later stages need neither it nor the PTM.
         del stack, ptm
 
-        with stage("integrate"):
-            height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
-        unit = "mm" if opt.pixel_size else "pixel"
-
-        step = opt.step or auto_step((h, w))
-        with stage("mesh"):
-            texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
-            del albedo_rgb
-            mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
-
-        with stage("write"):
-            outputs.write_png(staging / "albedo.png", texture)
-            jobs: dict[str, Callable[[], None]] = {
-                # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
-                # writes release it and proceed alongside.
-                "mesh.obj": lambda: write_obj(staging / "mesh.obj", mesh, staging / "albedo.png"),
-                "normals.png": lambda: outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals)),
-                "mesh.ply": lambda: write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png"),
-                "normals.npy": lambda: outputs.write_npy(staging / "normals.npy", normals),
-                "height.tif": lambda: outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size),
-            }
-            if mask is not None:
-                jobs["mask.png"] = lambda: outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
-            with ThreadPoolExecutor(max_workers=opt.threads or os.cpu_count() or 1) as pool:
-                for future in [pool.submit(job) for job in jobs.values()]:
-                    future.result()
-            written = ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
-            files.update({name: staging / name for name in written})
+        height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
 
         accuracy = None
         if gt_dir is not None:
@@ -318,33 +376,77 @@ def run_capture(
             if rmse is not None:
                 accuracy["height_rmse_mm"] = rmse
 
-        report = {
-            "inputs": {
-                "capture": str(capture.resolve()),
-                "lp": str(lp_path.resolve()),
-                "photographs": len(lights),
-                "width": w,
-                "height": h,
-                "bit_depth": bit_depth,
-                "mask": str(opt.mask) if opt.mask else None,
-            },
-            "parameters": {**{k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opt).items()}, "step": step},
-            "height_unit": unit,
-            "albedo_scale": albedo_scale,
-            "mesh": {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step},
-            "stages": timer.stages,
-            "peak_rss_scope": "per stage" if timer.per_stage_peak else "process since start",
-            "versions": _versions(),
-            "warnings": warnings,
-            "accuracy": accuracy,
+        inputs = {
+            "capture": str(capture.resolve()),
+            "lp": str(lp_path.resolve()),
+            "photographs": len(lights),
+            "width": w,
+            "height": h,
+            "bit_depth": bit_depth,
+            "mask": str(opt.mask) if opt.mask else None,
         }
+        report = _report(inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale, accuracy=accuracy)
         outputs.write_json(staging / "report.json", report)
-        files["report.json"] = staging / "report.json"
+        final = _publish(staging, out, [*names, "report.json"])
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return RunResult(out, final, report)
 
-        final = {}
-        for name, path in files.items():
-            os.replace(path, out / name)
-            final[name] = out / name
+
+def _evaluate(coefficients: np.ndarray, lu: np.ndarray, lv: np.ndarray) -> np.ndarray:
+    """Each pixel's polynomial ``(..., 6)`` at its own light ``(lu, lv)``."""
+    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
+    if coefficients.ndim == basis.ndim + 1:  # RGB format: (H, W, 3, 6)
+        basis = basis[..., None, :]
+    return (coefficients * basis).sum(axis=-1)
+
+
+def run_ptm(
+    ptm_path: str | os.PathLike,
+    output: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    progress: ProgressFn | None = None,
+) -> RunResult:
+    """Normals, height and meshes from an existing ``.ptm`` file (no photographs needed).
+
+    The normals are the PTM's maxima (photometric stereo needs the photographs); the texture
+    is the PTM's colour under the light of its maximum, i.e. its albedo in the file's own
+    encoding. Parameters and output folder as :func:`run_capture`.
+    """
+    from dataclasses import replace
+
+    from ptmcore.ptmfile import read_ptm
+
+    opt = replace(options or RunOptions(), normals="ptm")
+    _check_options(opt)
+    ptm_path = Path(ptm_path)
+    out = Path(output)
+    stage = _Stages(progress)
+    staging = _prepare_output(out)
+    warnings = ["normals come from the PTM's maximum: a .ptm file carries no photographs for photometric stereo"]
+    try:
+        with stage("decode"):
+            ptm = read_ptm(ptm_path)
+        h, w = ptm.coefficients.shape[:2]
+        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
+        with stage("normals", h):
+            coef = ptm.coefficients
+            # RGB format: one polynomial per channel, and luminance is linear in them.
+            luminance = coef if coef.ndim == 3 else np.einsum("hwck,c->hwk", coef, LUMA_WEIGHTS)
+            normals = normals_from_ptm(luminance)
+            lu, lv = normals[..., 0], normals[..., 1]
+            if ptm.rgb is not None:
+                top = _evaluate(luminance, lu, lv)[..., None] * ptm.rgb / np.float32(255)
+            else:
+                top = _evaluate(coef, lu, lv)
+            texture = np.clip(np.round(top), 0, 255).astype(np.uint8)
+        height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
+        inputs = {"ptm": str(ptm_path.resolve()), "format": ptm.format, "width": w, "height": h,
+                  "mask": str(opt.mask) if opt.mask else None}
+        report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
+        outputs.write_json(staging / "report.json", report)
+        final = _publish(staging, out, [*names, "report.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)

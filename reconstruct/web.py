@@ -1,0 +1,231 @@
+"""Export of an LRGB PTM for the OpenLIME web viewer (its ``rti`` layer, "relight" format).
+
+The layout is the one written by Relight (``relight-cli``/RelightLab, cnr-isti-vclab/relight)
+for a PTM with the ``lrgb`` colour space and read by OpenLIME (cnr-isti-vclab/openlime)
+``LayerRTI`` + ``ShaderRTI``; it was taken from their sources, not guessed:
+
+* ``info.json`` — ``width``, ``height``, ``format: "jpg"`` (the planes' file suffix),
+  ``type: "ptm"``, ``colorspace: "lrgb"``, ``nplanes: 9``, ``quality``, ``pixelSizeInMM``
+  (only when known) and ``materials: [{"scale": [9 numbers], "bias": [9 numbers]}]``.
+  ``nplanes`` counts the colour planes too: the viewer loads ``ceil(nplanes / 3)`` images
+  named ``plane_0.jpg``, ``plane_1.jpg``, … (Relight ``convert_rti.cpp`` sets 9 for an
+  LRGB ``.ptm``; its builder accepts only 6 or 9 for LRGB PTMs). ``quality`` is not read by
+  OpenLIME but Relight's converter back to ``.ptm`` takes its JPEG quality from it.
+* ``plane_0.jpg`` — the base colour, scale 1 and bias 0.
+* ``plane_1.jpg`` — the constant and linear terms in the channels (R, G, B) = (1, x, y), i.e.
+  (a5, a3, a4) of ``L = a0·lu² + a1·lv² + a2·lu·lv + a3·lu + a4·lv + a5``.
+* ``plane_2.jpg`` — the quadratic terms (R, G, B) = (x², xy, y²), i.e. (a0, a2, a1). (Relight
+  ``legacy_rti.cpp``: "lrgb ptm order is x^2, y^2, xy, x, y, 1, r, g, b while we use r, g, b,
+  1, x, y, x2 xy y2".)
+
+``scale`` and ``bias`` hold one entry per channel in plane order (plane_0 R, G, B, plane_1
+R, G, B, plane_2 R, G, B): the shader's uniforms ``vec3 scale[]``/``bias[]`` indexed by plane.
+The viewer samples a channel as ``c = byte / 255`` and dequantises it as
+``value = (c − bias) · scale``. For the LRGB PTM it computes per pixel (``ShaderRTI`` class
+``LRGB.render`` with ``PTM.lightWeights``)::
+
+    l     = Σ_k w_k · value_k,  w = (1, x, y, x², x·y, y²) over plane_1 then plane_2
+    color = l · basecolor,      basecolor = (plane_0 − bias) · scale = rgb / 255
+
+with (x, y) the first two components of the unit light vector (``ShaderRTI.setLight`` maps
+a point of the square to the disk and sets z = √(1 − x² − y²)); the light pad's y grows
+upwards (``Controller2D.project``), the frame used here. ``color`` is written to the 8-bit
+framebuffer, which clips it to 0–1. For this to equal RTIViewer's ``rgb · L / 255`` (L in
+0–255 luminance units, see :mod:`ptmcore.relight`), each value is the coefficient in 0–1
+luminance units, ``a / 255`` — the units Relight's builder uses, whose scales are the
+coefficient range divided by 255 (``RtiBuilder::finalizeMaterial``).
+
+Quantisation: each coefficient channel is mapped linearly onto 0–255 over its full range
+[m, M] of a/255: ``scale = M − m``, ``bias = −m / scale`` and
+``byte = round((value − m) / scale · 255)``, so ``value = (byte/255 − bias) · scale`` is within
+half a step, ``scale / 510``, before JPEG compression. (Relight takes a quantile of the
+range instead, clipping outliers; the full range never clips.)
+
+The JPEGs are written in the RGB colour space without chroma subsampling (Pillow's
+``keep_rgb``, ``subsampling=0``), as Relight writes LRGB planes (``JCS_RGB``): a YCbCr
+transform would spread each coefficient's compression error over the other two channels of
+its plane. Rows are in image order (row 0 at the top), as the viewer displays them.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError
+
+__all__ = ["PLANE_TERMS", "export_openlime", "lrgb_planes"]
+
+#: Coefficient index (a0..a5) in each channel of plane_1 and plane_2: (1, x, y) and (x², xy, y²).
+PLANE_TERMS = ((5, 3, 4), (0, 2, 1))
+
+# Number of planes, counting the colour planes, as OpenLIME and Relight count them.
+_NPLANES = 9
+
+
+def lrgb_planes(
+    coefficients: np.ndarray, rgb: np.ndarray
+) -> tuple[list[np.ndarray], list[float], list[float]]:
+    """Quantise an LRGB PTM into OpenLIME's three 8-bit planes.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (H, W, 6)
+        a0..a5 in 0–255 luminance units (RTIViewer's convention).
+    rgb : ndarray, shape (H, W, 3), uint8
+        The colour.
+
+    Returns
+    -------
+    planes : list of ndarray
+        Three ``(H, W, 3)`` uint8 images: the colour, (1, x, y) and (x², xy, y²).
+    scale, bias : list of float
+        Nine entries each, one per channel in plane order, such that the value of a channel
+        is ``(byte / 255 − bias) · scale`` (the colour planes have scale 1 and bias 0). The
+        coefficient channels hold ``a / 255``.
+
+    Raises
+    ------
+    ValueError
+        If the shapes or types do not match, or a coefficient is not finite.
+    """
+    coef = np.asarray(coefficients)
+    col = np.asarray(rgb)
+    if coef.ndim != 3 or coef.shape[2] != 6:
+        raise ValueError(f"coefficients must be (H, W, 6), not {coef.shape}")
+    if col.shape != coef.shape[:2] + (3,) or col.dtype != np.uint8:
+        raise ValueError(
+            f"rgb must be uint8 {coef.shape[:2] + (3,)} to match the coefficients, not {col.dtype} {col.shape}"
+        )
+    h, w = coef.shape[:2]
+    planes = [np.ascontiguousarray(col)]
+    scale = [1.0, 1.0, 1.0]
+    bias = [0.0, 0.0, 0.0]
+    for terms in PLANE_TERMS:
+        plane = np.empty((h, w, 3), dtype=np.uint8)
+        for c, k in enumerate(terms):
+            a = coef[..., k]
+            lo, hi = float(a.min()), float(a.max())
+            if not (math.isfinite(lo) and math.isfinite(hi)):
+                raise ValueError(f"coefficient a{k} is not finite everywhere")
+            span = hi - lo
+            # A constant channel quantises to all zeros, which decodes to lo whatever the
+            # scale; 1 keeps the bias finite.
+            s = span / 255.0 if span > 0 else 1.0
+            m = lo / 255.0
+            scale.append(s)
+            bias.append(-m / s)
+            step = np.float32(255.0 / span) if span > 0 else np.float32(0.0)
+            q = (a.astype(np.float32) - np.float32(lo)) * step
+            np.rint(q, out=q)
+            np.clip(q, 0.0, 255.0, out=q)
+            plane[..., c] = q
+        planes.append(plane)
+    return planes, scale, bias
+
+
+def _encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    """RGB JPEG without the YCbCr transform and without chroma subsampling."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    # Pillow releases the GIL while encoding, so the planes encode in parallel threads.
+    Image.fromarray(image, "RGB").save(buf, "JPEG", quality=quality, subsampling=0, keep_rgb=True)
+    return buf.getvalue()
+
+
+def _make_folder(folder: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as exc:
+        raise InputError("is not a folder; cannot write the web viewer files there", folder) from exc
+    except PermissionError as exc:
+        raise InputError("cannot be created (permission denied)", folder) from exc
+    except OSError as exc:
+        raise InputError(f"cannot be created ({exc.strerror or exc})", folder) from exc
+
+
+def export_openlime(
+    folder: str | os.PathLike,
+    coefficients: np.ndarray,
+    rgb: np.ndarray,
+    *,
+    pixel_size_mm: float | None = None,
+    quality: int = 95,
+) -> list[Path]:
+    """Write an LRGB PTM in the layout of OpenLIME's RTI layer (Relight's web format).
+
+    Writes ``plane_0.jpg``, ``plane_1.jpg``, ``plane_2.jpg`` and then ``info.json`` (last, so
+    that a viewer never finds an ``info.json`` whose planes are missing), each through
+    :func:`ptmcore.atomic.atomic_write`. See the module docstring for the format. Open it in
+    OpenLIME with ``new OpenLIME.Layer({type: 'rti', layout: 'image', url: '…/info.json'})``.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        Output folder; created with its parents if missing.
+    coefficients : ndarray, shape (H, W, 6)
+        a0..a5 of ``L = a0·lu² + a1·lv² + a2·lu·lv + a3·lu + a4·lv + a5`` in 0–255
+        luminance units, (lu, lv) the x (right) and y (up) components of the unit light.
+    rgb : ndarray, shape (H, W, 3), uint8
+        The colour; the viewer renders ``rgb · L / 255``.
+    pixel_size_mm : float, optional
+        Size of a pixel on the object, written as ``pixelSizeInMM`` (OpenLIME's scale bar).
+    quality : int
+        JPEG quality, 1–100.
+
+    Returns
+    -------
+    list of Path
+        The files written, in the order written: the three planes, then ``info.json``.
+
+    Raises
+    ------
+    InputError
+        If the folder cannot be created or written to.
+    ValueError
+        If the arrays do not match, a coefficient is not finite, the quality is not 1–100 or
+        the pixel size is not a positive number.
+    """
+    if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 1 <= quality <= 100:
+        raise ValueError(f"JPEG quality must be an integer from 1 to 100, not {quality!r}")
+    if pixel_size_mm is not None and not (math.isfinite(float(pixel_size_mm)) and float(pixel_size_mm) > 0):
+        raise ValueError(f"pixel size must be a positive number of millimetres, not {pixel_size_mm!r}")
+    planes, scale, bias = lrgb_planes(coefficients, rgb)
+    h, w = planes[0].shape[:2]
+    folder = Path(folder)
+    _make_folder(folder)
+
+    with ThreadPoolExecutor(max_workers=len(planes)) as pool:
+        encoded = list(pool.map(lambda p: _encode_jpeg(p, int(quality)), planes))
+    written = []
+    for i, data in enumerate(encoded):
+        path = folder / f"plane_{i}.jpg"
+        with atomic_write(path, "wb") as f:
+            f.write(data)
+        written.append(path)
+
+    info: dict = {"width": int(w), "height": int(h), "format": "jpg"}
+    if pixel_size_mm is not None:
+        info["pixelSizeInMM"] = float(pixel_size_mm)
+    info.update(
+        {
+            "type": "ptm",
+            "colorspace": "lrgb",
+            "nplanes": _NPLANES,
+            "quality": int(quality),
+            "materials": [{"scale": scale, "bias": bias}],
+        }
+    )
+    path = folder / "info.json"
+    with atomic_write(path, "w") as f:
+        f.write(json.dumps(info, indent=1) + "\n")
+    written.append(path)
+    return written

@@ -1,0 +1,265 @@
+import inspect
+import math
+
+import numpy as np
+import pytest
+
+from ptmcore.fit import fit_ptm, light_matrix
+from ptmcore.normals import ptm_maximum
+from ptmcore.relight import diffuse_gain, light_direction, relight, specular_enhancement
+
+from helpers import dome, stack_from_luminance
+
+S = math.sqrt(0.5)
+
+
+def _poly(coef, light):
+    """L under a unit light, in float64 (reference evaluation)."""
+    return np.asarray(coef, np.float64) @ light_matrix(np.asarray(light, np.float64)[None, :2])[0]
+
+
+def _with_maximum_at(lu0, lv0, value, a0=-60.0, a1=-45.0, a2=15.0):
+    """Concave polynomials (0–255 units) whose maximum over the disk is ``value`` at (lu0, lv0)."""
+    lu0, lv0, value, a0, a1, a2 = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (lu0, lv0, value, a0, a1, a2)))
+    # Zero gradient at (lu0, lv0): 2·a0·lu + a2·lv + a3 = 0 and a2·lu + 2·a1·lv + a4 = 0.
+    a3 = -(2 * a0 * lu0 + a2 * lv0)
+    a4 = -(a2 * lu0 + 2 * a1 * lv0)
+    a5 = value - (a0 * lu0**2 + a1 * lv0**2 + a2 * lu0 * lv0 + a3 * lu0 + a4 * lv0)
+    return np.stack([a0, a1, a2, a3, a4, a5], axis=-1)
+
+
+# ---------------------------------------------------------------- light_direction
+
+
+@pytest.mark.parametrize(
+    ("azimuth", "elevation", "expected"),
+    [
+        (0, 0, (1, 0, 0)),  # from the right, grazing
+        (90, 0, (0, 1, 0)),  # from the top of the image
+        (180, 0, (-1, 0, 0)),
+        (270, 0, (0, -1, 0)),
+        (-90, 0, (0, -1, 0)),
+        (0, 90, (0, 0, 1)),  # from the camera
+        (45, 0, (S, S, 0)),
+        (0, 45, (S, 0, S)),
+        (135, 30, (-math.cos(math.radians(30)) * S, math.cos(math.radians(30)) * S, 0.5)),
+    ],
+)
+def test_light_direction_from_angles(azimuth, elevation, expected):
+    d = light_direction(azimuth_deg=azimuth, elevation_deg=elevation)
+    assert d.shape == (3,)
+    np.testing.assert_allclose(d, expected, atol=1e-12)
+    assert np.linalg.norm(d) == pytest.approx(1.0)
+
+
+def test_light_direction_from_vectors():
+    np.testing.assert_allclose(light_direction(light=(2, 2, 2)), np.full(3, 1 / math.sqrt(3)))
+    np.testing.assert_allclose(light_direction(light=[0.6, 0.0]), (0.6, 0.0, 0.8))
+    np.testing.assert_allclose(light_direction(light=(0.0, -1.0)), (0.0, -1.0, 0.0))
+    np.testing.assert_allclose(light_direction(light=np.array([0.0, 0.0, 5.0])), (0, 0, 1))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"light": (0, 0, 0)}, "zero vector"),
+        ({"light": (0.3, 0.2, -0.5)}, "below the horizon"),
+        ({"azimuth_deg": 10, "elevation_deg": -5}, "below the horizon"),
+        ({"azimuth_deg": 10, "elevation_deg": 95}, "zenith"),
+        ({"light": (0.9, 0.9)}, "unit disk"),
+        ({"light": (1, 2, 3, 4)}, "components"),
+        ({"light": (np.nan, 0, 1)}, "not finite"),
+        ({"azimuth_deg": np.inf, "elevation_deg": 30}, "finite"),
+        ({"light": (0, 0, 1), "azimuth_deg": 10, "elevation_deg": 30}, "not both"),
+        ({"azimuth_deg": 10}, "both azimuth_deg and elevation_deg"),
+        ({}, "both azimuth_deg and elevation_deg"),
+    ],
+)
+def test_light_direction_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        light_direction(**kwargs)
+
+
+# ---------------------------------------------------------------- relight
+
+
+def test_relight_reproduces_ptm_fitted_to_exact_polynomial_data():
+    rng = np.random.default_rng(3)
+    h, w = 12, 17
+    true = np.stack(
+        [
+            rng.uniform(-0.2, -0.05, (h, w)),
+            rng.uniform(-0.2, -0.05, (h, w)),
+            rng.uniform(-0.05, 0.05, (h, w)),
+            rng.uniform(-0.1, 0.1, (h, w)),
+            rng.uniform(-0.1, 0.1, (h, w)),
+            rng.uniform(0.45, 0.75, (h, w)),
+        ],
+        axis=-1,
+    )
+    directions = dome(45, seed=5)
+    values = np.einsum("nk,hwk->nhw", light_matrix(directions), true)
+    assert values.min() > 0 and values.max() < 1
+    coef = fit_ptm(stack_from_luminance(values), directions, threads=1).coefficients * 255  # 0–255 units
+    rgb = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    lights = [directions[0], directions[7], light_direction(azimuth_deg=123, elevation_deg=37), (0, 0, 1)]
+    for light in lights:
+        expected = rgb * (_poly(true * 255, light) / 255)[..., None]
+        out = relight(coef, rgb, light)
+        assert out.dtype == np.uint8 and out.shape == (h, w, 3)
+        # RTIViewer truncates: out = floor(expected) up to the fit's 16-bit input quantisation.
+        diff = expected - out
+        assert diff.min() > -1e-2 and diff.max() < 1 + 1e-2
+
+
+def test_relight_photographs_are_reproduced():
+    # Under the light of a photograph the PTM gives back that photograph's luminance.
+    rng = np.random.default_rng(0)
+    true = _with_maximum_at(rng.uniform(-0.4, 0.4, (6, 9)), rng.uniform(-0.4, 0.4, (6, 9)), 200.0)
+    rgb = np.full((6, 9, 3), 255, np.uint8)
+    for light in dome(8, seed=2):
+        diff = _poly(true, light) - relight(true.astype(np.float32), rgb, light)[..., 1]
+        assert diff.min() > -1e-3 and diff.max() < 1 + 1e-3  # truncated, as RTIViewer does
+
+
+def test_relight_clips_and_truncates():
+    coef = np.zeros((1, 5, 6), np.float32)
+    coef[0, :, 5] = [-40.0, 0.0, 128.9, 255.0, 900.0]
+    rgb = np.full((1, 5, 3), 255, np.uint8)
+    rgb[..., 2] = 100
+    out = relight(coef, rgb, (0, 0, 1))
+    np.testing.assert_array_equal(out[0, :, 0], [0, 0, 128, 255, 255])  # 128.9 truncates to 128
+    np.testing.assert_array_equal(out[0, :, 2], [0, 0, 50, 100, 255])  # 100·900/255 clips
+
+
+def test_relight_rejects_mismatched_inputs():
+    coef = np.zeros((4, 5, 6), np.float32)
+    with pytest.raises(ValueError, match="rgb"):
+        relight(coef, np.zeros((4, 6, 3), np.uint8), (0, 0, 1))
+    with pytest.raises(ValueError, match="uint8"):
+        relight(coef, np.zeros((4, 5, 3), np.float32), (0, 0, 1))
+    with pytest.raises(ValueError, match=r"\(H, W, 6\)"):
+        relight(np.zeros((4, 5, 9)), np.zeros((4, 5, 3), np.uint8), (0, 0, 1))
+
+
+# ---------------------------------------------------------------- diffuse gain
+
+
+def _concave_field(seed=0, shape=(9, 13)):
+    rng = np.random.default_rng(seed)
+    lu0 = rng.uniform(-0.6, 0.6, shape)
+    lv0 = rng.uniform(-0.6, 0.6, shape)
+    peak = rng.uniform(120, 240, shape)
+    a0 = rng.uniform(-90, -30, shape)
+    a1 = rng.uniform(-90, -30, shape)
+    a2 = rng.uniform(-20, 20, shape)
+    return _with_maximum_at(lu0, lv0, peak, a0, a1, a2).astype(np.float32)
+
+
+def test_diffuse_gain_default_is_rtiviewers():
+    assert inspect.signature(diffuse_gain).parameters["gain"].default == 2.0
+
+
+@pytest.mark.parametrize("gain", [0.5, 2.0, 4.0, 10.0])
+def test_diffuse_gain_keeps_the_maximum(gain):
+    coef = _concave_field()
+    lu0, lv0, interior = ptm_maximum(coef)
+    assert interior.all()
+    gained = diffuse_gain(coef, gain)
+    assert gained.dtype == np.float32 and gained.shape == coef.shape
+    lu1, lv1, interior1 = ptm_maximum(gained)
+    assert interior1.all()
+    np.testing.assert_allclose(lu1, lu0, atol=2e-5)
+    np.testing.assert_allclose(lv1, lv0, atol=2e-5)
+    peak = np.einsum("hwk,hwk->hw", coef.astype(np.float64), light_matrix(np.stack([lu0.ravel(), lv0.ravel()], 1)).reshape(coef.shape))
+    peak1 = np.einsum("hwk,hwk->hw", gained.astype(np.float64), light_matrix(np.stack([lu1.ravel(), lv1.ravel()], 1)).reshape(coef.shape))
+    np.testing.assert_allclose(peak1, peak, rtol=1e-5)
+    # Every other light departs from the peak g times as much: curvature scaled by g.
+    for light in dome(6, seed=4):
+        np.testing.assert_allclose(_poly(gained, light) - peak, gain * (_poly(coef, light) - peak), rtol=1e-4, atol=1e-2)
+
+
+def test_diffuse_gain_one_is_the_identity():
+    coef = _concave_field(seed=1)
+    coef[0, 0] = [5.0, 3.0, 0.0, 1.0, -2.0, 40.0]  # convex: maximum on the rim
+    np.testing.assert_array_equal(diffuse_gain(coef, 1.0), coef)
+    rgb = np.full(coef.shape[:2] + (3,), 180, np.uint8)
+    light = light_direction(azimuth_deg=30, elevation_deg=40)
+    np.testing.assert_array_equal(relight(diffuse_gain(coef, 1.0), rgb, light), relight(coef, rgb, light))
+
+
+def test_diffuse_gain_exaggerates_shading():
+    # Away from each pixel's peak, a gain > 1 darkens more: the relit image has more contrast.
+    coef = _concave_field(seed=2)
+    rgb = np.full(coef.shape[:2] + (3,), 255, np.uint8)
+    light = light_direction(azimuth_deg=200, elevation_deg=25)
+    plain = relight(coef, rgb, light).astype(float)
+    gained = relight(diffuse_gain(coef), rgb, light).astype(float)
+    assert (gained <= plain + 1).all()
+    assert gained.std() > plain.std()
+
+
+@pytest.mark.parametrize("gain", [0.0, -1.0, np.nan, np.inf])
+def test_diffuse_gain_rejects_bad_gain(gain):
+    with pytest.raises(ValueError, match="gain"):
+        diffuse_gain(_concave_field(), gain)
+
+
+# ---------------------------------------------------------------- specular enhancement
+
+
+def test_specular_without_lobe_is_the_diffuse_part():
+    coef = _concave_field(seed=3)
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, coef.shape[:2] + (3,), dtype=np.uint8)
+    light = light_direction(azimuth_deg=60, elevation_deg=50)
+    # kd = 1, ks = 0 is the default rendering, byte for byte.
+    np.testing.assert_array_equal(specular_enhancement(coef, rgb, light, kd=1.0, ks=0.0), relight(coef, rgb, light))
+    out = specular_enhancement(coef, rgb, light, kd=0.4, ks=0.0).astype(float)
+    expected = np.clip(0.4 * rgb * (_poly(coef, light) / 255)[..., None], 0, 255)
+    diff = expected - out
+    assert diff.min() > -1e-3 and diff.max() < 1 + 1e-3
+
+
+@pytest.mark.parametrize("kd", [0.0, 0.4])
+def test_specular_is_brightest_where_the_normal_bisects_light_and_view(kd):
+    light = light_direction(azimuth_deg=0, elevation_deg=45)
+    half = (light + (0, 0, 1)) / np.linalg.norm(light + (0, 0, 1))  # (0.383, 0, 0.924)
+    lu0 = np.linspace(-0.8, 0.8, 81)[None, :]
+    coef = _with_maximum_at(lu0, 0.0, 200.0)
+    # Same luminance under this light everywhere, so only the lobe differs between pixels.
+    coef[..., 5] += 100.0 - _poly(coef, light)
+    np.testing.assert_allclose(_poly(coef, light), 100.0)
+    rgb = np.full(coef.shape[:2] + (3,), 150, np.uint8)
+    out = specular_enhancement(coef.astype(np.float32), rgb, light, kd=kd, ks=0.7, exponent=75)[0, :, 0].astype(float)
+    best = np.argmax(out)
+    assert abs(lu0[0, best] - half[0]) <= 0.02
+    assert out[best] > out[0] + 20 and out[best] > out[-1] + 20
+    # At the bisector (n·h = 1): (kd·rgb + 255·ks)·L/255.
+    assert out[best] == pytest.approx((kd * 150 + 255 * 0.7) * 100 / 255, abs=1.5)
+
+
+def test_specular_lobe_formula_at_one_pixel():
+    light = light_direction(azimuth_deg=120, elevation_deg=35)
+    coef = _with_maximum_at(0.3, -0.2, 230.0)[None, None].astype(np.float32)
+    rgb = np.array([[[200, 100, 50]]], np.uint8)
+    n = np.array([0.3, -0.2, math.sqrt(1 - 0.13)])
+    h = (light + (0, 0, 1)) / np.linalg.norm(light + (0, 0, 1))
+    lum = _poly(coef, light)[0, 0]
+    for kd, ks, e in [(0.4, 0.7, 75), (0.8, 0.3, 10), (0.2, 1.0, 1)]:
+        expected = np.clip((kd * np.array([200, 100, 50]) + 255 * ks * max(n @ h, 0) ** e) * lum / 255, 0, 255)
+        out = specular_enhancement(coef, rgb, light, kd=kd, ks=ks, exponent=e)[0, 0].astype(float)
+        assert np.all((expected - out > -1e-3) & (expected - out < 1 + 1e-3))
+
+
+def test_specular_defaults_are_rtiviewers():
+    p = inspect.signature(specular_enhancement).parameters
+    assert (p["kd"].default, p["ks"].default, p["exponent"].default) == (0.4, 0.7, 75)
+
+
+@pytest.mark.parametrize("kwargs", [{"kd": -0.1}, {"ks": np.nan}, {"exponent": -2}])
+def test_specular_rejects_bad_parameters(kwargs):
+    coef = _concave_field()
+    rgb = np.zeros(coef.shape[:2] + (3,), np.uint8)
+    with pytest.raises(ValueError):
+        specular_enhancement(coef, rgb, (0, 0, 1), **kwargs)
