@@ -18,9 +18,17 @@ def _poly(coef, light):
     return np.asarray(coef, np.float64) @ light_matrix(np.asarray(light, np.float64)[None, :2])[0]
 
 
+def _at(coef, lu, lv):
+    """Each pixel's polynomial at its own light projection (lu, lv), in float64."""
+    rows = light_matrix(np.stack([np.ravel(lu), np.ravel(lv)], 1)).reshape(np.shape(coef))
+    return np.einsum("hwk,hwk->hw", np.asarray(coef, np.float64), rows)
+
+
 def _with_maximum_at(lu0, lv0, value, a0=-60.0, a1=-45.0, a2=15.0):
     """Concave polynomials (0–255 units) whose maximum over the disk is ``value`` at (lu0, lv0)."""
-    lu0, lv0, value, a0, a1, a2 = np.broadcast_arrays(*(np.asarray(x, np.float64) for x in (lu0, lv0, value, a0, a1, a2)))
+    lu0, lv0, value, a0, a1, a2 = np.broadcast_arrays(
+        *(np.asarray(x, np.float64) for x in (lu0, lv0, value, a0, a1, a2))
+    )
     # Zero gradient at (lu0, lv0): 2·a0·lu + a2·lv + a3 = 0 and a2·lu + 2·a1·lv + a4 = 0.
     a3 = -(2 * a0 * lu0 + a2 * lv0)
     a4 = -(a2 * lu0 + 2 * a1 * lv0)
@@ -171,12 +179,12 @@ def test_diffuse_gain_keeps_the_maximum(gain):
     assert interior1.all()
     np.testing.assert_allclose(lu1, lu0, atol=2e-5)
     np.testing.assert_allclose(lv1, lv0, atol=2e-5)
-    peak = np.einsum("hwk,hwk->hw", coef.astype(np.float64), light_matrix(np.stack([lu0.ravel(), lv0.ravel()], 1)).reshape(coef.shape))
-    peak1 = np.einsum("hwk,hwk->hw", gained.astype(np.float64), light_matrix(np.stack([lu1.ravel(), lv1.ravel()], 1)).reshape(coef.shape))
-    np.testing.assert_allclose(peak1, peak, rtol=1e-5)
+    peak = _at(coef, lu0, lv0)
+    np.testing.assert_allclose(_at(gained, lu1, lv1), peak, rtol=1e-5)
     # Every other light departs from the peak g times as much: curvature scaled by g.
     for light in dome(6, seed=4):
-        np.testing.assert_allclose(_poly(gained, light) - peak, gain * (_poly(coef, light) - peak), rtol=1e-4, atol=1e-2)
+        departure = _poly(coef, light) - peak
+        np.testing.assert_allclose(_poly(gained, light) - peak, gain * departure, rtol=1e-4, atol=1e-2)
 
 
 def test_diffuse_gain_one_is_the_identity():
@@ -214,7 +222,8 @@ def test_specular_without_lobe_is_the_diffuse_part():
     rgb = rng.integers(0, 256, coef.shape[:2] + (3,), dtype=np.uint8)
     light = light_direction(azimuth_deg=60, elevation_deg=50)
     # kd = 1, ks = 0 is the default rendering, byte for byte.
-    np.testing.assert_array_equal(specular_enhancement(coef, rgb, light, kd=1.0, ks=0.0), relight(coef, rgb, light))
+    plain = specular_enhancement(coef, rgb, light, kd=1.0, ks=0.0)
+    np.testing.assert_array_equal(plain, relight(coef, rgb, light))
     out = specular_enhancement(coef, rgb, light, kd=0.4, ks=0.0).astype(float)
     expected = np.clip(0.4 * rgb * (_poly(coef, light) / 255)[..., None], 0, 255)
     diff = expected - out
@@ -231,7 +240,8 @@ def test_specular_is_brightest_where_the_normal_bisects_light_and_view(kd):
     coef[..., 5] += 100.0 - _poly(coef, light)
     np.testing.assert_allclose(_poly(coef, light), 100.0)
     rgb = np.full(coef.shape[:2] + (3,), 150, np.uint8)
-    out = specular_enhancement(coef.astype(np.float32), rgb, light, kd=kd, ks=0.7, exponent=75)[0, :, 0].astype(float)
+    out = specular_enhancement(coef.astype(np.float32), rgb, light, kd=kd, ks=0.7, exponent=75)
+    out = out[0, :, 0].astype(float)
     best = np.argmax(out)
     assert abs(lu0[0, best] - half[0]) <= 0.02
     assert out[best] > out[0] + 20 and out[best] > out[-1] + 20
