@@ -25,8 +25,19 @@ Start with `reconstruct demo` to see the whole pipeline on a synthetic clay tabl
 `reconstruct run MY_CAPTURE -o results --pixel-size 0.05`.
 """
 
+RELIGHT_EPILOG = """\
+examples:
+  reconstruct relight tablet_out --azimuth 135 --elevation 15 -o raking.png
+  reconstruct relight old_scan.ptm --light 0.5,0.5,0.7 --mode specular -o shiny.png
+  reconstruct relight tablet_out --sweep 36 --elevation 25 -o turntable.gif
+"""
+
 RUN_EPILOG = """\
+CAPTURE may also be an existing .ptm file: its normals (from the PTM's maximum), height map
+and meshes are made from it, no photographs needed.
+
 outputs (in the -o folder):
+  coefficients.ptm           the PTM (HP PTM 1.2, opens in RTIViewer); web/ for OpenLIME
   normals.npy, normals.png   unit normals (float32) and a 16-bit OpenGL-style normal map
   albedo.png                 the surface colour without shading (8-bit sRGB)
   height.tif                 float32 height map; millimetres with --pixel-size, else pixels
@@ -77,6 +88,27 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
     _add_run_options(run)
 
+    rel = sub.add_parser(
+        "relight",
+        help="render a PTM under a chosen light (RTIViewer's modes), or a GIF of a circling light",
+        description="Render a PTM under any light, as RTIViewer does. SOURCE is a .ptm file or an "
+        "output folder of `reconstruct run` (its coefficients.ptm).",
+        epilog=RELIGHT_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    rel.add_argument("source", type=Path, help=".ptm file or output folder")
+    rel.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png, .jpg, .tif; .gif with --sweep)")
+    rel.add_argument("--light", metavar="X,Y,Z", help="direction towards the light (x right, y up, z towards the camera)")
+    rel.add_argument("--azimuth", type=float, metavar="DEG", help="light azimuth: 0 = from the right, 90 = from the top")
+    rel.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object (default with --sweep: 30)")
+    rel.add_argument("--mode", choices=("default", "specular", "diffuse-gain"), default="default",
+                     help="default rendering, specular enhancement, or diffuse gain (default: default)")
+    rel.add_argument("--kd", type=float, default=0.4, help="specular enhancement: diffuse weight (default 0.4)")
+    rel.add_argument("--ks", type=float, default=0.7, help="specular enhancement: specular weight (default 0.7)")
+    rel.add_argument("--exponent", type=float, default=75.0, help="specular enhancement: Phong exponent (default 75)")
+    rel.add_argument("--gain", type=float, default=2.0, help="diffuse gain (default 2)")
+    rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
+
     demo = sub.add_parser(
         "demo",
         help="render a synthetic clay tablet, reconstruct it and report the accuracy",
@@ -111,6 +143,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "--step", type=_positive_int, metavar="K",
         help="mesh vertex every K pixels (default: the smallest K keeping the mesh under 4 million vertices)",
     )
+    p.add_argument("--ptm-format", choices=("lrgb", "rgb"), default="lrgb",
+                   help="coefficients.ptm as LRGB (default: one luminance polynomial and a colour per pixel) or RGB (one per channel)")
     p.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object; height and mesh stay inside it")
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
@@ -159,7 +193,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     options = RunOptions(
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
-        ground_truth=args.ground_truth,
+        ground_truth=args.ground_truth, ptm_format=args.ptm_format,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)
@@ -169,8 +203,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _print_summary(report: dict, out: Path) -> None:
     total = sum(s["seconds"] for s in report["stages"].values())
-    print(f"Results in {out}/ ({report['inputs']['photographs']} photographs, "
-          f"{report['inputs']['width']}×{report['inputs']['height']}, {total:.1f} s)")
+    inputs = report["inputs"]
+    source = f"{inputs['photographs']} photographs" if "photographs" in inputs else inputs.get("format", "PTM")
+    print(f"Results in {out}/ ({source}, {inputs['width']}×{inputs['height']}, {total:.1f} s)")
     print(f"  heights in {report['height_unit']}; mesh: {report['mesh']['vertices']:,} vertices, "
           f"{report['mesh']['faces']:,} triangles (step {report['mesh']['step']})")
     acc = report.get("accuracy")
@@ -182,6 +217,49 @@ def _print_summary(report: dict, out: Path) -> None:
         print(line)
     for w in report["warnings"]:
         print(f"  warning: {w}")
+
+
+def _parse_vector(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise InputError(f"--light must be three numbers x,y,z, got {text!r}")
+    return values
+
+
+def _cmd_relight(args: argparse.Namespace) -> int:
+    from ptmcore.relight import light_direction
+    from reconstruct.relighting import load_ptm_source, render, sweep_lights, write_gif, write_image
+
+    params = {"kd": args.kd, "ks": args.ks, "exponent": args.exponent, "gain": args.gain}
+    if args.sweep is None:
+        if (args.light is None) == (args.azimuth is None and args.elevation is None):
+            raise InputError("give either --light X,Y,Z or --azimuth and --elevation (or --sweep N)")
+        try:
+            if args.light is not None:
+                light = light_direction(light=_parse_vector(args.light))
+            else:
+                if args.azimuth is None or args.elevation is None:
+                    raise InputError("--azimuth and --elevation go together")
+                light = light_direction(azimuth_deg=args.azimuth, elevation_deg=args.elevation)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+    ptm = load_ptm_source(args.source)
+    try:
+        if args.sweep is None:
+            write_image(args.output, render(ptm, light, args.mode, **params))
+        else:
+            elevation = 30.0 if args.elevation is None else args.elevation
+            if not 0 < elevation <= 90:
+                raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
+            frames = [render(ptm, lt, args.mode, **params) for lt in sweep_lights(args.sweep, elevation)]
+            write_gif(args.output, frames)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    print(f"Wrote {args.output}")
+    return 0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -214,7 +292,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     try:
-        return {"run": _cmd_run, "demo": _cmd_demo}[args.command](args)
+        return {"run": _cmd_run, "relight": _cmd_relight, "demo": _cmd_demo}[args.command](args)
     except InputError as exc:
         print(f"reconstruct: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

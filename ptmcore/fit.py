@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .bands import band_rows, run_bands
-from .images import ImageStack, linear_to_srgb, srgb_to_linear
+from .images import ImageStack
 from .lp import as_directions
 
 
@@ -107,67 +107,3 @@ def fit_ptm(
 
     run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
     return PTM(coef, stack.chroma)
-
-
-def _encoded_table(stack: ImageStack) -> np.ndarray:
-    """Stored luminance code → luminance in the photographs' 0–255 encoding (65536 entries)."""
-    v = np.arange(65536, dtype=np.float64) / 65534.0
-    v[-1] = 1.0  # the clipped-sample code
-    if stack.linearized or stack.bit_depth > 8:
-        v = linear_to_srgb(v)
-    return (v * 255.0).astype(np.float32)
-
-
-def _srgb_unclipped(v: np.ndarray) -> np.ndarray:
-    """The sRGB encoding continued above 1, so that ratios of saturated colours survive."""
-    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.maximum(v, 0.0031308) ** (1 / 2.4) - 0.055).astype(
-        np.float32
-    )
-
-
-def fit_ptm_display(
-    stack: ImageStack,
-    directions: np.ndarray,
-    *,
-    threads: int | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """An LRGB PTM for viewers: coefficients in sRGB-encoded luminance (0–255) and 8-bit colour.
-
-    RTIViewer renders an LRGB PTM as ``rgb · L / 255`` and shows the result as it is, so the
-    polynomial must be fitted to the photographs in their own encoding (as HP's PTMfitter fits
-    the sRGB bytes), not to linear light. The stack holds linear luminance; each sample is
-    encoded back through the sRGB curve (a table of its 65536 codes) before the same
-    pseudoinverse fit. The colour follows from the pixel's linear chromaticity ``c`` (unit
-    luminance): ``rgb = 255·srgb(c·Y0)/srgb(Y0)`` at the pixel's luminance Y0 under a light
-    from the zenith, exact there and close elsewhere since the sRGB curve is near a power law;
-    where a channel exceeds 255 (saturated colours), rgb is divided and the pixel's
-    coefficients multiplied by the same factor, which leaves their product alone.
-    Photographs read with ``linearize=False`` are fitted as they are.
-
-    Returns
-    -------
-    coefficients : ndarray, shape (H, W, 6), float32
-        In 0–255 luminance units.
-    rgb : ndarray, shape (H, W, 3), uint8
-    """
-    n = len(stack)
-    h, w = stack.shape
-    pinv = fit_matrix(as_directions(directions, n)).astype(np.float32)
-    table = _encoded_table(stack)
-    coef = np.empty((h, w, 6), dtype=np.float32)
-
-    def work(r0: int, r1: int) -> None:
-        encoded = table[stack.luminance[:, r0:r1]].reshape(n, -1)
-        coef[r0:r1] = (pinv @ encoded).T.reshape(r1 - r0, w, 6)
-
-    run_bands(h, band_rows(n, w), work, threads=threads)
-    c = np.maximum(stack.chroma, 0.0)
-    if stack.linearized or stack.bit_depth > 8:
-        # The pixel's luminance under a light from the zenith (its polynomial's constant term),
-        # where the colour ratio is taken exactly: rgb_c = 255·srgb(c_c·Y0)/srgb(Y0).
-        y0 = srgb_to_linear(np.clip(coef[..., 5] / np.float32(255), 1e-3, 1.0))[..., None]
-        c = _srgb_unclipped(c * y0) / _srgb_unclipped(y0)
-    k = np.maximum(c.max(axis=2), 1.0)
-    coef *= k[..., None]
-    rgb = np.clip(np.round(c / k[..., None] * 255.0), 0, 255).astype(np.uint8)
-    return coef, rgb

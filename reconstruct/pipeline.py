@@ -37,15 +37,18 @@ from ptmcore.fit import fit_ptm
 from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
 from ptmcore.lp import read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
 
 from . import outputs
 from .accuracy import load_ground_truth, height_rmse, normal_accuracy
 from .integrate import integrate
 from .mesh import grid_mesh, write_obj, write_ply
 from .profiling import StageTimer
+from .web import export_openlime
 
 #: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
 NORMAL_METHODS = ("ps", "ptm")
+PTM_FORMATS = ("lrgb", "rgb")
 INTEGRATORS = ("dct", "fc")
 #: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
 #: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
@@ -72,7 +75,11 @@ class RunOptions:
         Mesh subsampling; None picks the smallest step that keeps the mesh under
         :data:`AUTO_MESH_VERTICES` vertices.
     linearize : bool
-        Take 8-bit photographs as sRGB and linearise them.
+        Take 8-bit photographs as sRGB and linearise them (for the normals; the ``.ptm`` file
+        is always fitted to the photographs as they are encoded, as viewers expect).
+    ptm_format : {"lrgb", "rgb"}
+        Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
+        one polynomial per channel.
     mask : Path or None
         Image whose non-zero pixels are the object; height and mesh are restricted to it.
     threads : int or None
@@ -88,6 +95,7 @@ class RunOptions:
     integrator: str = "dct"
     step: int | None = None
     linearize: bool = True
+    ptm_format: str = "lrgb"
     mask: Path | None = None
     threads: int | None = None
     ground_truth: Path | None = None
@@ -200,6 +208,14 @@ def _check_options(opt: RunOptions) -> None:
         raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
     if opt.step is not None and opt.step < 1:
         raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    if opt.ptm_format not in PTM_FORMATS:
+        raise InputError(f"unknown PTM format {opt.ptm_format!r}; choose from {', '.join(PTM_FORMATS)}")
+
+
+def _web_export(staging: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None) -> list[str]:
+    """Write the OpenLIME web viewer's files under ``web/``; return their names."""
+    written = export_openlime(staging / "web", coefficients, rgb, pixel_size_mm=pixel_size)
+    return [f"web/{p.name}" for p in written]
 
 
 def _surface_and_files(
@@ -252,10 +268,32 @@ def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings:
     }
 
 
+def _ptm_summary(quantisation: dict) -> dict:
+    """What report.json says of coefficients.ptm: format, size and its 8-bit quantisation error."""
+    keep = ("format", "width", "height", "scale", "bias", "bytes", "max_error", "rms_error", "clipped")
+    summary = {k: quantisation[k] for k in keep if k in quantisation}
+    summary["error_unit"] = "coefficient units (luminance 0-255)"
+    return json_safe(summary)
+
+
+def json_safe(value):
+    """Convert NumPy scalars and arrays inside ``value`` to plain Python for JSON."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
+
+
 def _publish(staging: Path, out: Path, names: list[str]) -> dict[str, Path]:
     """Move the finished files from the staging folder into the output folder."""
     final = {}
     for name in names:
+        (out / name).parent.mkdir(exist_ok=True)
         os.replace(staging / name, out / name)
         final[name] = out / name
     return final
@@ -366,6 +404,22 @@ def run_capture(
         # The stack is by far the largest array; later stages need neither it nor the PTM.
         del stack, ptm
 
+        with stage("ptm", len(lights)) as advance:
+            # A second pass over the photographs, as they are encoded: the fit HP's PTMfitter
+            # makes (its files are reproduced byte for byte), streamed so memory stays bounded.
+            if opt.ptm_format == "lrgb":
+                coef8, rgb8 = fit_ptm_encoded(lights.paths, lights.directions, threads=opt.threads, progress=advance)
+            else:
+                coef8 = fit_ptm_rgb_encoded(lights.paths, lights.directions, threads=opt.threads, progress=advance)
+                rgb8 = None
+            quantisation = write_ptm(staging / "coefficients.ptm", coef8, rgb8)
+            ptm_names = ["coefficients.ptm"]
+            if rgb8 is not None:
+                ptm_names += _web_export(staging, coef8, rgb8, opt.pixel_size)
+            else:
+                warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
+            del coef8, rgb8
+
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
 
         accuracy = None
@@ -385,9 +439,12 @@ def run_capture(
             "bit_depth": bit_depth,
             "mask": str(opt.mask) if opt.mask else None,
         }
-        report = _report(inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale, accuracy=accuracy)
+        report = _report(
+            inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
+            ptm=_ptm_summary(quantisation), accuracy=accuracy,
+        )
         outputs.write_json(staging / "report.json", report)
-        final = _publish(staging, out, [*names, "report.json"])
+        final = _publish(staging, out, [*ptm_names, *names, "report.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)
@@ -416,8 +473,6 @@ def run_ptm(
     """
     from dataclasses import replace
 
-    from ptmcore.ptmfile import read_ptm
-
     opt = replace(options or RunOptions(), normals="ptm")
     _check_options(opt)
     ptm_path = Path(ptm_path)
@@ -441,12 +496,13 @@ def run_ptm(
             else:
                 top = _evaluate(coef, lu, lv)
             texture = np.clip(np.round(top), 0, 255).astype(np.uint8)
+        web = _web_export(staging, ptm.coefficients, ptm.rgb, opt.pixel_size) if ptm.rgb is not None else []
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
         inputs = {"ptm": str(ptm_path.resolve()), "format": ptm.format, "width": w, "height": h,
                   "mask": str(opt.mask) if opt.mask else None}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
         outputs.write_json(staging / "report.json", report)
-        final = _publish(staging, out, [*names, "report.json"])
+        final = _publish(staging, out, [*web, *names, "report.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)

@@ -1,0 +1,129 @@
+"""``reconstruct relight``: render a PTM under any light, or a sweep of lights as a GIF.
+
+The maths is in :mod:`ptmcore.relight` (RTIViewer's default rendering, specular enhancement
+and diffuse gain); this module finds the PTM of a source, converts RGB-format PTMs for the
+modes that need a single luminance polynomial, and writes images and animations.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError
+from ptmcore.images import LUMA_WEIGHTS
+from ptmcore.normals import ptm_maximum
+from ptmcore.ptmfile import PTMFile, read_ptm
+from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, relight, specular_enhancement
+
+MODES = ("default", "specular", "diffuse-gain")
+
+
+def load_ptm_source(source: str | os.PathLike) -> PTMFile:
+    """Read the PTM of ``source``: a ``.ptm`` file, or an output folder of ``reconstruct run``."""
+    source = Path(source)
+    if source.is_dir():
+        candidate = source / "coefficients.ptm"
+        if not candidate.is_file():
+            raise InputError("no coefficients.ptm in this folder (give a .ptm file or an output folder)", source)
+        source = candidate
+    elif not source.exists():
+        raise InputError("not found", source)
+    return read_ptm(source)
+
+
+def as_lrgb(ptm: PTMFile) -> tuple[np.ndarray, np.ndarray]:
+    """LRGB coefficients and colour of a PTM; RGB-format PTMs are converted.
+
+    The luminance polynomial of an RGB-format PTM is the weighted sum of its channels'
+    (luminance is linear in them); the colour is each channel's share of it at the
+    luminance maximum, where it is best determined.
+    """
+    if ptm.is_lrgb:
+        return ptm.coefficients, ptm.rgb
+    coef = np.einsum("hwck,c->hwk", ptm.coefficients, LUMA_WEIGHTS)
+    lu, lv, _ = ptm_maximum(coef)
+    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
+    channels = (ptm.coefficients * basis[..., None, :]).sum(axis=-1)
+    lum = (coef * basis).sum(axis=-1)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(lum > 0, channels / lum, 1.0)
+    # Channels brighter than the luminance (saturated colours) move into the coefficients.
+    k = np.maximum(share.max(axis=-1), 1.0)
+    rgb = np.clip(np.round(share / k[..., None] * 255), 0, 255).astype(np.uint8)
+    return (coef * k[..., None]).astype(np.float32), rgb
+
+
+def render(
+    ptm: PTMFile,
+    light: np.ndarray,
+    mode: str = "default",
+    *,
+    kd: float = 0.4,
+    ks: float = 0.7,
+    exponent: float = 75.0,
+    gain: float = DEFAULT_GAIN,
+) -> np.ndarray:
+    """Render a PTM under one light in one of RTIViewer's modes.
+
+    Parameters
+    ----------
+    ptm : PTMFile
+    light : ndarray, shape (3,)
+        Unit vector towards the light.
+    mode : {"default", "specular", "diffuse-gain"}
+    kd, ks, exponent : float
+        Specular enhancement: diffuse weight, specular weight, Phong exponent.
+    gain : float
+        Diffuse gain.
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3), uint8
+    """
+    if mode == "default" and not ptm.is_lrgb:
+        return ptm.render(light)
+    coef, rgb = as_lrgb(ptm)
+    if mode == "default":
+        return relight(coef, rgb, light)
+    if mode == "specular":
+        return specular_enhancement(coef, rgb, light, kd=kd, ks=ks, exponent=exponent)
+    if mode == "diffuse-gain":
+        return relight(diffuse_gain(coef, gain), rgb, light)
+    raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+
+
+def sweep_lights(count: int, elevation_deg: float = 30.0) -> np.ndarray:
+    """``count`` unit light vectors circling the object at one elevation, from the right."""
+    az = np.radians(np.arange(count) * 360.0 / count)
+    el = np.radians(elevation_deg)
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(count, np.sin(el))], axis=1)
+
+
+def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write an 8-bit RGB image; the format follows the extension (PNG, JPEG, TIFF...)."""
+    from PIL import Image
+
+    path = Path(path)
+    fmt = Image.registered_extensions().get(path.suffix.lower())
+    if fmt is None:
+        raise InputError(f"unknown image extension {path.suffix!r} (use .png, .jpg or .tif)", path)
+    buf = io.BytesIO()
+    Image.fromarray(image).save(buf, format=fmt)
+    with atomic_write(path, "wb") as f:
+        f.write(buf.getbuffer())
+
+
+def write_gif(path: str | os.PathLike, frames: list[np.ndarray], *, frame_ms: int = 80) -> None:
+    """Write frames as a looping animated GIF (adaptive palette per frame)."""
+    from PIL import Image
+
+    images = [Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames]
+    buf = io.BytesIO()
+    images[0].save(buf, format="GIF", save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
+    with atomic_write(path, "wb") as f:
+        f.write(buf.getbuffer())
