@@ -29,10 +29,11 @@ Payloads:
   each channel's polynomial gives that channel's value directly.
 * ``PTM_FORMAT_JPEG_LRGB`` / ``PTM_FORMAT_JPEG_RGB``: after the bias line, a line with the JPEG
   quality, then seven lines of one integer per plane (9 planes for LRGB: a0..a5, R, G, B; 18 for
-  RGB: a0..a5 of R, then of G, then of B): transform, motion vector x, motion vector y, decoding
-  order, reference plane, compressed size, side-information size. The payload holds, plane by
-  plane in plane order, a grayscale JPEG stream (rows bottom first, like the raw formats) followed
-  by its side information. Planes are decoded in increasing ``order``; a plane with a reference
+  RGB: a0..a5 of R, then of G, then of B, the order of the uncompressed blocks and of Perathoner's
+  ptmlib; no file from HP's own JPEG-RGB writer was at hand to confirm it): transform, motion
+  vector x, motion vector y, decoding order, reference plane, compressed size, side-information
+  size. The payload holds, plane by plane in plane order, a grayscale JPEG stream (rows bottom
+  first, like the raw formats) followed by its side information. Planes are decoded in increasing ``order``; a plane with a reference
   plane r ≥ 0 stores a residual, and its value is ``(residual + ref − 128) mod 256`` where ``ref``
   is plane r after its own decoding, or ``255 − ref`` when bit 0 of the transform (plane
   inversion) is set. Side information then overwrites single bytes: 5-byte records, a 4-byte
@@ -51,7 +52,9 @@ and PTMfitter output are reproduced **byte for byte** by :func:`fit_ptm_encoded`
 
 * The luminance of a photograph is the luma ``0.2125 R + 0.7154 G + 0.0721 B`` of its bytes (the
   Rec. 709 weights as they were quoted around 2000; the current 0.2126/0.7152/0.0722 misses one
-  of the 240 coefficient bytes, Rec. 601 weights or the mean of R, G, B miss most of them).
+  of the 240 coefficient bytes, by 0.005 of a step; Rec. 601 weights or the mean of R, G, B miss
+  most of them). In a grid search (steps of 0.0005) only weights next to these reproduce every
+  byte, but that rests on a handful of bytes close to a rounding boundary in one small fixture.
 * Per pixel, that luminance is normalised so that the pixel's brightest photograph has L = 255:
   ``L_n = 255 · Y_n / max_n Y_n``; the polynomial is the least-squares (pseudoinverse) fit of L_n.
 * The pixel's colour in the RGB block is the least-squares solution of ``C_n ≈ rgb · L_n / 255``
@@ -216,7 +219,8 @@ class PTMFile:
         """
         values = self.luminance(light)
         if self.is_lrgb:
-            values = self.rgb.astype(np.float32) * (values * np.float32(1 / 255))[..., None]
+            # Product first: integral results stay exact, so truncation cannot drop a level.
+            values = self.rgb * values[..., None] / np.float32(255)
         return np.clip(values, 0, 255).astype(np.uint8)
 
 
@@ -305,10 +309,16 @@ def _read_bytes(path: Path) -> bytes:
         raise InputError(f"cannot read PTM file ({exc.strerror or exc})", path) from None
 
 
-def _decode_block(raw: np.ndarray, scale: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """Coefficient bytes ``(H, W, 6)`` in file order (bottom row first) → float32, top first."""
+def _decode_block(
+    raw: np.ndarray, scale: np.ndarray, bias: np.ndarray, out: np.ndarray | None = None
+) -> np.ndarray:
+    """Coefficient bytes ``(H, W, 6)`` in file order (bottom row first) → float32, top first.
+
+    ``out`` may be a view into a larger array (one channel of an RGB-format PTM).
+    """
     h, w = raw.shape[:2]
-    out = np.empty((h, w, 6), dtype=np.float32)
+    if out is None:
+        out = np.empty((h, w, 6), dtype=np.float32)
     s32 = scale.astype(np.float32)
     b32 = bias.astype(np.float32)
     step = max(1, (1 << 20) // (w * 6))  # bands keep the float temporaries small
@@ -351,9 +361,7 @@ def _decode_gray_jpeg(stream: bytes, width: int, height: int, plane: int, path: 
         raise InputError(f"{where} cannot be decoded ({exc})", path) from None
 
 
-def _read_jpeg_planes(
-    cur: _Cursor, fmt: str, width: int, height: int
-) -> tuple[np.ndarray, int]:
+def _read_jpeg_planes(cur: _Cursor, fmt: str, width: int, height: int) -> tuple[np.ndarray, int]:
     """Decode the JPEG planes of a compressed PTM; returns ``(n, H, W)`` uint8 in file order."""
     n = _JPEG_PLANES[fmt]
     path = cur.path
@@ -487,10 +495,10 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
             coefficients = _decode_block(np.moveaxis(planes[:6], 0, -1), scale, bias)
             rgb = np.ascontiguousarray(np.moveaxis(planes[6:9], 0, -1)[::-1])
         else:
-            coefficients = np.stack(
-                [_decode_block(np.moveaxis(planes[6 * c : 6 * c + 6], 0, -1), scale, bias) for c in range(3)],
-                axis=2,
-            )
+            coefficients = np.empty((height, width, 3, 6), dtype=np.float32)
+            for c in range(3):
+                channel = np.moveaxis(planes[6 * c : 6 * c + 6], 0, -1)
+                _decode_block(channel, scale, bias, coefficients[:, :, c])
             rgb = None
     else:
         start = cur.end_header()
@@ -504,17 +512,19 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
             )
         if fmt == FORMAT_RGB:
             raw = np.frombuffer(data, np.uint8, need, start).reshape(3, height, width, 6)
-            coefficients = np.stack([_decode_block(raw[c], scale, bias) for c in range(3)], axis=2)
+            coefficients = np.empty((height, width, 3, 6), dtype=np.float32)
+            for c in range(3):
+                _decode_block(raw[c], scale, bias, coefficients[:, :, c])
             rgb = None
         elif version in _INTERLEAVED_VERSIONS:
             raw = np.frombuffer(data, np.uint8, need, start).reshape(height, width, 9)
             coefficients = _decode_block(raw[..., :6], scale, bias)
             rgb = np.ascontiguousarray(raw[::-1, :, 6:])
         else:
-            coef_raw = np.frombuffer(data, np.uint8, 6 * npix, start).reshape(height, width, 6)
-            rgb_raw = np.frombuffer(data, np.uint8, 3 * npix, start + 6 * npix).reshape(height, width, 3)
-            coefficients = _decode_block(coef_raw, scale, bias)
-            rgb = rgb_raw[::-1].copy()
+            coef_raw = np.frombuffer(data, np.uint8, 6 * npix, start)
+            rgb_raw = np.frombuffer(data, np.uint8, 3 * npix, start + 6 * npix)
+            coefficients = _decode_block(coef_raw.reshape(height, width, 6), scale, bias)
+            rgb = rgb_raw.reshape(height, width, 3)[::-1].copy()
     return PTMFile(fmt, version, width, height, scale, bias, coefficients, rgb, quality)
 
 
@@ -702,7 +712,7 @@ def write_ptm(
     header = _header(fmt, w, h, scale, bias)
     stats = _ErrorStats()
     per_pixel = 6 if fmt == FORMAT_LRGB else 18
-    step = max(1, (4 << 20) // (w * per_pixel))
+    step = max(1, (1 << 20) // (w * per_pixel))  # bands keep the float64 temporaries small
 
     def blocks(values: np.ndarray) -> Iterator[bytes]:
         # The file wants the bottom row first: walk bands from the bottom up, flip each.
@@ -766,7 +776,7 @@ def _photographs(
     images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray, threads: int | None
 ) -> Iterator[tuple[int, np.ndarray, Path | None]]:
     """Yield ``(k, image, path)`` in order, decoding files a few at a time in threads."""
-    items = list(images) if not isinstance(images, np.ndarray) else [images[k] for k in range(len(images))]
+    items = [images[k] for k in range(len(images))] if isinstance(images, np.ndarray) else list(images)
     if not any(isinstance(x, (str, os.PathLike)) for x in items):
         for k, x in enumerate(items):
             yield k, _as_encoded(x, f"image {k}"), None
@@ -793,8 +803,10 @@ def _photographs(
 
 def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray) -> tuple[int, np.ndarray]:
     n = len(images)
-    if n < 6:
-        raise InputError(f"{n} photograph(s) given; a PTM has six coefficients per pixel, so at least 6 are needed")
+    # Fewer than six photographs leave the six coefficients underdetermined; the
+    # pseudoinverse then gives the minimum-norm fit, and the caller warns about it.
+    if n < 1:
+        raise InputError("no photographs given")
     pinv = fit_matrix(as_directions(directions, n)).astype(np.float32)
     return n, pinv
 
@@ -802,8 +814,8 @@ def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray) -> tuple[i
 def _check_size(img: np.ndarray, shape: tuple[int, int], k: int, path: Path | None) -> None:
     if img.shape[:2] != shape:
         raise InputError(
-            f"image is {img.shape[1]}×{img.shape[0]} but the first photograph is {shape[1]}×{shape[0]}; "
-            "all photographs of a capture must have the same size",
+            f"image is {img.shape[1]}×{img.shape[0]} but the first photograph is "
+            f"{shape[1]}×{shape[0]}; all photographs of a capture must have the same size",
             path if path is not None else f"image {k}",
         )
 

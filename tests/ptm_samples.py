@@ -91,9 +91,8 @@ def jpeg_ptm(
         else:
             ref = None
             residual = target.astype(np.int16)
-        data = simplejpeg.encode_jpeg(
-            np.ascontiguousarray(residual.astype(np.uint8)[..., None]), quality=quality, colorspace="GRAY"
-        )
+        pixels = np.ascontiguousarray(residual.astype(np.uint8)[..., None])
+        data = simplejpeg.encode_jpeg(pixels, quality=quality, colorspace="GRAY")
         decoded = simplejpeg.decode_jpeg(data, colorspace="GRAY")[..., 0].astype(np.int16)
         recon = decoded if ref is None else (decoded + ref - 128) % 256
         bad = np.flatnonzero(np.abs(recon - target.astype(np.int16)) > tolerance)
