@@ -1,12 +1,15 @@
 """The whole reconstruction of one capture: photographs → PTM → normals → height → mesh.
 
-:func:`run_capture` is what ``reconstruct run`` calls. Each step is also a plain function that
-a notebook user can call alone (:func:`ptmcore.load_stack`, :func:`ptmcore.fit_ptm`,
-:func:`ptmcore.photometric_stereo`, :func:`reconstruct.integrate.integrate`,
-:func:`reconstruct.mesh.grid_mesh`, ...).
+:func:`run` is what ``reconstruct run`` calls: :func:`run_capture` for photographs and their
+``.lp`` file, :func:`run_ptm` for an existing ``.ptm`` file. Each step is also a plain function
+that a notebook user can call alone (:func:`ptmcore.load_stack`, :func:`ptmcore.fit_ptm`,
+:func:`ptmcore.photometric_stereo`, :func:`ptmcore.ptmfile.fit_ptm_encoded`,
+:func:`reconstruct.integrate.integrate`, :func:`reconstruct.mesh.grid_mesh`, ...).
 
 Output folder layout (stable; later versions add files, never rename them)::
 
+    coefficients.ptm   the PTM, HP PTM 1.2 (LRGB or RGB), as HP's PTMfitter fits it
+    web/               info.json and plane_0..2.jpg for the OpenLIME web viewer (LRGB)
     normals.npy        H×W×3 float32 unit normals (x right, y up, z towards the camera)
     normals.png        16-bit RGB normal map, OpenGL convention (R=x, G=y, B=z)
     albedo.png         8-bit sRGB albedo
@@ -378,8 +381,9 @@ def run_capture(
                 "out of photometric stereo"
             )
 
-        ptm = None
         if opt.normals == "ptm":
+            # Fitted to linear light, where a Lambertian surface's shading is n·l: the PTM
+            # written for viewers (below) is fitted to the encoded photographs instead.
             with stage("fit_ptm", h) as advance:
                 ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
         with stage("normals", h) as advance:
@@ -394,15 +398,11 @@ def run_capture(
                     )
             else:
                 normals = normals_from_ptm(ptm.coefficients)
+                del ptm
                 albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
-        if ptm is None:
-            # After photometric stereo, so that the PTM's coefficients and photometric
-            # stereo's band work are never in memory together (the peak of a large run).
-            with stage("fit_ptm", h) as advance:
-                ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
         texture, albedo_scale = outputs.albedo_to_srgb8(stack.chroma * albedo[..., None])
-        # The stack is by far the largest array; later stages need neither it nor the PTM.
-        del stack, ptm
+        # The stack is by far the largest array; no later stage needs it.
+        del stack
 
         with stage("ptm", len(lights)) as advance:
             # A second pass over the photographs, as they are encoded: the fit HP's PTMfitter

@@ -61,7 +61,7 @@ def test_run_writes_the_documented_layout(capture, tmp_path, capsys):
     report = json.loads((out / "report.json").read_text())
     assert report["height_unit"] == "mm"
     assert report["inputs"]["photographs"] == 12
-    assert set(report["stages"]) >= {"decode", "fit_ptm", "normals", "integrate", "mesh", "write"}
+    assert set(report["stages"]) >= {"decode", "normals", "ptm", "integrate", "mesh", "write"}
     normals = np.load(out / "normals.npy")
     assert normals.shape == (40, 48, 3) and normals.dtype == np.float32
     np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-4)
