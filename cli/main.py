@@ -162,6 +162,7 @@ def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None]
     labels = {
         "decode": "Decoding photographs",
         "fit_ptm": "Fitting the PTM",
+        "ptm": "Writing the .ptm",
         "normals": "Estimating normals",
         "integrate": "Integrating heights",
         "mesh": "Writing meshes",

@@ -79,6 +79,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
+from .bands import run_bands
 from .errors import InputError
 from .fit import fit_matrix, light_matrix
 from .images import read_image
@@ -752,24 +753,27 @@ def write_ptm(
 # Fitting in the photographs' own encoding, as PTMfitter does
 
 
-def _as_encoded(img: np.ndarray, where: str) -> np.ndarray:
-    """A photograph as float32 ``(H, W, 3)`` in 8-bit units (0..255)."""
+def _as_image(img: np.ndarray, where: str) -> np.ndarray:
+    """Check a photograph's layout: ``(H, W)`` or ``(H, W, 3)``, 8/16-bit or float."""
     a = np.asarray(img)
-    if a.ndim == 2:
-        a = a[..., None]
-    if a.ndim != 3 or a.shape[2] not in (1, 3):
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (1, 3)):
         raise ValueError(f"{where}: expected an (H, W) or (H, W, 3) image, not {a.shape}")
-    if a.dtype == np.uint8:
-        out = a.astype(np.float32)
-    elif a.dtype == np.uint16:
-        out = a.astype(np.float32) * np.float32(1 / 257)  # 65535 ↦ 255
-    elif a.dtype.kind == "f":
-        out = a.astype(np.float32) * np.float32(255)
-    else:
+    if a.dtype not in (np.uint8, np.uint16) and a.dtype.kind != "f":
         raise ValueError(f"{where}: unsupported sample type {a.dtype}")
-    if out.shape[2] == 1:
-        out = np.repeat(out, 3, axis=2)
-    return out
+    return a
+
+
+def _encoded(block: np.ndarray) -> np.ndarray:
+    """Rows of a photograph as float32 ``(rows, W, 3)`` in 8-bit units (0..255)."""
+    if block.dtype == np.uint8:
+        out = block.astype(np.float32)
+    elif block.dtype == np.uint16:
+        out = block.astype(np.float32) * np.float32(1 / 257)  # 65535 ↦ 255
+    else:
+        out = block.astype(np.float32) * np.float32(255)
+    if out.ndim == 2:
+        out = out[..., None]
+    return np.repeat(out, 3, axis=2) if out.shape[2] == 1 else out
 
 
 def _photographs(
@@ -779,7 +783,7 @@ def _photographs(
     items = [images[k] for k in range(len(images))] if isinstance(images, np.ndarray) else list(images)
     if not any(isinstance(x, (str, os.PathLike)) for x in items):
         for k, x in enumerate(items):
-            yield k, _as_encoded(x, f"image {k}"), None
+            yield k, _as_image(x, f"image {k}"), None
         return
 
     def load(x: str | os.PathLike | np.ndarray) -> np.ndarray:
@@ -795,7 +799,7 @@ def _photographs(
                 if k + workers < len(items):
                     pending.append(pool.submit(load, items[k + workers]))
                 path = Path(x) if isinstance(x, (str, os.PathLike)) else None
-                yield k, _as_encoded(img, str(path) if path else f"image {k}"), path
+                yield k, _as_image(img, str(path) if path else f"image {k}"), path
         finally:
             for f in pending:
                 f.cancel()
@@ -861,7 +865,7 @@ def fit_ptm_encoded(
     Raises
     ------
     InputError
-        If fewer than 6 photographs are given, one cannot be read, or sizes differ.
+        If no photograph is given, one cannot be read, or sizes differ.
     """
     n, pinv = _fit_setup(images, directions)
     wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
@@ -876,15 +880,17 @@ def fit_ptm_encoded(
             y2 = np.zeros(shape, dtype=np.float32)
         _check_size(img, shape, k, path)
         col = pinv[:, k]
-        step = max(1, (1 << 18) // shape[1])  # bands keep the temporaries small
-        for r0 in range(0, shape[0], step):
-            band = slice(r0, r0 + step)
-            c = img[band]
+
+        def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
+            c = _encoded(img[r0:r1])
             y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
-            acc[band] += y[..., None] * col
-            np.maximum(peak[band], y, out=peak[band])
-            cy[band] += c * y[..., None]
-            y2[band] += y * y
+            acc[r0:r1] += y[..., None] * col
+            np.maximum(peak[r0:r1], y, out=peak[r0:r1])
+            cy[r0:r1] += c * y[..., None]
+            y2[r0:r1] += y * y
+
+        # Bands of rows never overlap, so threads can add one photograph's bands at once.
+        run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
         if progress is not None:
             progress(1)
 
@@ -939,10 +945,11 @@ def fit_ptm_rgb_encoded(
             acc = np.zeros(shape + (3, 6), dtype=np.float32)
         _check_size(img, shape, k, path)
         col = pinv[:, k]
-        step = max(1, (1 << 18) // shape[1])
-        for r0 in range(0, shape[0], step):
-            band = slice(r0, r0 + step)
-            acc[band] += img[band][..., None] * col
+
+        def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
+            acc[r0:r1] += _encoded(img[r0:r1])[..., None] * col
+
+        run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
         if progress is not None:
             progress(1)
     return acc
