@@ -22,8 +22,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# The numbers in BENCHMARKS.md (the speed benchmark renders 48 photographs of 24 MP first).
 bench: $(STAMP)
 	$(BIN)/python benchmarks/accuracy.py
+	$(BIN)/python benchmarks/decoders.py
+	$(BIN)/python benchmarks/ptm_io.py
+	$(BIN)/python benchmarks/speed.py
 
 clean:
 	rm -rf $(VENV) demo_output .pytest_cache

@@ -874,9 +874,11 @@ def fit_ptm_encoded(
     for k, img, path in _photographs(images, threads):
         if acc is None:
             shape = img.shape[:2]
-            acc = np.zeros(shape + (6,), dtype=np.float32)
+            # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
+            # NumPy loop over the last axis of 6 and runs several times slower.
+            acc = np.zeros((6,) + shape, dtype=np.float32)
             peak = np.zeros(shape, dtype=np.float32)
-            cy = np.zeros(shape + (3,), dtype=np.float32)
+            cy = np.zeros((3,) + shape, dtype=np.float32)
             y2 = np.zeros(shape, dtype=np.float32)
         _check_size(img, shape, k, path)
         col = pinv[:, k]
@@ -884,9 +886,11 @@ def fit_ptm_encoded(
         def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
             c = _encoded(img[r0:r1])
             y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
-            acc[r0:r1] += y[..., None] * col
+            for j in range(6):
+                acc[j, r0:r1] += y * col[j]
             np.maximum(peak[r0:r1], y, out=peak[r0:r1])
-            cy[r0:r1] += c * y[..., None]
+            for j in range(3):
+                cy[j, r0:r1] += c[..., j] * y
             y2[r0:r1] += y * y
 
         # Bands of rows never overlap, so threads can add one photograph's bands at once.
@@ -894,6 +898,7 @@ def fit_ptm_encoded(
         if progress is not None:
             progress(1)
 
+    coefficients = np.empty(shape + (6,), dtype=np.float32)
     rgb = np.empty(shape + (3,), dtype=np.uint8)
     step = max(1, (1 << 18) // shape[1])
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -901,10 +906,11 @@ def fit_ptm_encoded(
             band = slice(r0, r0 + step)
             p = peak[band]
             # A pixel black in every photograph keeps L = 0 and colour 0.
-            acc[band] *= np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
-            colour = np.floor(p[..., None] * cy[band] / y2[band][..., None])
+            norm = np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
+            coefficients[band] = np.moveaxis(acc[:, band], 0, -1) * norm
+            colour = np.floor(p[..., None] * np.moveaxis(cy[:, band], 0, -1) / y2[band][..., None])
             rgb[band] = np.clip(np.nan_to_num(colour, nan=0.0, posinf=255.0), 0, 255).astype(np.uint8)
-    return acc, rgb
+    return coefficients, rgb
 
 
 def fit_ptm_rgb_encoded(
@@ -942,14 +948,17 @@ def fit_ptm_rgb_encoded(
     for k, img, path in _photographs(images, threads):
         if acc is None:
             shape = img.shape[:2]
-            acc = np.zeros(shape + (3, 6), dtype=np.float32)
+            acc = np.zeros((3, 6) + shape, dtype=np.float32)  # plane by plane, as above
         _check_size(img, shape, k, path)
         col = pinv[:, k]
 
         def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            acc[r0:r1] += _encoded(img[r0:r1])[..., None] * col
+            c = _encoded(img[r0:r1])
+            for ch in range(3):
+                for j in range(6):
+                    acc[ch, j, r0:r1] += c[..., ch] * col[j]
 
         run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
         if progress is not None:
             progress(1)
-    return acc
+    return np.ascontiguousarray(np.moveaxis(acc, (0, 1), (2, 3)))
