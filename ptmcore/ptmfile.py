@@ -266,25 +266,21 @@ class _Cursor:
         self.pos = j
         return data[i:j]
 
-    def ints(self, count: int, what: str) -> list[int]:
+    def _numbers(self, count: int, what: str, pattern: re.Pattern, convert: Callable, kind: str) -> list:
         values = []
         for k in range(count):
             tok = self.token(what)
-            if not _INT_RE.fullmatch(tok):
+            if not pattern.fullmatch(tok):
                 shown = tok.decode("ascii", "backslashreplace")
-                raise self.fail(f"the {what} must be integers; value {k + 1} is {shown!r}")
-            values.append(int(tok))
+                raise self.fail(f"the {what} must be {kind}; value {k + 1} is {shown!r}")
+            values.append(convert(tok))
         return values
 
+    def ints(self, count: int, what: str) -> list[int]:
+        return self._numbers(count, what, _INT_RE, int, "integers")
+
     def floats(self, count: int, what: str) -> list[float]:
-        values = []
-        for k in range(count):
-            tok = self.token(what)
-            if not _FLOAT_RE.fullmatch(tok):
-                shown = tok.decode("ascii", "backslashreplace")
-                raise self.fail(f"the {what} must be numbers; value {k + 1} is {shown!r}")
-            values.append(float(tok))
-        return values
+        return self._numbers(count, what, _FLOAT_RE, float, "numbers")
 
     def end_header(self) -> int:
         """Consume the rest of the last header line; the payload starts right after it.
