@@ -109,6 +109,16 @@ def build_parser() -> argparse.ArgumentParser:
     rel.add_argument("--gain", type=float, default=2.0, help="diffuse gain (default 2)")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
 
+    lights = sub.add_parser(
+        "lights",
+        help="check a light layout (.lp) before or without photographs: rank, coverage, polar plot",
+        description="Check a light layout without photographs: whether the six PTM coefficients are all "
+        "determined (rank and condition of the light matrix, and why not), the elevation and azimuth "
+        "coverage, and a polar plot.",
+    )
+    lights.add_argument("lp", type=Path, help=".lp light file")
+    lights.add_argument("-o", "--output", type=Path, help="write a polar plot of the lights (PNG)")
+
     demo = sub.add_parser(
         "demo",
         help="render a synthetic clay tablet, reconstruct it and report the accuracy",
@@ -145,6 +155,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--ptm-format", choices=("lrgb", "rgb"), default="lrgb",
                    help="coefficients.ptm as LRGB (default: one luminance polynomial and a colour per pixel) or RGB (one per channel)")
+    p.add_argument("--solver", choices=("pinv", "lstsq", "rohde"), default="pinv",
+                   help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "
+                   "lstsq (the same by another route), rohde (Rohde's form with zero blocks; docs/fitting.md)")
     p.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object; height and mesh stay inside it")
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
@@ -194,7 +207,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     options = RunOptions(
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
-        ground_truth=args.ground_truth, ptm_format=args.ptm_format,
+        ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)
@@ -263,6 +276,18 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_lights(args: argparse.Namespace) -> int:
+    from ptmcore.lp import read_lp
+    from reconstruct.lightcheck import check_lights, report_text, write_polar_plot
+
+    lights = read_lp(args.lp)
+    print(report_text(check_lights(lights.directions)))
+    if args.output is not None:
+        write_polar_plot(args.output, lights.directions, title=args.lp.name)
+        print(f"Polar plot: {args.output}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from data_synthetic import write_capture
     from reconstruct.pipeline import RunOptions, run_capture
@@ -293,13 +318,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     try:
-        return {"run": _cmd_run, "relight": _cmd_relight, "demo": _cmd_demo}[args.command](args)
+        commands = {"run": _cmd_run, "relight": _cmd_relight, "lights": _cmd_lights, "demo": _cmd_demo}
+        return commands[args.command](args)
     except InputError as exc:
         print(f"reconstruct: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print("reconstruct: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        # Output piped into a command that stopped reading (`| head`): not an error.
+        sys.stderr.close()
+        return 0
 
 
 if __name__ == "__main__":

@@ -37,9 +37,18 @@ def light_matrix(directions: np.ndarray) -> np.ndarray:
     return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=1)
 
 
-def fit_matrix(directions: np.ndarray) -> np.ndarray:
-    """The 6×N matrix Λ⁺ that maps N luminances to the six PTM coefficients."""
-    return np.linalg.pinv(light_matrix(directions))
+def fit_matrix(directions: np.ndarray, method: str = "pinv", **options) -> np.ndarray:
+    """The 6×N matrix that maps N luminances to the six PTM coefficients.
+
+    By default the Moore–Penrose pseudoinverse Λ⁺, with singular values below the precision of
+    the light directions treated as zero (:func:`ptmcore.solvers.solve_matrix`): a ring of
+    lamps at one elevation, read from an ``.lp`` file with six decimals, otherwise has a
+    spurious 1e-7 singular value that turns noise into coefficients in the thousands.
+    ``method`` and ``options`` select another {1}-inverse (see ptmcore.solvers).
+    """
+    from .solvers import solve_matrix  # solvers builds on light_matrix above
+
+    return solve_matrix(directions, method, **options)
 
 
 @dataclass
@@ -75,6 +84,7 @@ def fit_ptm(
     stack: ImageStack,
     directions: np.ndarray,
     *,
+    solver: str = "pinv",
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> PTM:
@@ -86,6 +96,8 @@ def fit_ptm(
         The photographs' luminance.
     directions : ndarray, shape (N, 3)
         Unit light directions, one per photograph.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the light matrix (:func:`fit_matrix`).
     threads : int, optional
         Threads working on bands of rows (default: all CPUs).
     progress : callable, optional
@@ -97,7 +109,7 @@ def fit_ptm(
     """
     n = len(stack)
     h, w = stack.shape
-    pinv = fit_matrix(as_directions(directions, n)).astype(np.float32)
+    pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
     coef = np.empty((h, w, 6), dtype=np.float32)
 
     def work(r0: int, r1: int) -> None:

@@ -801,13 +801,13 @@ def _photographs(
                 f.cancel()
 
 
-def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray) -> tuple[int, np.ndarray]:
+def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray, solver: str) -> tuple[int, np.ndarray]:
     n = len(images)
     # Fewer than six photographs leave the six coefficients underdetermined; the
     # pseudoinverse then gives the minimum-norm fit, and the caller warns about it.
     if n < 1:
         raise InputError("no photographs given")
-    pinv = fit_matrix(as_directions(directions, n)).astype(np.float32)
+    pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
     return n, pinv
 
 
@@ -824,6 +824,7 @@ def fit_ptm_encoded(
     images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
     directions: np.ndarray,
     *,
+    solver: str = "pinv",
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -846,6 +847,8 @@ def fit_ptm_encoded(
         The photographs, 8-bit (16-bit values are divided by 257, floats multiplied by 255).
     directions : ndarray, shape (N, 3)
         Unit light directions, one per photograph.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
     threads : int, optional
         Decoding threads (default: all CPUs).
     progress : callable, optional
@@ -863,7 +866,7 @@ def fit_ptm_encoded(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
-    n, pinv = _fit_setup(images, directions)
+    n, pinv = _fit_setup(images, directions, solver)
     wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
     acc = peak = cy = y2 = None
     shape: tuple[int, int] = (0, 0)
@@ -913,6 +916,7 @@ def fit_ptm_rgb_encoded(
     images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
     directions: np.ndarray,
     *,
+    solver: str = "pinv",
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
@@ -928,6 +932,8 @@ def fit_ptm_rgb_encoded(
         The photographs.
     directions : ndarray, shape (N, 3)
         Unit light directions, one per photograph.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
     threads : int, optional
         Decoding threads (default: all CPUs).
     progress : callable, optional
@@ -938,7 +944,7 @@ def fit_ptm_rgb_encoded(
     ndarray, shape (H, W, 3, 6), float32
         Per-channel coefficients in 0..255 units, row 0 at the top.
     """
-    n, pinv = _fit_setup(images, directions)
+    n, pinv = _fit_setup(images, directions, solver)
     acc = None
     shape: tuple[int, int] = (0, 0)
     for k, img, path in _photographs(images, threads):

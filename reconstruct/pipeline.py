@@ -41,6 +41,7 @@ from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
 from ptmcore.lp import read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
+from ptmcore.solvers import analyse_lights
 
 from . import outputs
 from .accuracy import load_ground_truth, height_rmse, normal_accuracy
@@ -52,6 +53,7 @@ from .web import export_openlime
 #: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
 NORMAL_METHODS = ("ps", "ptm")
 PTM_FORMATS = ("lrgb", "rgb")
+SOLVERS = ("pinv", "lstsq", "rohde")
 INTEGRATORS = ("dct", "fc")
 #: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
 #: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
@@ -83,6 +85,9 @@ class RunOptions:
     ptm_format : {"lrgb", "rgb"}
         Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
         one polynomial per channel.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
+        least-squares, minimum-norm fit.
     mask : Path or None
         Image whose non-zero pixels are the object; height and mesh are restricted to it.
     threads : int or None
@@ -99,6 +104,7 @@ class RunOptions:
     step: int | None = None
     linearize: bool = True
     ptm_format: str = "lrgb"
+    solver: str = "pinv"
     mask: Path | None = None
     threads: int | None = None
     ground_truth: Path | None = None
@@ -211,6 +217,8 @@ def _check_options(opt: RunOptions) -> None:
         raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
     if opt.step is not None and opt.step < 1:
         raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    if opt.solver not in SOLVERS:
+        raise InputError(f"unknown solver {opt.solver!r}; choose from {', '.join(SOLVERS)}")
     if opt.ptm_format not in PTM_FORMATS:
         raise InputError(f"unknown PTM format {opt.ptm_format!r}; choose from {', '.join(PTM_FORMATS)}")
 
@@ -269,6 +277,17 @@ def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings:
         "versions": _versions(),
         "warnings": warnings,
     }
+
+
+def _rank_summary(rank) -> dict:
+    """What report.json says of the light layout: rank and condition of the PTM light matrix."""
+    return json_safe({
+        "rank": rank.rank,
+        "condition": rank.condition if math.isfinite(rank.condition) else None,
+        "singular_values": rank.singular_values,
+        "tolerance": rank.tolerance,
+        "causes": rank.causes,
+    })
 
 
 def _ptm_summary(quantisation: dict) -> dict:
@@ -368,10 +387,9 @@ def run_capture(
         h, w = stack.shape
         bit_depth = stack.bit_depth
         mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
-        if len(stack) < 6:
-            warnings.append(
-                f"only {len(stack)} photographs: a PTM has 6 coefficients, so its fit is underdetermined"
-            )
+        rank = analyse_lights(lights.directions)
+        if rank.deficient:
+            warnings.append(f"the PTM light matrix has rank {rank.rank} of 6: " + "; ".join(rank.causes))
         saturated = stack.saturated / (h * w)
         if saturated.max() > 0.01:
             worst = int(np.argmax(saturated))
@@ -385,7 +403,7 @@ def run_capture(
             # Fitted to linear light, where a Lambertian surface's shading is n·l: the PTM
             # written for viewers (below) is fitted to the encoded photographs instead.
             with stage("fit_ptm", h) as advance:
-                ptm = fit_ptm(stack, lights.directions, threads=opt.threads, progress=advance)
+                ptm = fit_ptm(stack, lights.directions, solver=opt.solver, threads=opt.threads, progress=advance)
         with stage("normals", h) as advance:
             if opt.normals == "ps":
                 ps = photometric_stereo(stack, lights.directions, threads=opt.threads, progress=advance)
@@ -408,9 +426,13 @@ def run_capture(
             # A second pass over the photographs, as they are encoded: the fit HP's PTMfitter
             # makes (its files are reproduced byte for byte), streamed so memory stays bounded.
             if opt.ptm_format == "lrgb":
-                coef8, rgb8 = fit_ptm_encoded(lights.paths, lights.directions, threads=opt.threads, progress=advance)
+                coef8, rgb8 = fit_ptm_encoded(
+                    lights.paths, lights.directions, solver=opt.solver, threads=opt.threads, progress=advance
+                )
             else:
-                coef8 = fit_ptm_rgb_encoded(lights.paths, lights.directions, threads=opt.threads, progress=advance)
+                coef8 = fit_ptm_rgb_encoded(
+                    lights.paths, lights.directions, solver=opt.solver, threads=opt.threads, progress=advance
+                )
                 rgb8 = None
             quantisation = write_ptm(staging / "coefficients.ptm", coef8, rgb8)
             ptm_names = ["coefficients.ptm"]
@@ -441,7 +463,7 @@ def run_capture(
         }
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
-            ptm=_ptm_summary(quantisation), accuracy=accuracy,
+            lights=_rank_summary(rank), ptm=_ptm_summary(quantisation), accuracy=accuracy,
         )
         outputs.write_json(staging / "report.json", report)
         final = _publish(staging, out, [*ptm_names, *names, "report.json"])

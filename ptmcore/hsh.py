@@ -1,0 +1,233 @@
+"""Hemispherical harmonics (HSH) as a relighting basis, as in RTIBuilder's and RTIViewer's ``.rti``.
+
+Hemispherical harmonics (Gautron, Křivánek, Pattanaik, Bouatouch: "A Novel Hemispherical Basis
+for Accurate and Efficient Rendering", EGSR 2004) are spherical harmonics whose Legendre part is
+shifted from [−1, 1] onto the upper hemisphere, cos θ ∈ [0, 1], so they are orthonormal over
+the hemisphere of light directions. An HSH of order ``n`` has ``n²`` terms: 4 for order 2 and 9
+for order 3, the two orders RTIBuilder's HSH fitter writes.
+
+Per pixel the luminance under a light is ``L = Σ_k c_k H_k(θ, φ)``, a linear model like the PTM's
+biquadratic, so the least-squares fit of every pixel is one K×N pseudoinverse applied to the
+stack (:func:`fit_hsh`, done in bands like :func:`ptmcore.fit.fit_ptm`).
+
+Convention (what makes coefficients interchangeable with RTIViewer's): for a light direction
+(x, y, z) in the capture frame (x right, y up, z towards the camera),
+
+* φ = atan2(y, x), the azimuth counter-clockwise from +x (RTIViewer then wraps it to [0, 2π),
+  which changes none of the cos mφ, sin mφ below);
+* θ = min(arccos(z / |l|), π/2 − 0.04), the angle from the camera axis, kept 0.04 rad above the
+  horizon as RTIViewer does (s below has an infinite slope at the horizon, c = 0);
+
+and with c = cos θ and s = √(c − c²) = √(cos θ (1 − cos θ)) the terms, in file order, are::
+
+    H0 = 1/√(2π)
+    H1 = √(6/π)  · cos φ · s                 H3 = √(6/π)  · sin φ · s
+    H2 = √(3/2π) · (2c − 1)
+    H4 = √(30/π) · cos 2φ · (c² − c)         H8 = √(30/π) · sin 2φ · (c² − c)
+    H5 = √(30/π) · cos φ · (2c − 1) · s      H7 = √(30/π) · sin φ · (2c − 1) · s
+    H6 = √(5/2π) · (6c² − 6c + 1)
+
+Source: RTIViewer 1.1 (Visual Computing Lab, ISTI-CNR and Cultural Heritage Imaging), ``getHSH``
+in ``util.h`` for the terms and its HSH rendering modes for θ and φ (the 0.04 rad clamp); the
+same terms and angles are in ``Rti::lightWeightsHsh`` of cnr-isti-vclab/relight
+(``src/rti.cpp``), which clamps θ at π/2 − 0.01 instead. Written from those descriptions, not
+copied. The signs are RTIViewer's (H4 and H8 go as c² − c ≤ 0, the opposite sign of the
+shifted Legendre function P₂² they come from): orthonormality over the hemisphere does not
+depend on signs, compatibility with ``.rti`` files does.
+
+Unlike RTIBuilder, which fits the 8-bit sRGB pixel values, :func:`fit_hsh` fits the linear
+luminance of the :class:`~ptmcore.images.ImageStack`, like :func:`~ptmcore.fit.fit_ptm`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bands import band_rows, run_bands
+from .images import ImageStack
+from .lp import as_directions
+
+#: HSH orders supported (RTIBuilder's choices) and their number of terms, order².
+ORDERS = (2, 3)
+#: RTIViewer keeps θ this far (radians) above the horizon when it evaluates the basis.
+HORIZON_MARGIN = 0.04
+#: Singular values of the light matrix below this fraction of the largest are taken as zero.
+#: Lights on one ring leave combinations of terms undetermined (H0, H2, H6 are all constant
+#: there), and an ``.lp`` file's six decimals turn those exact zeros into singular values of
+#: 1e-7 to 1e-13: NumPy's default cut (1e-15) keeps them, and the float32 fit then multiplies
+#: rounding by up to 1e13 (coefficients of 1e10 and luminance errors in the thousands on a
+#: ring capture). Genuine layouts are far above the cut: a 48-light dome confined to 40–50°
+#: elevation still has 6e-3 for order 3.
+RCOND = 1e-4
+
+
+def _check_order(order: int) -> int:
+    if order not in ORDERS:
+        raise ValueError(f"HSH order must be one of {ORDERS}, got {order!r}")
+    return int(order)
+
+
+def hsh_angles(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """RTIViewer's (θ, φ) of light directions.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (N, 3) or (N, 2)
+        Vectors towards the lights (x right, y up, z towards the camera); any length, or unit
+        (lu, lv) projections whose z is then √(1 − lu² − lv²).
+
+    Returns
+    -------
+    theta : ndarray, shape (N,), float64
+        Angle from the camera axis, at most π/2 − :data:`HORIZON_MARGIN`.
+    phi : ndarray, shape (N,), float64
+        Azimuth atan2(y, x), counter-clockwise from +x, in [0, 2π).
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] not in (2, 3):
+        raise ValueError(f"directions must have shape (N, 3) or (N, 2), got {d.shape}")
+    if d.shape[1] == 2:
+        z = np.sqrt(np.clip(1.0 - d[:, 0] ** 2 - d[:, 1] ** 2, 0.0, None))
+        d = np.column_stack([d, z])
+    length = np.linalg.norm(d, axis=1)
+    if not np.all(np.isfinite(length)) or np.any(length == 0):
+        raise ValueError("light directions must be finite and non-zero")
+    cos_theta = np.clip(d[:, 2] / length, -1.0, 1.0)
+    theta = np.minimum(np.arccos(cos_theta), np.pi / 2 - HORIZON_MARGIN)
+    phi = np.mod(np.arctan2(d[:, 1], d[:, 0]), 2 * np.pi)
+    return theta, phi
+
+
+def hsh_basis(directions: np.ndarray, order: int = 3) -> np.ndarray:
+    """The N×order² HSH light matrix, one row of basis values per light.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (N, 3) or (N, 2)
+        Vectors towards the lights, as for :func:`hsh_angles`.
+    order : int
+        2 (4 terms) or 3 (9 terms); order 2's terms are the first four of order 3's.
+
+    Returns
+    -------
+    ndarray, shape (N, order²), float64
+        Columns H0 … H(order²−1) in RTIViewer's order (see the module docstring).
+    """
+    order = _check_order(order)
+    theta, phi = hsh_angles(directions)
+    c = np.cos(theta)
+    # c − c² ≥ 0 on the hemisphere; the clip only absorbs rounding at c = 0 or 1.
+    s = np.sqrt(np.clip(c - c * c, 0.0, None))
+    cos_p, sin_p = np.cos(phi), np.sin(phi)
+    terms = [
+        np.full_like(c, 1.0 / np.sqrt(2 * np.pi)),
+        np.sqrt(6 / np.pi) * cos_p * s,
+        np.sqrt(3 / (2 * np.pi)) * (2 * c - 1),
+        np.sqrt(6 / np.pi) * sin_p * s,
+    ]
+    if order >= 3:
+        k = np.sqrt(30 / np.pi)
+        terms += [
+            k * np.cos(2 * phi) * (c * c - c),
+            k * cos_p * (2 * c - 1) * s,
+            np.sqrt(5 / (2 * np.pi)) * (6 * c * c - 6 * c + 1),
+            k * sin_p * (2 * c - 1) * s,
+            k * np.sin(2 * phi) * (c * c - c),
+        ]
+    return np.stack(terms, axis=1)
+
+
+def hsh_fit_matrix(directions: np.ndarray, order: int = 3) -> np.ndarray:
+    """The order²×N pseudoinverse that maps N luminances to the HSH coefficients.
+
+    Singular values below :data:`RCOND` times the largest are dropped, so undetermined
+    combinations of terms get zero rather than rounding blown up (the minimum-norm fit).
+    """
+    return np.linalg.pinv(hsh_basis(directions, order), rcond=RCOND)
+
+
+@dataclass
+class HSH:
+    """A luminance HSH relighting model with per-pixel colour, the analogue of an LRGB PTM.
+
+    Attributes
+    ----------
+    coefficients : ndarray, shape (H, W, order²), float32
+        c0 … c(order²−1) per pixel, in the units of the luminance that was fitted (linear, 0..1).
+    chroma : ndarray, shape (H, W, 3), float32
+        Per-pixel colour of unit luminance: the RGB under a light is ``chroma · L``.
+    """
+
+    coefficients: np.ndarray
+    chroma: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image height and width."""
+        return self.coefficients.shape[:2]
+
+    @property
+    def order(self) -> int:
+        """The HSH order, √(number of terms)."""
+        return int(round(np.sqrt(self.coefficients.shape[-1])))
+
+    def luminance(self, light: np.ndarray) -> np.ndarray:
+        """Luminance ``(H, W)`` under one light direction (x, y, z) or (lu, lv)."""
+        row = hsh_basis(np.asarray(light, dtype=np.float64).reshape(1, -1), self.order)
+        return self.coefficients @ row[0].astype(np.float32)
+
+    def relight(self, light: np.ndarray) -> np.ndarray:
+        """Linear RGB image ``(H, W, 3)`` under one light direction."""
+        return self.chroma * self.luminance(light)[..., None]
+
+
+def fit_hsh(
+    stack: ImageStack,
+    directions: np.ndarray,
+    order: int = 3,
+    *,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> HSH:
+    """Fit a luminance HSH to a stack by least squares.
+
+    Parameters
+    ----------
+    stack : ImageStack
+        The photographs' luminance.
+    directions : ndarray, shape (N, 3)
+        Unit light directions, one per photograph.
+    order : int
+        2 (4 coefficients) or 3 (9 coefficients).
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
+    progress : callable, optional
+        Called with the number of rows done after each band.
+
+    Returns
+    -------
+    HSH
+
+    Notes
+    -----
+    With fewer lights than terms, or lights that do not separate the terms (all on one ring
+    leaves H0, H2 and H6 indistinguishable; two rings leave one combination of them), the
+    pseudoinverse gives the minimum-norm fit (see :data:`RCOND`).
+    """
+    order = _check_order(order)
+    n = len(stack)
+    h, w = stack.shape
+    k = order * order
+    pinv = hsh_fit_matrix(as_directions(directions, n), order).astype(np.float32)
+    coef = np.empty((h, w, k), dtype=np.float32)
+
+    def work(r0: int, r1: int) -> None:
+        values, _ = stack.band(r0, r1)
+        # (K, N) @ (N, rows·W): one BLAS call per band.
+        coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, k)
+
+    run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
+    return HSH(coef, stack.chroma)

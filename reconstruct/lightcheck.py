@@ -1,0 +1,374 @@
+"""Checking a light layout before (or without) taking the photographs.
+
+:func:`check_lights` summarises a dome or a set of hand-held light positions: whether the six
+PTM coefficients are all determined (rank and condition of the light matrix, and why not),
+how the lights are spread in elevation and azimuth, and how much of the hemisphere is near
+some light. :func:`report_text` turns it into a few lines for the command line and
+:func:`write_polar_plot` draws the layout as a PNG.
+
+Angles follow the project frame: azimuth 0° is a light from the right (+x), 90° from the top
+(+y); elevation is measured from the object's plane, 90° straight above it (+z). Photographs
+are numbered from 1, as the lines of an ``.lp`` file.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+from scipy.spatial import cKDTree
+
+from ptmcore.atomic import atomic_write
+from ptmcore.solvers import LP_PRECISION, RankInfo, analyse_lights, duplicate_groups
+
+__all__ = ["LightReport", "check_lights", "plot_positions", "report_text", "write_polar_plot"]
+
+#: Edges (degrees) of the elevation histogram and of the plot's rings.
+ELEVATION_EDGES = np.arange(0.0, 91.0, 15.0)
+
+#: Above this condition number of the light matrix, noise in the photographs is amplified
+#: noticeably in the coefficients (a well-spread 24-light dome is about 10).
+CONDITION_WARNING = 100.0
+
+#: An azimuth gap wider than this leaves slopes facing that way lit only by extrapolation.
+GAP_WARNING_DEG = 90.0
+
+#: Without a light below this elevation there is no raking light to show fine relief.
+RAKING_DEG = 30.0
+
+#: Lights closer than this to the zenith have no meaningful azimuth.
+_ZENITH_DEG = 89.9
+
+#: Points of the equal-area hemisphere lattice used for the coverage (±1/n accuracy).
+_COVERAGE_SAMPLES = 20000
+
+#: Margin around the plot's rim, as a fraction of the image size (room for azimuth labels).
+PLOT_MARGIN = 0.1
+
+_SUPERSAMPLE = 2
+
+
+@dataclass
+class LightReport:
+    """What a light layout is good for.
+
+    Attributes
+    ----------
+    count : int
+        Number of lights.
+    rank : RankInfo
+        Rank of the PTM light matrix and why it is below 6.
+    condition : float
+        Condition number of the determined part of the light matrix (``rank.condition``).
+    elevation_range : tuple of float
+        Lowest and highest elevation, degrees.
+    elevation_edges : ndarray, shape (7,)
+        Histogram bin edges, degrees: 0, 15, …, 90 (the last bin includes 90°).
+    elevation_counts : ndarray, shape (6,)
+        Lights per elevation bin; lights at or below the horizon are in none.
+    azimuth_gap : float
+        Largest azimuth range without a light, degrees (360 with fewer than two lights that
+        have an azimuth; lights within 0.1° of the zenith have none).
+    azimuth_gap_start : float
+        Azimuth where that gap starts, counter-clockwise, degrees in [0, 360).
+    coverage : float
+        Fraction of the upper hemisphere's solid angle within `coverage_radius` of a light.
+    coverage_radius : float
+        Degrees.
+    warnings : list of str
+        Problems in plain words; empty for a good layout.
+    """
+
+    count: int
+    rank: RankInfo
+    condition: float
+    elevation_range: tuple[float, float]
+    elevation_edges: np.ndarray
+    elevation_counts: np.ndarray
+    azimuth_gap: float
+    azimuth_gap_start: float
+    coverage: float
+    coverage_radius: float
+    warnings: list[str]
+
+
+def _unit(directions: np.ndarray) -> np.ndarray:
+    d = np.asarray(directions, dtype=np.float64)
+    if d.ndim != 2 or d.shape[1] != 3 or len(d) == 0:
+        raise ValueError(f"expected light directions of shape (N, 3), got {d.shape}")
+    norm = np.linalg.norm(d, axis=1, keepdims=True)
+    if not np.all(np.isfinite(d)) or np.any(norm < 1e-12):
+        raise ValueError("light directions must be finite and non-zero")
+    return d / norm
+
+
+def _angles(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Elevation and azimuth in degrees, azimuth in [0, 360)."""
+    elev = np.degrees(np.arcsin(np.clip(unit[:, 2], -1.0, 1.0)))
+    azim = np.degrees(np.arctan2(unit[:, 1], unit[:, 0])) % 360.0
+    return elev, azim
+
+
+@functools.lru_cache(maxsize=1)
+def _hemisphere_lattice() -> np.ndarray:
+    # Fibonacci lattice with z uniform in (0, 1): on a sphere, equal steps in z enclose equal
+    # areas (Archimedes), so every point stands for the same solid angle.
+    k = np.arange(_COVERAGE_SAMPLES, dtype=np.float64)
+    z = (k + 0.5) / _COVERAGE_SAMPLES
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    r = np.sqrt(1.0 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _coverage(unit: np.ndarray, radius_deg: float) -> float:
+    dist, _ = cKDTree(unit).query(_hemisphere_lattice(), k=1)
+    # Chord length of an angle θ on the unit sphere is 2·sin(θ/2).
+    return float(np.mean(dist <= 2.0 * math.sin(math.radians(radius_deg) / 2.0)))
+
+
+def _largest_gap(azim: np.ndarray) -> tuple[float, float]:
+    if len(azim) < 2:
+        return 360.0, float(azim[0]) if len(azim) else 0.0
+    a = np.sort(azim)
+    gaps = np.diff(np.append(a, a[0] + 360.0))
+    k = int(np.argmax(gaps))
+    return float(gaps[k]), float(a[k])
+
+
+def check_lights(
+    directions: np.ndarray,
+    *,
+    coverage_radius: float = 15.0,
+    precision: float = LP_PRECISION,
+) -> LightReport:
+    """Summarise a light layout without any photographs.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (N, 3)
+        Vectors towards the lights (x right, y up, z towards the camera); normalised here.
+    coverage_radius : float
+        Angular radius, degrees, for :attr:`LightReport.coverage`.
+    precision : float
+        Precision of the directions, for the rank decision
+        (see :func:`ptmcore.solvers.rank_tolerance`).
+
+    Returns
+    -------
+    LightReport
+
+    Raises
+    ------
+    ValueError
+        If `directions` is not (N, 3), or holds zero or non-finite vectors.
+    """
+    unit = _unit(directions)
+    n = len(unit)
+    info = analyse_lights(unit, precision=precision)
+    elev, azim = _angles(unit)
+    # Binning to 0.001° keeps a lamp at 30° in the 30–45° bin: sin 30° is not exact in binary,
+    # and an .lp file's six decimals can make it read 29.99999°.
+    counts, _ = np.histogram(np.round(elev, 3), bins=ELEVATION_EDGES)
+    gap, gap_start = _largest_gap(azim[elev < _ZENITH_DEG])
+    coverage = _coverage(unit, coverage_radius)
+
+    warnings: list[str] = []
+    if info.rank < 6:
+        warnings.append(
+            f"the light matrix has rank {info.rank} of 6: not all six PTM coefficients are determined"
+        )
+        warnings += info.causes
+    else:
+        for g in duplicate_groups(unit, precision=precision):
+            names = [str(k + 1) for k in g]
+            warnings.append(
+                f"duplicate light directions (photographs {', '.join(names[:-1])} and {names[-1]}): "
+                "they average noise but add no new direction"
+            )
+    if info.rank > 0 and info.condition > CONDITION_WARNING:
+        warnings.append(
+            f"ill-conditioned light layout (condition number {info.condition:.0f}): noise in the "
+            "photographs is strongly amplified in the fitted coefficients"
+        )
+    low = np.flatnonzero(elev <= 0.0)
+    if len(low):
+        warnings.append(
+            f"{len(low)} light{'s are' if len(low) > 1 else ' is'} at or below the horizon "
+            f"(photograph{'s' if len(low) > 1 else ''} {', '.join(str(k + 1) for k in low)})"
+        )
+    if gap >= 360.0:
+        warnings.append(
+            f"all lights come from azimuth {gap_start:.0f}°: surfaces facing any other way are lit "
+            "only by extrapolation"
+            if np.any(elev < _ZENITH_DEG)
+            else "all lights are at the zenith: no light comes from any side"
+        )
+    elif gap > GAP_WARNING_DEG:
+        end = (gap_start + gap) % 360.0
+        warnings.append(
+            f"no light from azimuth {gap_start:.0f}° to {end:.0f}° (a gap of {gap:.0f}°): surfaces "
+            "facing that way are lit only by extrapolation"
+        )
+    if elev.min() > RAKING_DEG:
+        warnings.append(
+            f"no raking light: the lowest light is at {elev.min():.1f}° elevation, so relighting "
+            f"below {RAKING_DEG:.0f}° is extrapolated"
+        )
+    return LightReport(
+        count=n,
+        rank=info,
+        condition=info.condition,
+        elevation_range=(float(elev.min()), float(elev.max())),
+        elevation_edges=ELEVATION_EDGES.copy(),
+        elevation_counts=counts,
+        azimuth_gap=gap,
+        azimuth_gap_start=gap_start,
+        coverage=coverage,
+        coverage_radius=float(coverage_radius),
+        warnings=warnings,
+    )
+
+
+def report_text(report: LightReport) -> str:
+    """A few readable lines describing a :class:`LightReport`, for the command line."""
+    e = report.elevation_edges
+    bins = ", ".join(f"{e[k]:.0f}–{e[k + 1]:.0f}°: {c}" for k, c in enumerate(report.elevation_counts))
+    lo, hi = report.elevation_range
+    plural = "s" if report.count != 1 else ""
+    if report.azimuth_gap >= 360.0:
+        azimuth = "all lights from one azimuth"
+    else:
+        start, gap = report.azimuth_gap_start, report.azimuth_gap
+        azimuth = f"largest azimuth gap {gap:.1f}° (from {start:.1f}° to {(start + gap) % 360.0:.1f}°)"
+    lines = [
+        f"{report.count} light{plural}, elevation {lo:.1f}° to {hi:.1f}° ({bins})",
+        f"rank {report.rank.rank} of 6, condition number {report.condition:.3g} "
+        f"(singular values at or below {report.rank.tolerance:.2g} count as zero)",
+        f"{azimuth}; {100 * report.coverage:.0f}% of the hemisphere within "
+        f"{report.coverage_radius:.0f}° of a light",
+    ]
+    lines += [f"warning: {w}" for w in report.warnings]
+    if not report.warnings:
+        lines.append("no problems found")
+    return "\n".join(lines)
+
+
+def plot_positions(directions: np.ndarray, size: int) -> np.ndarray:
+    """Where :func:`write_polar_plot` draws each light, in pixels.
+
+    The plot's centre is ``(size/2, size/2)`` and its rim has radius
+    ``R = size·(1/2 − PLOT_MARGIN)``. A light at elevation e and azimuth φ is at radius
+    ``ρ = R·(90° − e)/90°`` and ``(x, y) = (size/2 + ρ·cos φ, size/2 − ρ·sin φ)``, so 0° (from
+    the right) is to the right and 90° (from the top) is up. Pixel (col, row) covers
+    ``[col, col + 1) × [row, row + 1)``.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (N, 3)
+    size : int
+        Width and height of the image.
+
+    Returns
+    -------
+    ndarray, shape (N, 2)
+        x (towards the right) and y (downwards) in pixels.
+    """
+    elev, azim = _angles(_unit(directions))
+    rho = size * (0.5 - PLOT_MARGIN) * (90.0 - elev) / 90.0
+    phi = np.radians(azim)
+    return np.stack([size / 2 + rho * np.cos(phi), size / 2 - rho * np.sin(phi)], axis=1)
+
+
+def _font(pixels: int) -> ImageFont.ImageFont:
+    try:
+        return ImageFont.load_default(size=pixels)
+    except (TypeError, OSError):  # Pillow < 10.1, or no FreeType: the fixed bitmap font
+        return ImageFont.load_default()
+
+
+def _put(
+    draw: ImageDraw.ImageDraw,
+    xy: tuple[float, float],
+    text: str,
+    font: ImageFont.ImageFont | ImageFont.FreeTypeFont,
+    fill: tuple[int, int, int],
+    anchor: str,
+) -> None:
+    # Anchoring by the text's box rather than Pillow's ``anchor=`` also works with the bitmap
+    # font that old Pillow versions fall back to.
+    x0, y0, x1, y1 = draw.textbbox((0, 0), text, font=font)
+    x = xy[0] - {"l": x0, "m": (x0 + x1) / 2, "r": x1}[anchor[0]]
+    y = xy[1] - {"a": y0, "m": (y0 + y1) / 2, "s": y1}[anchor[1]]
+    draw.text((x, y), text, fill=fill, font=font)
+
+
+def write_polar_plot(
+    path: str | os.PathLike,
+    directions: np.ndarray,
+    *,
+    title: str | None = None,
+    size: int = 640,
+) -> None:
+    """Draw a light layout as a polar plot PNG.
+
+    Azimuth runs around (0° = light from the right, 90° = from the top), elevation is the
+    radius (90° at the centre, 0° at the rim) with labelled rings every 15°. Each light is a
+    dark dot labelled with its photograph number (from 1); see :func:`plot_positions` for the
+    exact geometry.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Destination PNG, written atomically.
+    directions : ndarray, shape (N, 3)
+        Vectors towards the lights.
+    title : str, optional
+        Drawn in the top-left corner.
+    size : int
+        Width and height in pixels (at least 200).
+    """
+    if size < 200:
+        raise ValueError(f"plot size must be at least 200 pixels, got {size}")
+    s = _SUPERSAMPLE
+    big = size * s
+    # Drawing at twice the size and reducing smooths the circles, which ImageDraw does not
+    # anti-alias.
+    img = Image.new("RGB", (big, big), "white")
+    draw = ImageDraw.Draw(img)
+    c = big / 2
+    rim = big * (0.5 - PLOT_MARGIN)
+    small, label = _font(max(10, size // 50) * s), _font(max(11, size // 45) * s)
+    grid, ink = (200, 200, 200), (90, 90, 90)
+
+    for az in range(0, 360, 30):
+        a = math.radians(az)
+        draw.line([(c, c), (c + rim * math.cos(a), c - rim * math.sin(a))], fill=grid, width=s)
+        at = rim + 0.45 * big * PLOT_MARGIN  # halfway across the margin
+        pos = (c + at * math.cos(a), c - at * math.sin(a))
+        _put(draw, pos, f"{az}°", label, ink, "mm")
+    for el in ELEVATION_EDGES[:-1]:
+        r = rim * (90.0 - el) / 90.0
+        draw.ellipse([c - r, c - r, c + r, c + r], outline=(120, 120, 120) if el == 0 else grid, width=s)
+        if el == 0:
+            continue  # the rim's 0° would collide with the 90° azimuth label; the legend says it
+        # Labels sit just right of the upward spoke.
+        _put(draw, (c + 4 * s, c - r - 2 * s), f"{el:.0f}°", small, ink, "ls")
+
+    pts = plot_positions(directions, size) * s
+    dot = max(4.0, size / 110) * s
+    for k, (x, y) in enumerate(pts):
+        draw.ellipse([x - dot, y - dot, x + dot, y + dot], fill=(20, 40, 110), outline="black")
+        _put(draw, (x + dot + s, y - dot - s), str(k + 1), small, (0, 0, 0), "ls")
+
+    legend = "radius: elevation (90° centre, 0° rim) · angle: azimuth (0° = light from the right)"
+    _put(draw, (c, big - 0.25 * big * PLOT_MARGIN), legend, small, ink, "mm")
+    if title:
+        _put(draw, (3 * s, 3 * s), title, label, (0, 0, 0), "la")
+
+    out = img.resize((size, size), Image.Resampling.LANCZOS)
+    with atomic_write(path, "wb") as f:
+        out.save(f, format="PNG")

@@ -1,0 +1,51 @@
+"""``reconstruct lights`` and the rank handling of ``reconstruct run``."""
+
+import json
+
+import numpy as np
+import pytest
+
+from cli.main import main
+from data_synthetic.lights import dome_lights, ring_lights
+from ptmcore.lp import write_lp
+
+
+def _run(argv, capsys):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_lights_command_on_a_ring_and_a_dome(tmp_path, capsys):
+    write_lp(tmp_path / "ring.lp", [f"{k}.jpg" for k in range(24)], ring_lights(24, 30.0))
+    code, stdout, err = _run(["lights", tmp_path / "ring.lp", "-o", tmp_path / "ring.png"], capsys)
+    assert code == 0, err
+    assert "rank 5 of 6" in stdout and "elevation 30.0°" in stdout
+    assert (tmp_path / "ring.png").stat().st_size > 1000
+    write_lp(tmp_path / "dome.lp", [f"{k}.jpg" for k in range(48)], dome_lights(48))
+    code, stdout, _ = _run(["lights", tmp_path / "dome.lp"], capsys)
+    assert code == 0 and "rank 6 of 6" in stdout and "no problems found" in stdout
+
+
+def test_lights_command_bad_file(tmp_path, capsys):
+    (tmp_path / "bad.lp").write_text("2\na.jpg 0 0 1\n")
+    code, _, err = _run(["lights", tmp_path / "bad.lp"], capsys)
+    assert code == 2 and "bad.lp" in err
+
+
+@pytest.mark.parametrize("solver", ["pinv", "lstsq", "rohde"])
+def test_run_on_a_ring_reports_the_rank_and_stays_bounded(tmp_path, capsys, solver):
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "sphere", shape=(48, 64), n_lights=16, seed=1,
+                         lights=ring_lights(16, 40.0))
+    out = tmp_path / "out"
+    code, stdout, err = _run(["run", info.folder, "-o", out, "--solver", solver, "--normals", "ptm", "-q"], capsys)
+    assert code == 0, err
+    assert "rank 5 of 6" in stdout
+    report = json.loads((out / "report.json").read_text())
+    assert report["lights"]["rank"] == 5 and report["parameters"]["solver"] == solver
+    from ptmcore.ptmfile import read_ptm
+
+    # A rank-deficient layout must not blow the coefficients up (the .ptm holds 0–255 units).
+    assert np.abs(read_ptm(out / "coefficients.ptm").coefficients).max() < 400  # measured 272
