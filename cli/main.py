@@ -158,6 +158,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", choices=("pinv", "lstsq", "rohde"), default="pinv",
                    help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "
                    "lstsq (the same by another route), rohde (Rohde's form with zero blocks; docs/fitting.md)")
+    p.add_argument("--loo", action="store_true",
+                   help="compare relighting bases (PTM, HSH orders 2 and 3) by leave-one-out error: "
+                   "loo_*.tif maps and their RMS in report.json")
     p.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object; height and mesh stay inside it")
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
@@ -176,6 +179,7 @@ def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None]
         "decode": "Decoding photographs",
         "fit_ptm": "Fitting the PTM",
         "ptm": "Writing the .ptm",
+        "loo": "Leave-one-out check",
         "normals": "Estimating normals",
         "integrate": "Integrating heights",
         "mesh": "Writing meshes",
@@ -208,6 +212,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
+        loo=args.loo,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)

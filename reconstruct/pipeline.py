@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 import ptmcore
+from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
 from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
@@ -88,6 +89,9 @@ class RunOptions:
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
+    loo : bool
+        Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
+        photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
     mask : Path or None
         Image whose non-zero pixels are the object; height and mesh are restricted to it.
     threads : int or None
@@ -105,6 +109,7 @@ class RunOptions:
     linearize: bool = True
     ptm_format: str = "lrgb"
     solver: str = "pinv"
+    loo: bool = False
     mask: Path | None = None
     threads: int | None = None
     ground_truth: Path | None = None
@@ -279,6 +284,31 @@ def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings:
     }
 
 
+def _leave_one_out(stack, directions, mask, staging: Path, threads, advance) -> dict:
+    """Leave-one-out relighting error of PTM and HSH bases: maps written, RMS returned.
+
+    Errors are in 8-bit sRGB levels, which is how the differences would look on screen.
+    """
+    import tifffile
+
+    from ptmcore.images import linear_to_srgb
+    from ptmcore.loo import loo_hsh, loo_ptm
+
+    def levels(v: np.ndarray) -> np.ndarray:
+        return 255.0 * linear_to_srgb(v)
+
+    bases = {"ptm": lambda **kw: loo_ptm(stack, directions, **kw)}
+    for order in (2, 3):
+        bases[f"hsh{order}"] = lambda order=order, **kw: loo_hsh(stack, directions, order, **kw)
+    result = {}
+    for name, compute in bases.items():
+        rms_map, rms = compute(mask=mask, transform=levels, threads=threads, progress=advance)
+        with atomic_write(staging / f"loo_{name}.tif", "wb") as f:
+            tifffile.imwrite(f, rms_map.astype(np.float32), metadata={"unit": "8-bit sRGB levels"})
+        result[name] = float(rms)
+    return {"rms_levels": result, "best": min(result, key=result.get), "unit": "8-bit sRGB levels"}
+
+
 def _rank_summary(rank) -> dict:
     """What report.json says of the light layout: rank and condition of the PTM light matrix."""
     return json_safe({
@@ -419,6 +449,10 @@ def run_capture(
                 del ptm
                 albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
         texture, albedo_scale = outputs.albedo_to_srgb8(stack.chroma * albedo[..., None])
+        loo = None
+        if opt.loo:
+            with stage("loo", 3 * h) as advance:
+                loo = _leave_one_out(stack, lights.directions, mask, staging, opt.threads, advance)
         # The stack is by far the largest array; no later stage needs it.
         del stack
 
@@ -463,10 +497,11 @@ def run_capture(
         }
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
-            lights=_rank_summary(rank), ptm=_ptm_summary(quantisation), accuracy=accuracy,
+            lights=_rank_summary(rank), ptm=_ptm_summary(quantisation), leave_one_out=loo, accuracy=accuracy,
         )
         outputs.write_json(staging / "report.json", report)
-        final = _publish(staging, out, [*ptm_names, *names, "report.json"])
+        loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
+        final = _publish(staging, out, [*ptm_names, *loo_names, *names, "report.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)

@@ -1,4 +1,4 @@
-"""``reconstruct lights`` and the rank handling of ``reconstruct run``."""
+"""``reconstruct lights``, the rank handling and the leave-one-out check of ``reconstruct run``."""
 
 import json
 
@@ -49,3 +49,19 @@ def test_run_on_a_ring_reports_the_rank_and_stays_bounded(tmp_path, capsys, solv
 
     # A rank-deficient layout must not blow the coefficients up (the .ptm holds 0–255 units).
     assert np.abs(read_ptm(out / "coefficients.ptm").coefficients).max() < 400  # measured 272
+
+
+def test_leave_one_out_comparison_of_bases(tmp_path, capsys):
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(60, 80), n_lights=24, seed=2, cast_shadows=False)
+    out = tmp_path / "out"
+    code, _, err = _run(["run", info.folder, "-o", out, "--loo", "-q"], capsys)
+    assert code == 0, err
+    loo = json.loads((out / "report.json").read_text())["leave_one_out"]
+    assert set(loo["rms_levels"]) == {"ptm", "hsh2", "hsh3"}
+    # A Lambertian surface on a dome: HSH of order 3 predicts left-out photographs best.
+    assert loo["best"] == "hsh3" and loo["rms_levels"]["hsh3"] < loo["rms_levels"]["ptm"]
+    import tifffile
+
+    assert tifffile.imread(out / "loo_ptm.tif").shape == (60, 80)
