@@ -222,21 +222,27 @@ class ImageStack:
         return values, saturated
 
 
-def _channel_table(dtype: np.dtype, linearize: bool) -> np.ndarray | None:
+def _channel_table(dtype: np.dtype, linearize: bool, weights: np.ndarray) -> np.ndarray | None:
     """256-entry table of each channel's contribution to luminance, × 65534, for 8-bit input."""
     if dtype != np.uint8:
         return None
     v = np.arange(256, dtype=np.float32) / np.float32(255.0)
     lin = srgb_to_linear(v) if linearize else v
-    return np.round(lin[None, :, None] * LUMA_WEIGHTS * _LUM_SCALE).astype(np.uint16)  # (1, 256, 3)
+    return np.round(lin[None, :, None] * weights * _LUM_SCALE).astype(np.uint16)  # (1, 256, 3)
 
 
 def _reduce_into(
-    img: np.ndarray, lum_out: np.ndarray, channel_sum: np.ndarray, lock: threading.Lock, linearize: bool
+    img: np.ndarray,
+    lum_out: np.ndarray,
+    channel_sum: np.ndarray,
+    lock: threading.Lock,
+    linearize: bool,
+    gains: np.ndarray | None = None,
 ) -> int:
     """Write one photograph's luminance into ``lum_out`` and add its channels to ``channel_sum``.
 
-    Returns the number of clipped pixels.
+    Returns the number of clipped pixels. ``gains`` (3,) multiply the linear channels first (a
+    light's intensity divided out); clipping is judged on the stored values.
 
     Integer images go through OpenCV's vectorised kernels (a table look-up for 8-bit sRGB,
     a channel transform, a saturating sum): in NumPy this reduction took several times longer
@@ -248,16 +254,17 @@ def _reduce_into(
 
     h, w = img.shape[:2]
     grey = img.ndim == 2
-    table = _channel_table(img.dtype, linearize)
+    weights = LUMA_WEIGHTS if gains is None else (LUMA_WEIGHTS * gains).astype(np.float32)
+    table = _channel_table(img.dtype, linearize, weights)
     top = 254 if img.dtype == np.uint8 else 65534
-    weights16 = (LUMA_WEIGHTS * np.float32(_LUM_SCALE / 65535.0))[None, :]  # for 16-bit input
+    weights16 = weights * np.float32(_LUM_SCALE / 65535.0)  # for 16-bit input
     step = max(1, (1 << 20) // w)
     clipped_count = 0
     for r0 in range(0, h, step):
         block = np.ascontiguousarray(img[r0 : r0 + step])
         if block.dtype == np.float32:
             lin = np.clip(block, 0.0, 1.0)
-            contrib = (lin[..., None] if grey else lin) * (LUMA_WEIGHTS * np.float32(_LUM_SCALE))
+            contrib = (lin[..., None] if grey else lin) * (weights * np.float32(_LUM_SCALE))
             contrib = np.round(contrib).astype(np.uint16)
             clipped = (block >= 1.0) if grey else (block >= 1.0).any(axis=2)
         else:
@@ -266,7 +273,7 @@ def _reduce_into(
             if table is not None:
                 contrib = cv2.LUT(block, table)
             else:
-                contrib = cv2.transform(block, np.diag(weights16[0]))
+                contrib = cv2.transform(block, np.diag(weights16))
             clipped = cv2.inRange(block, (0, 0, 0), (top, top, top)) == 0
         lum = cv2.transform(contrib, np.ones((1, 3), np.float32))
         np.minimum(lum, np.uint16(_LUM_SCALE), out=lum)
@@ -300,6 +307,7 @@ def load_stack(
     paths: Sequence[str | os.PathLike],
     *,
     linearize: bool = True,
+    channel_gains: np.ndarray | None = None,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> ImageStack:
@@ -312,6 +320,9 @@ def load_stack(
     linearize : bool
         Take 8-bit images as sRGB and decode them to linear light (16-bit and float images
         are always taken as linear).
+    channel_gains : ndarray, shape (N, 3), optional
+        Factors for each photograph's linear R, G, B (e.g. 1 / light intensity), applied
+        before the reduction to luminance; at most 1, so no sample leaves the stored range.
     threads : int, optional
         Decoding threads; default: the number of CPUs.
     progress : callable, optional
@@ -329,6 +340,10 @@ def load_stack(
     paths = [Path(p) for p in paths]
     if len(paths) < 3:
         raise InputError(f"{len(paths)} photograph(s) given; at least 3 are needed to recover normals")
+    if channel_gains is not None:
+        channel_gains = np.asarray(channel_gains, dtype=np.float32).reshape(len(paths), 3)
+        if not (np.all(np.isfinite(channel_gains)) and np.all(channel_gains > 0) and channel_gains.max() <= 1):
+            raise ValueError("channel gains must be finite, positive and at most 1")
     first = read_image(paths[0])
     h, w = first.shape[:2]
     n = len(paths)
@@ -348,7 +363,8 @@ def load_stack(
                 paths[k],
             )
         depths[k] = img.dtype.itemsize * 8
-        saturated[k] = _reduce_into(img, luminance[k], channel_sum, lock, linearize)
+        gains = None if channel_gains is None else channel_gains[k]
+        saturated[k] = _reduce_into(img, luminance[k], channel_sum, lock, linearize, gains)
         if progress is not None:
             progress(1)
 

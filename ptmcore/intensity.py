@@ -21,24 +21,30 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .images import _LUM_SCALE, SATURATED, ImageStack
+from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack
 from .lp import as_directions
 
-#: Samples with ``n·l`` below this are too dim (and too sensitive to the normal's error) to
-#: measure a ratio of observed to predicted brightness on.
-_RATIO_MIN_SHADING = 0.2
-#: Samples whose ``n·l`` is below this are left out of the normal fit (attached shadow).
-_FIT_MIN_SHADING = 0.05
-#: Samples darker than this fraction of their prediction are taken as cast shadow.
-_CAST_SHADOW_RATIO = 0.5
+#: Samples with ``n·l`` below this are left out: dim, and the most sensitive to the normal's
+#: error and to ambient light.
+_MIN_SHADING = 0.1
+#: Samples whose normal is within this angle of the half-way vector between light and camera
+#: are left out: that is where specular highlights are, and their excess brightness would
+#: otherwise be read as a brighter light.
+_HIGHLIGHT_HALF_ANGLE_DEG = 30.0
 #: First-pass shadow threshold: fraction of the pixel's brightest unsaturated sample.
 _DARK_FRACTION = 0.05
-#: Sweeps of the alternation within one selection of samples, and when to stop early.
-_MAX_SWEEPS = 60
-_SWEEP_TOLERANCE = 1e-5
+#: Later passes keep samples whose relative residual is within this many robust standard
+#: deviations (1.4826 × median absolute residual) of their photograph's median, and never
+#: reject below the floor (noise of a clean capture).
+_TRIM_SIGMAS = 3.0
+_TRIM_FLOOR = 0.02
+#: A photograph needs this many samples to measure its factor on.
+_MIN_SAMPLES = 20
 
 
-def read_numeric_rows(path: str | os.PathLike, what: str, widths: tuple[int, ...]) -> tuple[np.ndarray, list[int]]:
+def read_numeric_rows(
+    path: str | os.PathLike, what: str, widths: tuple[int, ...]
+) -> tuple[np.ndarray, list[int]]:
     """Read a text file of whitespace-separated numbers, the same count on every line.
 
     Blank lines and ``#`` comments (whole-line or trailing) are skipped.
@@ -150,8 +156,8 @@ def _sample_pixels(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Luminance ``(N, P)`` float64 and usability ``(N, P)`` of evenly spread pixels.
 
-    A regular subsample is enough: the factors are one number per photograph, measured as a
-    median over thousands of pixels, and a grid keeps the result deterministic.
+    A regular subsample is enough: the factors are one number per photograph, measured over
+    thousands of pixels, and a grid keeps the result deterministic.
     """
     n = len(stack)
     h, w = stack.shape
@@ -213,9 +219,9 @@ def _least_squares_factors(
     With ``u_k = 1 / f_k`` the model ``u_k v_ki = l_k·b_i`` is linear in ``(u, b)``;
     eliminating each pixel's ``b_i`` (variable projection) leaves a quadratic form ``uᵀ Q u``
     with ``Q = Σ_i D_i W_i D_i − A_iᵀ M_i⁻¹ A_i``, ``A_i = Lᵀ W_i D_i``, ``M_i = Lᵀ W_i L``.
-    Its smallest eigenvector is the direct least-squares answer, which the alternation would
-    only approach slowly (its error shrinks by a roughly constant factor per sweep). Returns
-    None if it is degenerate.
+    Its eigenvector of the smallest eigenvalue is the least-squares ``u`` (up to scale).
+    Photographs without any weight are left out and get 1. Returns None if the answer is
+    degenerate (not all positive).
     """
     n, p = values.shape
     q = np.zeros((n, n))
@@ -227,31 +233,15 @@ def _least_squares_factors(
         a = wv.T[ok][:, None, :] * dirs.T[None]  # (Pok, 3, N)
         mia = np.linalg.solve(m[ok], a)
         q -= a.reshape(-1, n).T @ mia.reshape(-1, n)
-    evals, evecs = np.linalg.eigh(q)
+    keep = np.flatnonzero(weights.any(axis=1))
+    q = q[np.ix_(keep, keep)]
+    _, evecs = np.linalg.eigh(q)
     u = evecs[:, 0] * np.sign(evecs[:, 0].sum())
     if not np.all(u > 1e-6 * np.abs(u).max()):
         return None
-    f = 1.0 / u
-    return f / f.mean()
-
-
-def _median_ratios(
-    dirs: np.ndarray, values: np.ndarray, b: np.ndarray, ok: np.ndarray, measurable: np.ndarray
-) -> np.ndarray:
-    """Each photograph's median of observed / predicted over its well-lit samples.
-
-    NaN for a photograph without any.
-    """
-    bb = b[ok]
-    predicted = dirs @ bb.T  # (N, P_ok), for a light of unit strength
-    rho = np.linalg.norm(bb, axis=1)
-    sel = measurable[:, ok] & (predicted >= _RATIO_MIN_SHADING * rho)
-    ratio = np.where(sel, values[:, ok] / np.where(sel, predicted, 1.0), np.nan)
-    out = np.full(len(dirs), np.nan)
-    rows = sel.any(axis=1)
-    if rows.any():
-        out[rows] = np.nanmedian(ratio[rows], axis=1)
-    return np.where(out > 0, out, np.nan)
+    f = np.ones(n)
+    f[keep] = 1.0 / u
+    return f / f[keep].mean()
 
 
 def estimate_intensities(
@@ -260,33 +250,37 @@ def estimate_intensities(
     *,
     iterations: int = 3,
     mask: np.ndarray | None = None,
-    max_pixels: int = 40_000,
+    max_pixels: int = 20_000,
 ) -> np.ndarray:
     """Estimate relative per-photograph light intensity factors from the stack.
 
     Model: the luminance of pixel ``i`` in photograph ``k`` is ``f_k ρ_i n_i·l_k`` (Lambertian,
-    light ``k`` of strength ``f_k``). The method alternates between
+    light ``k`` of strength ``f_k``). With ``u_k = 1 / f_k`` and ``b_i = ρ_i n_i`` this reads
+    ``u_k I_ki = l_k·b_i``, which is linear in all unknowns, so the factors minimising the
+    squared residual over a selection of samples are found directly (each pixel's ``b_i``
+    eliminated in closed form, leaving the smallest eigenvector of an N×N matrix) rather than
+    by alternating photometric stereo and ratio updates, which converges slowly (the error
+    shrinks by only about a fifth per sweep with 24 lights) and, with per-image medians,
+    drifted to 1–2.5 % errors in tests where this reaches 0.1–0.5 %.
 
-    1. Lambertian photometric stereo with the current factors divided out, giving each
-       pixel's ``ρ_i n_i`` (weighted least squares over its unsaturated, lit, unshadowed
-       samples);
-    2. each photograph's factor as the median over its well-lit samples (``n·l ≥ 0.2``,
-       unsaturated, not much darker than predicted, i.e. not in cast shadow) of the ratio
-       observed / predicted, ``I_ki / (ρ_i n_i·l_k)``; the median keeps specular highlights
-       and interreflections from biasing it;
-
-    then normalises the factors to mean 1. Each of ``iterations`` rounds re-selects the samples
-    (shadows, outliers) from the current normals and runs the alternation to convergence on a
-    regular subsample of at most ``max_pixels`` pixels.
+    Robustness comes from the selection, re-made in each of ``iterations`` rounds from the
+    previous round's normals, albedo and factors: a sample is used if it is unsaturated, lit
+    (``n·l ≥ 0.1``, so out of attached shadow), away from the specular direction (normal more
+    than 30° from the half-way vector of light and camera), and its observed / predicted
+    ratio is within a few robust standard deviations of its photograph's median ratio (so
+    cast shadows, interreflections and the rest of a highlight are trimmed). The first round
+    only drops clipped samples and those below 5 % of their pixel's brightest (shadows).
+    Pixels are a regular subsample of at most ``max_pixels``; the factors are normalised to
+    mean 1.
 
     Ambiguity: a global scale is unobservable (``f → s f`` with ``ρ → ρ / s`` explains the
     photographs as well), hence the normalisation. Beyond that the factors are determined when
     there are at least four lights not all lying in one plane through the origin plus one
     other line (in particular any four or more in general position) and the normals in the
-    sample span three dimensions: another set of factors would need a 3×3 matrix ``A`` with
-    ``f'_k / f_k · l_k = A l_k`` for every light, i.e. every light direction an eigenvector of
-    ``A``, which forces ``A`` to be a multiple of the identity. With exactly three lights any
-    factors can be absorbed into the normals, so at least four photographs are required.
+    sample span three dimensions: other factors ``f'`` would need a 3×3 matrix ``A`` with
+    ``(f'_k / f_k) l_k = A l_k`` for every light, i.e. every light direction an eigenvector
+    of ``A``, which for such lights forces ``A`` to be a multiple of the identity. With three
+    lights any factors are absorbed into the normals, so at least four photographs are needed.
 
     Parameters
     ----------
@@ -294,22 +288,24 @@ def estimate_intensities(
     directions : ndarray, shape (N, 3)
         Unit light directions.
     iterations : int
-        Rounds of sample re-selection (at least 1).
+        Rounds of sample selection and solution (at least 1).
     mask : ndarray, shape (H, W), bool, optional
-        Pixels to use (the object); default: all pixels that are lit in some photograph.
+        Pixels to use (the object); default: every pixel lit in some photograph.
     max_pixels : int
         Size of the pixel subsample.
 
     Returns
     -------
     ndarray, shape (N,), float64
-        Factors with mean 1; divide photograph ``k`` by ``factors[k]`` to equalise the lights
-        (:func:`apply_intensities`). A photograph without any usable sample gets 1.
+        Factors with mean 1 over the photographs that could be measured; divide photograph
+        ``k`` by ``factors[k]`` to equalise the lights (:func:`apply_intensities`). A
+        photograph with fewer than 20 usable samples gets 1.
 
     Raises
     ------
     InputError
-        If there are fewer than four photographs or too few lit pixels to measure on.
+        If fewer than four photographs are given or can be measured, too few pixels are lit,
+        or the lights and lit normals leave the factors undetermined.
     """
     n = len(stack)
     if n < 4:
@@ -319,40 +315,55 @@ def estimate_intensities(
         )
     dirs = as_directions(directions, n, np.float64)
     values, usable = _sample_pixels(stack, mask, max(int(max_pixels), 1))
-    if values.shape[1] < 10:
+    if values.shape[1] < _MIN_SAMPLES:
         raise InputError(f"only {values.shape[1]} lit pixels: too few to estimate light intensities")
-
     outer = _light_outer(dirs)
-    # First selection: like photometric stereo's first pass, drop the darkest samples
-    # (shadows) and clipped ones; later selections use the fitted normals.
+    half = dirs + np.array([0.0, 0.0, 1.0])
+    half /= np.linalg.norm(half, axis=1, keepdims=True)
+    cos_highlight = np.cos(np.radians(_HIGHLIGHT_HALF_ANGLE_DEG))
+
     brightest = np.where(usable, values, 0.0).max(axis=0)
-    fit_w = (usable & (values > _DARK_FRACTION * brightest)).astype(np.float64)
-    measurable = fit_w > 0
-    factors = _least_squares_factors(dirs, outer, values, fit_w)
-    if factors is None:
+    selected = usable & (values > _DARK_FRACTION * brightest)
+    factors = np.ones(n)
+    for round_ in range(max(1, int(iterations))):
+        # A photograph with too few samples cannot be measured; leaving it out of the solve
+        # (rather than with a zero row) keeps the eigenproblem from picking it alone.
+        measured = selected.sum(axis=1) >= _MIN_SAMPLES
+        if measured.sum() < 4:
+            raise InputError(
+                f"only {int(measured.sum())} photographs have enough usable pixels: "
+                "too few to estimate light intensities"
+            )
+        w = (selected & measured[:, None]).astype(np.float64)
+        solved = _least_squares_factors(dirs, outer, values, w)
+        if solved is None:
+            if round_ == 0:
+                raise InputError(
+                    "the lights and the lit surface do not determine the light intensities "
+                    "(lights nearly coplanar, or too little of the surface lit)"
+                )
+            break  # a degenerate re-selection: keep the previous round's answer
         factors = np.ones(n)
-    for _ in range(max(1, int(iterations))):
-        for _sweep in range(_MAX_SWEEPS):
-            b, ok = _fit_scaled_normals(dirs, outer, values / factors[:, None], fit_w)
-            new = _median_ratios(dirs, values, b, ok, measurable)
-            if np.all(np.isnan(new)):
-                break
-            # A photograph with nothing to measure on keeps the mean factor.
-            new = np.where(np.isnan(new), np.nanmean(new), new)
-            new /= new.mean()
-            change = float(np.max(np.abs(new - factors)))
-            factors = new
-            if change < _SWEEP_TOLERANCE:
-                break
-        # Re-select from the current fit: attached and cast shadows out, as in
-        # photometric_stereo's refinement pass.
-        b, ok = _fit_scaled_normals(dirs, outer, values / factors[:, None], fit_w)
+        factors[measured] = solved[measured] / solved[measured].mean()
+        if round_ == max(1, int(iterations)) - 1:
+            break
+        b, ok = _fit_scaled_normals(dirs, outer, values / factors[:, None], w)
         rho = np.linalg.norm(b, axis=1)
-        expected = (dirs @ b.T) * factors[:, None]
-        shading = (dirs @ b.T) / np.where(rho > 0, rho, 1.0)
-        unshadowed = usable & ok[None, :] & (values >= _CAST_SHADOW_RATIO * expected)
-        fit_w = (unshadowed & (shading > _FIT_MIN_SHADING)).astype(np.float64)
-        measurable = unshadowed
+        inv_rho = 1.0 / np.where(rho > 0, rho, 1.0)
+        predicted = (dirs @ b.T) * factors[:, None]  # (N, P) observed brightness expected
+        candidate = (
+            usable
+            & ok[None, :]
+            & (predicted * inv_rho >= _MIN_SHADING * factors[:, None])
+            & ((half @ b.T) * inv_rho < cos_highlight)
+        )
+        ratio = np.where(candidate, values / np.where(candidate, predicted, 1.0), np.nan)
+        with np.errstate(all="ignore"):
+            centre = np.nanmedian(ratio, axis=1, keepdims=True)
+            dev = np.abs(ratio - centre)
+            spread = 1.4826 * np.nanmedian(dev)
+        tol = max(_TRIM_FLOOR, _TRIM_SIGMAS * float(spread)) if np.isfinite(spread) else np.inf
+        selected = candidate & (dev <= tol)
     return factors
 
 
@@ -381,8 +392,6 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
     ValueError
         If ``factors`` does not hold one positive, finite value (or triple) per photograph.
     """
-    from .images import LUMA_WEIGHTS
-
     n = len(stack)
     f = np.asarray(factors, dtype=np.float64)
     if f.ndim == 2 and f.shape == (n, 3):
