@@ -84,7 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=RUN_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    run.add_argument("capture", type=Path, help="capture folder (photographs and one .lp file), or an .lp file")
+    run.add_argument("capture", type=Path,
+                     help="capture folder (photographs and one .lp file), an .lp file, a .ptm file, or a "
+                     "photometric-stereo dataset folder (filenames.txt, light_directions.txt, ...)")
     run.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
     _add_run_options(run)
 
@@ -158,6 +160,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--solver", choices=("pinv", "lstsq", "rohde"), default="pinv",
                    help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "
                    "lstsq (the same by another route), rohde (Rohde's form with zero blocks; docs/fitting.md)")
+    p.add_argument("--intensities", metavar="FILE|estimate",
+                   help="light intensity per photograph (a file: one value or 'r g b' per line, in .lp order), "
+                   "or 'estimate' to estimate them from the photographs (uneven flash output)")
     p.add_argument("--loo", action="store_true",
                    help="compare relighting bases (PTM, HSH orders 2 and 3) by leave-one-out error: "
                    "loo_*.tif maps and their RMS in report.json")
@@ -212,7 +217,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
-        loo=args.loo,
+        loo=args.loo, intensities=args.intensities,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)

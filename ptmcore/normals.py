@@ -297,7 +297,9 @@ def angular_error(normals: np.ndarray, reference: np.ndarray, mask: np.ndarray |
     ndarray
         ``(H, W)`` float32 degrees, or the masked values.
     """
+    if mask is not None:
+        # Reference maps often hold zero vectors outside the object: compare inside only.
+        normals, reference = normals[mask], reference[mask]
     a = normals / np.linalg.norm(normals, axis=-1, keepdims=True)
     b = reference / np.linalg.norm(reference, axis=-1, keepdims=True)
-    err = np.degrees(np.arccos(np.clip((a * b).sum(axis=-1), -1.0, 1.0))).astype(np.float32)
-    return err if mask is None else err[mask]
+    return np.degrees(np.arccos(np.clip((a * b).sum(axis=-1), -1.0, 1.0))).astype(np.float32)

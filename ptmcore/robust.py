@@ -70,6 +70,9 @@ _RIDGE = 1e-6
 _SINGULAR = 1e-6
 #: The stricter test of the specular cone's fit (see :func:`_lambertian_start`).
 _CONE_SINGULAR = 1e-3
+#: The test of a PTM's weighted fit; below it the plain fit stands in.
+_PTM_SINGULAR = 1e-6
+FALLBACK=[0]
 _UP = np.array([[0.0], [0.0], [1.0]])
 #: Multiply-adds of a matrix product that OpenBLAS does in one thread.
 _BLAS_ONE_THREAD = 1 << 18
@@ -717,6 +720,7 @@ def robust_ptm(
     # lz joins the sums as an extra column, so the same factorisation also fits the
     # hemisphere PTM that the debiased normals need.
     basis = _basis(light_matrix(dirs), dirs[:, 2:3])
+    plain_z = (basis.u.T.astype(np.float64) @ dirs[:, 2])[:, None]
     coef = np.empty((h, w, 6), dtype=np.float32)
     hemi = np.empty((h, w, 6), dtype=np.float32)
     nout = np.empty((h, w, 3), dtype=np.float32)
@@ -729,7 +733,13 @@ def robust_ptm(
         given = None if normals is None else np.ascontiguousarray(
             normals[r0:r1].reshape(-1, 3).T, dtype=np.float32)
         unit, _, _, weights = _robust_lambertian(lights, opt, v, usable, given)
-        (c, cz), _ = _fit(basis, v, weights, None)
+        # The plain fit (a matrix product) stands in where the weights leave too few samples,
+        # or samples too close together, to fit six coefficients.
+        plain = [_product(basis.u.T, v).astype(np.float64), np.broadcast_to(plain_z, (basis.rank, v.shape[1]))]
+        (c, cz), ok = _fit(basis, v, weights, plain, _PTM_SINGULAR)
+        c = np.where(ok, c, plain[0])
+        cz = np.where(ok, cz, plain[1])
+        FALLBACK[0] += (~ok).sum()
         shading = _product(lights.dirs, unit)
         for _ in range(refine):
             a = _product(basis.back, c)

@@ -42,10 +42,12 @@ from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
 from ptmcore.lp import read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
+from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
+from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.solvers import analyse_lights
 
 from . import outputs
-from .accuracy import load_ground_truth, height_rmse, normal_accuracy
+from .accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
 from .integrate import integrate
 from .mesh import grid_mesh, write_obj, write_ply
 from .profiling import StageTimer
@@ -89,6 +91,10 @@ class RunOptions:
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
+    intensities : str or None
+        Per-photograph light intensities: a file (one value or ``r g b`` per photograph, in
+        ``.lp`` order) or ``"estimate"`` to estimate them from the photographs; each
+        photograph is divided by its light's intensity before the normals are estimated.
     loo : bool
         Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
         photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
@@ -110,6 +116,7 @@ class RunOptions:
     ptm_format: str = "lrgb"
     solver: str = "pinv"
     loo: bool = False
+    intensities: str | None = None
     mask: Path | None = None
     threads: int | None = None
     ground_truth: Path | None = None
@@ -401,8 +408,13 @@ def run_capture(
     _check_options(opt)
     capture = Path(capture)
     out = Path(output)
-    lp_path = find_lp(capture, opt.lp)
-    lights = read_lp(lp_path)
+    dataset = opt.lp is None and capture.is_dir() and is_ps_dataset(capture)
+    if dataset:
+        lp_path = None
+        lights = None
+    else:
+        lp_path = find_lp(capture, opt.lp)
+        lights = read_lp(lp_path)
     gt_dir = opt.ground_truth
     if gt_dir is None:
         guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
@@ -412,11 +424,31 @@ def run_capture(
     staging = _prepare_output(out)
     warnings: list[str] = []
     try:
-        with stage("decode", len(lights)) as advance:
-            stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
+        truth = None
+        if dataset:
+            with stage("decode"):
+                ds = read_ps_dataset(capture, threads=opt.threads)
+            stack, lights = ds.stack, ds.lights
+            if ds.ground_truth_normals is not None and gt_dir is None:
+                gt_mask = ds.mask if ds.mask is not None else np.ones(stack.shape, bool)
+                truth = GroundTruth(ds.ground_truth_normals, gt_mask)
+        else:
+            with stage("decode", len(lights)) as advance:
+                stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
         h, w = stack.shape
         bit_depth = stack.bit_depth
-        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
+        if opt.mask is not None:
+            mask = read_mask(opt.mask, (h, w))
+        else:
+            mask = ds.mask if dataset else None
+        intensity = None
+        if opt.intensities is not None:
+            if opt.intensities == "estimate":
+                factors = estimate_intensities(stack, lights.directions, mask=mask)
+            else:
+                factors = read_intensities(opt.intensities, len(lights))
+            stack = apply_intensities(stack, factors)
+            intensity = {"source": opt.intensities, "factors": factors}
         rank = analyse_lights(lights.directions)
         if rank.deficient:
             warnings.append(f"the PTM light matrix has rank {rank.rank} of 6: " + "; ".join(rank.causes))
@@ -481,14 +513,16 @@ def run_capture(
         accuracy = None
         if gt_dir is not None:
             truth = load_ground_truth(gt_dir)
-            accuracy = {"ground_truth": str(gt_dir), "normals": normal_accuracy(normals, truth)}
+        if truth is not None:
+            accuracy = {"ground_truth": str(gt_dir or capture), "normals": normal_accuracy(normals, truth)}
             rmse = height_rmse(height, truth) if opt.pixel_size else None
             if rmse is not None:
                 accuracy["height_rmse_mm"] = rmse
 
         inputs = {
             "capture": str(capture.resolve()),
-            "lp": str(lp_path.resolve()),
+            "lp": str(lp_path.resolve()) if lp_path else None,
+            "layout": "photometric-stereo dataset" if dataset else "capture with .lp",
             "photographs": len(lights),
             "width": w,
             "height": h,
@@ -497,7 +531,8 @@ def run_capture(
         }
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
-            lights=_rank_summary(rank), ptm=_ptm_summary(quantisation), leave_one_out=loo, accuracy=accuracy,
+            lights=_rank_summary(rank), intensities=json_safe(intensity), ptm=_ptm_summary(quantisation),
+            leave_one_out=loo, accuracy=accuracy,
         )
         outputs.write_json(staging / "report.json", report)
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]

@@ -65,3 +65,41 @@ def test_leave_one_out_comparison_of_bases(tmp_path, capsys):
     import tifffile
 
     assert tifffile.imread(out / "loo_ptm.tif").shape == (60, 80)
+
+
+def test_run_on_a_photometric_stereo_dataset_reports_accuracy(tmp_path, capsys):
+    from test_psdataset import _write_dataset
+
+    _write_dataset(tmp_path / "ds", n=12)
+    out = tmp_path / "out"
+    code, stdout, err = _run(["run", tmp_path / "ds", "-o", out, "-q"], capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["layout"] == "photometric-stereo dataset"
+    # The intensities are divided out and Normal_gt.png is compared inside mask.png.
+    assert report["accuracy"]["normals"]["mean_deg"] < 0.5
+    assert (out / "normals.png").exists() and (out / "mesh.ply").exists()
+
+
+def test_uneven_flash_fixed_by_estimated_or_given_intensities(tmp_path, capsys):
+    from data_synthetic import write_capture
+    from ptmcore.images import read_image
+
+    import tifffile
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(90, 120), n_lights=24, seed=3, noise=0.002)
+    factors = np.random.default_rng(7).uniform(0.6, 1.0, 24)
+    for path, f in zip(info.image_paths, factors):
+        tifffile.imwrite(path, np.round(read_image(path) * f).astype(np.uint16))
+    (tmp_path / "intensities.txt").write_text("\n".join(f"{f:.6f}" for f in factors) + "\n")
+    errors = {}
+    for name, extra in {"none": [], "estimate": ["--intensities", "estimate"],
+                        "file": ["--intensities", tmp_path / "intensities.txt"]}.items():
+        out = tmp_path / name
+        code, _, err = _run(["run", info.folder, "-o", out, "-q", *extra], capsys)
+        assert code == 0, err
+        report = json.loads((out / "report.json").read_text())
+        errors[name] = report["accuracy"]["normals"]["mean_deg"]
+    assert errors["none"] > 2.0
+    assert errors["estimate"] < 0.6 and errors["file"] < 0.6
+    assert report["intensities"]["source"].endswith("intensities.txt")
