@@ -71,7 +71,7 @@ _SINGULAR = 1e-6
 #: The stricter test of the specular cone's fit (see :func:`_lambertian_start`).
 _CONE_SINGULAR = 1e-3
 #: The test of a PTM's weighted fit; below it the plain fit stands in.
-_PTM_SINGULAR = 1e-6
+_PTM_SINGULAR = 1e-4
 FALLBACK=[0]
 _UP = np.array([[0.0], [0.0], [1.0]])
 #: Multiply-adds of a matrix product that OpenBLAS does in one thread.
