@@ -132,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--lights", type=_positive_int, default=48, help="number of dome lights (default: 48)")
     demo.add_argument("--encoding", choices=("tiff16", "jpeg8"), default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
     demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
-    demo.add_argument("--normals", choices=("ps", "ptm"), default="ps", help="normal method (default: ps)")
+    demo.add_argument("--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps", help="normal method (default: ps)")
     demo.add_argument("--integrator", choices=("dct", "fc"), default="dct", help="integrator (default: dct)")
     return parser
 
@@ -144,8 +144,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="size of one pixel on the object in millimetres; heights and meshes are then in mm (else in pixels)",
     )
     p.add_argument(
-        "--normals", choices=("ps", "ptm"), default="ps",
-        help="ps: photometric stereo (default, the more accurate); ptm: maximum of each pixel's PTM",
+        "--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps",
+        help="ps: photometric stereo (default, the most accurate); ptm: maximum of each pixel's PTM; "
+        "ptm-debiased: that maximum corrected for the PTM's bias towards the view direction",
+    )
+    p.add_argument(
+        "--fit", choices=("irls", "trimmed", "plain"), default="irls",
+        help="per-pixel fit: irls (default: robust, down-weights shadowed, clipped and specular samples), "
+        "trimmed (robust, leaves them out), plain (least squares)",
     )
     p.add_argument(
         "--integrator", choices=("dct", "fc"), default="dct",
@@ -217,7 +223,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
-        loo=args.loo, intensities=args.intensities,
+        loo=args.loo, intensities=args.intensities, fit=args.fit,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)

@@ -44,6 +44,7 @@ from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_ste
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
+from ptmcore.robust import debiased_normals, hemisphere_coefficients, robust_photometric_stereo, robust_ptm
 from ptmcore.solvers import analyse_lights
 
 from . import outputs
@@ -54,7 +55,10 @@ from .profiling import StageTimer
 from .web import export_openlime
 
 #: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
-NORMAL_METHODS = ("ps", "ptm")
+NORMAL_METHODS = ("ps", "ptm", "ptm-debiased")
+#: Per-pixel fits; the default is the more accurate on the synthetic benchmark with specular
+#: highlights and shadows (BENCHMARKS.md), at about three times the plain fit's time.
+FITS = ("irls", "trimmed", "plain")
 PTM_FORMATS = ("lrgb", "rgb")
 SOLVERS = ("pinv", "lstsq", "rohde")
 INTEGRATORS = ("dct", "fc")
@@ -75,8 +79,13 @@ class RunOptions:
         The light file; default: the single ``.lp`` file in the capture folder.
     pixel_size : float or None
         Millimetres per pixel; heights and meshes are in millimetres when given, else in pixels.
-    normals : {"ps", "ptm"}
-        Photometric stereo, or the maximum of each pixel's PTM polynomial.
+    normals : {"ps", "ptm", "ptm-debiased"}
+        Photometric stereo; the maximum of each pixel's PTM polynomial (closed form, or on the
+        unit circle where it has no interior maximum); or that maximum read through the fit's
+        own model of the hemisphere, which removes the PTM's bias towards the view direction.
+    fit : {"irls", "trimmed", "plain"}
+        How each pixel's samples are weighted: robustly (Tukey IRLS, or 0/1 trimming, leaving
+        out shadowed, clipped and specular samples) or by plain least squares.
     integrator : {"dct", "fc"}
         Poisson with Neumann boundary by DCT, or Frankot–Chellappa.
     step : int or None
@@ -116,6 +125,7 @@ class RunOptions:
     ptm_format: str = "lrgb"
     solver: str = "pinv"
     loo: bool = False
+    fit: str = "irls"
     intensities: str | None = None
     mask: Path | None = None
     threads: int | None = None
@@ -229,6 +239,8 @@ def _check_options(opt: RunOptions) -> None:
         raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
     if opt.step is not None and opt.step < 1:
         raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    if opt.fit not in FITS:
+        raise InputError(f"unknown fit {opt.fit!r}; choose from {', '.join(FITS)}")
     if opt.solver not in SOLVERS:
         raise InputError(f"unknown solver {opt.solver!r}; choose from {', '.join(SOLVERS)}")
     if opt.ptm_format not in PTM_FORMATS:
@@ -289,6 +301,30 @@ def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings:
         "versions": _versions(),
         "warnings": warnings,
     }
+
+
+def _estimate_normals(stack, directions, opt: RunOptions, advance) -> tuple[np.ndarray, np.ndarray, int]:
+    """Normals, luminance albedo and the count of undetermined pixels, by ``opt.normals``/``opt.fit``.
+
+    Every fit here works on linear light, where a Lambertian surface's shading is n·l; the
+    PTM written for viewers is fitted separately, to the photographs as encoded.
+    """
+    if opt.normals == "ps":
+        if opt.fit == "plain":
+            ps = photometric_stereo(stack, directions, threads=opt.threads, progress=advance)
+        else:
+            ps = robust_photometric_stereo(stack, directions, method=opt.fit, threads=opt.threads, progress=advance)
+        return ps.normals, ps.albedo, int((~ps.valid).sum())
+    if opt.fit == "plain":
+        coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=advance).coefficients
+        if opt.normals == "ptm":
+            normals = normals_from_ptm(coefficients)
+        else:
+            normals = debiased_normals(coefficients, hemisphere_coefficients(directions))
+    else:
+        fitted = robust_ptm(stack, directions, method=opt.fit, threads=opt.threads, progress=advance)
+        normals = normals_from_ptm(fitted.ptm.coefficients) if opt.normals == "ptm" else fitted.normals
+    return normals, lambertian_albedo(stack, directions, normals, threads=opt.threads), 0
 
 
 def _leave_one_out(stack, directions, mask, staging: Path, threads, advance) -> dict:
@@ -461,25 +497,13 @@ def run_capture(
                 "out of photometric stereo"
             )
 
-        if opt.normals == "ptm":
-            # Fitted to linear light, where a Lambertian surface's shading is n·l: the PTM
-            # written for viewers (below) is fitted to the encoded photographs instead.
-            with stage("fit_ptm", h) as advance:
-                ptm = fit_ptm(stack, lights.directions, solver=opt.solver, threads=opt.threads, progress=advance)
         with stage("normals", h) as advance:
-            if opt.normals == "ps":
-                ps = photometric_stereo(stack, lights.directions, threads=opt.threads, progress=advance)
-                normals, albedo = ps.normals, ps.albedo
-                undetermined = int((~ps.valid).sum())
-                if undetermined:
-                    warnings.append(
-                        f"{undetermined} pixels ({undetermined / ps.valid.size:.2%}) had too few lit, "
-                        "unsaturated photographs for photometric stereo; their normal is set to (0, 0, 1)"
-                    )
-            else:
-                normals = normals_from_ptm(ptm.coefficients)
-                del ptm
-                albedo = lambertian_albedo(stack, lights.directions, normals, threads=opt.threads)
+            normals, albedo, undetermined = _estimate_normals(stack, lights.directions, opt, advance)
+        if undetermined:
+            warnings.append(
+                f"{undetermined} pixels ({undetermined / (h * w):.2%}) had too few lit, unsaturated "
+                "photographs to determine a normal; their normal is set to (0, 0, 1)"
+            )
         texture, albedo_scale = outputs.albedo_to_srgb8(stack.chroma * albedo[..., None])
         loo = None
         if opt.loo:
