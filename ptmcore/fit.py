@@ -107,15 +107,39 @@ def fit_ptm(
     -------
     PTM
     """
+    matrix = fit_matrix(as_directions(directions, len(stack)), solver)
+    return PTM(apply_fit_matrix(stack, matrix, threads=threads, progress=progress), stack.chroma)
+
+
+def apply_fit_matrix(
+    stack: ImageStack,
+    matrix: np.ndarray,
+    *,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> np.ndarray:
+    """Coefficients ``matrix @ luminance`` of every pixel: any linear basis fitted at once.
+
+    Parameters
+    ----------
+    stack : ImageStack
+    matrix : ndarray, shape (K, N)
+        Maps the N luminances of a pixel to its K coefficients (e.g. a pseudoinverse).
+
+    Returns
+    -------
+    ndarray, shape (H, W, K), float32
+    """
     n = len(stack)
     h, w = stack.shape
-    pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
-    coef = np.empty((h, w, 6), dtype=np.float32)
+    k = matrix.shape[0]
+    m = np.asarray(matrix, dtype=np.float32)
+    coef = np.empty((h, w, k), dtype=np.float32)
 
     def work(r0: int, r1: int) -> None:
         values, _ = stack.band(r0, r1)
-        # (6, N) @ (N, rows·W): one BLAS call per band.
-        coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, 6)
+        # (K, N) @ (N, rows·W): one BLAS call per band.
+        coef[r0:r1] = (m @ values.reshape(n, -1)).T.reshape(r1 - r0, w, k)
 
     run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
-    return PTM(coef, stack.chroma)
+    return coef

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .bands import band_rows, run_bands
+from .fit import apply_fit_matrix
 from .images import ImageStack
 from .lp import as_directions
 
@@ -218,16 +218,5 @@ def fit_hsh(
     pseudoinverse gives the minimum-norm fit (see :data:`RCOND`).
     """
     order = _check_order(order)
-    n = len(stack)
-    h, w = stack.shape
-    k = order * order
-    pinv = hsh_fit_matrix(as_directions(directions, n), order).astype(np.float32)
-    coef = np.empty((h, w, k), dtype=np.float32)
-
-    def work(r0: int, r1: int) -> None:
-        values, _ = stack.band(r0, r1)
-        # (K, N) @ (N, rows·W): one BLAS call per band.
-        coef[r0:r1] = (pinv @ values.reshape(n, -1)).T.reshape(r1 - r0, w, k)
-
-    run_bands(h, band_rows(n, w), work, threads=threads, progress=progress)
-    return HSH(coef, stack.chroma)
+    matrix = hsh_fit_matrix(as_directions(directions, len(stack)), order)
+    return HSH(apply_fit_matrix(stack, matrix, threads=threads, progress=progress), stack.chroma)
