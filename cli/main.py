@@ -43,6 +43,7 @@ outputs (in the -o folder):
   height.tif                 float32 height map; millimetres with --pixel-size, else pixels
   mesh.ply, mesh.obj         textured mesh (OBJ with mesh.mtl and mesh_texture.png)
   mask.png                   the mask, when --mask is given
+  loo_ptm.tif, loo_hsh*.tif  leave-one-out relighting error maps, with --loo
   report.json                inputs, parameters, timings, memory, warnings, accuracy
 
 example:
@@ -80,7 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser(
         "run",
         help="reconstruct one capture: normals, height map and mesh",
-        description="Reconstruct one capture folder (photographs + .lp light file).",
+        description="Reconstruct one capture: a folder of photographs with its .lp light file, a "
+        "photometric-stereo dataset folder, or an existing .ptm file.",
         epilog=RUN_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
