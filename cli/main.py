@@ -38,6 +38,7 @@ and meshes are made from it, no photographs needed.
 
 outputs (in the -o folder):
   coefficients.ptm           the PTM (HP PTM 1.2, opens in RTIViewer); web/ for OpenLIME
+  coefficients.rti           with --hsh: HSH order 3 (RTIViewer's .rti)
   normals.npy, normals.png   unit normals (float32) and a 16-bit OpenGL-style normal map
   albedo.png                 the surface colour without shading (8-bit sRGB)
   height.tif                 float32 height map; millimetres with --pixel-size, else pixels
@@ -95,8 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
     rel = sub.add_parser(
         "relight",
         help="render a PTM under a chosen light (RTIViewer's modes), or a GIF of a circling light",
-        description="Render a PTM under any light, as RTIViewer does. SOURCE is a .ptm file or an "
-        "output folder of `reconstruct run` (its coefficients.ptm).",
+        description="Render a PTM or HSH file under any light, as RTIViewer does. SOURCE is a .ptm or "
+        ".rti (HSH) file, or an output folder of `reconstruct run` (its coefficients.ptm, or with "
+        "--basis hsh its coefficients.rti).",
         epilog=RELIGHT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
@@ -111,6 +113,8 @@ def build_parser() -> argparse.ArgumentParser:
     rel.add_argument("--ks", type=float, default=0.7, help="specular enhancement: specular weight (default 0.7)")
     rel.add_argument("--exponent", type=float, default=75.0, help="specular enhancement: Phong exponent (default 75)")
     rel.add_argument("--gain", type=float, default=2.0, help="diffuse gain (default 2)")
+    rel.add_argument("--basis", choices=("ptm", "hsh"), default="ptm",
+                     help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
 
     lights = sub.add_parser(
@@ -171,6 +175,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intensities", metavar="FILE|estimate",
                    help="light intensity per photograph (a file: one value or 'r g b' per line, in .lp order), "
                    "or 'estimate' to estimate them from the photographs (uneven flash output)")
+    p.add_argument("--hsh", action="store_true",
+                   help="also write coefficients.rti, an HSH (order 3) relighting file that RTIViewer opens")
     p.add_argument("--loo", action="store_true",
                    help="compare relighting bases (PTM, HSH orders 2 and 3) by leave-one-out error: "
                    "loo_*.tif maps and their RMS in report.json")
@@ -225,7 +231,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
         step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
-        loo=args.loo, intensities=args.intensities, fit=args.fit,
+        loo=args.loo, intensities=args.intensities, fit=args.fit, hsh=args.hsh,
     )
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)
@@ -263,7 +269,7 @@ def _parse_vector(text: str) -> list[float]:
 
 def _cmd_relight(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
-    from reconstruct.relighting import load_ptm_source, render, sweep_lights, write_gif, write_image
+    from reconstruct.relighting import load_source, render, sweep_lights, write_gif, write_image
 
     params = {"kd": args.kd, "ks": args.ks, "exponent": args.exponent, "gain": args.gain}
     if args.sweep is None:
@@ -278,7 +284,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                 light = light_direction(azimuth_deg=args.azimuth, elevation_deg=args.elevation)
         except ValueError as exc:
             raise InputError(str(exc)) from None
-    ptm = load_ptm_source(args.source)
+    ptm = load_source(args.source, args.basis)
     try:
         if args.sweep is None:
             write_image(args.output, render(ptm, light, args.mode, **params))

@@ -54,7 +54,14 @@ from .hsh import ORDERS, hsh_basis, hsh_fit_matrix
 from .lp import as_directions
 from .ptmfile import _check_size, _encoded, _photographs
 
-__all__ = ["FILE_TYPE_HSH", "RTIFile", "fit_rti_hsh", "read_rti_hsh", "write_rti_hsh"]
+__all__ = [
+    "FILE_TYPE_HSH",
+    "RTIFile",
+    "fit_rti_hsh",
+    "read_rti_hsh",
+    "render_float",
+    "write_rti_hsh",
+]
 
 #: The file-type line of an HSH ``.rti``.
 FILE_TYPE_HSH = 3

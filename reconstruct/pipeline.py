@@ -39,12 +39,13 @@ from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
 from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
+from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
-from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
-from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
+from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
 from ptmcore.robust import debiased_normals, hemisphere_coefficients, robust_photometric_stereo, robust_ptm
+from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from ptmcore.solvers import analyse_lights
 
 from . import outputs
@@ -100,6 +101,9 @@ class RunOptions:
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
+    hsh : bool
+        Also write ``coefficients.rti``: hemispherical harmonics of order 3, RTIViewer's HSH
+        format, fitted per channel to the photographs as encoded.
     intensities : str or None
         Per-photograph light intensities: a file (one value or ``r g b`` per photograph, in
         ``.lp`` order) or ``"estimate"`` to estimate them from the photographs; each
@@ -126,6 +130,7 @@ class RunOptions:
     solver: str = "pinv"
     loo: bool = False
     fit: str = "irls"
+    hsh: bool = False
     intensities: str | None = None
     mask: Path | None = None
     threads: int | None = None
@@ -367,6 +372,8 @@ def _ptm_summary(quantisation: dict) -> dict:
     """What report.json says of coefficients.ptm: format, size and its 8-bit quantisation error."""
     keep = ("format", "width", "height", "scale", "bias", "bytes", "max_error", "rms_error", "clipped")
     summary = {k: quantisation[k] for k in keep if k in quantisation}
+    if "hsh" in quantisation:
+        summary["hsh_rti"] = {k: v for k, v in quantisation["hsh"].items() if k != "path"}
     summary["error_unit"] = "coefficient units (luminance 0-255)"
     return json_safe(summary)
 
@@ -531,6 +538,11 @@ def run_capture(
             else:
                 warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
             del coef8, rgb8
+            if opt.hsh:
+                hsh = fit_rti_hsh(lights.paths, lights.directions, order=3, threads=opt.threads)
+                quantisation["hsh"] = write_rti_hsh(staging / "coefficients.rti", hsh, order=3)
+                ptm_names.append("coefficients.rti")
+                del hsh
 
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
 

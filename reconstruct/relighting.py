@@ -1,4 +1,4 @@
-"""``reconstruct relight``: render a PTM under any light, or a sweep of lights as a GIF.
+"""``reconstruct relight``: render a PTM or HSH file under any light, or a sweep as a GIF.
 
 The maths is in :mod:`ptmcore.relight` (RTIViewer's default rendering, specular enhancement
 and diffuse gain); this module finds the PTM of a source, converts RGB-format PTMs for the
@@ -19,21 +19,26 @@ from ptmcore.images import LUMA_WEIGHTS
 from ptmcore.normals import ptm_maximum
 from ptmcore.ptmfile import PTMFile, read_ptm
 from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, relight, specular_enhancement
+from ptmcore.rtifile import RTIFile, read_rti_hsh
 
 MODES = ("default", "specular", "diffuse-gain")
 
 
-def load_ptm_source(source: str | os.PathLike) -> PTMFile:
-    """Read the PTM of ``source``: a ``.ptm`` file, or an output folder of ``reconstruct run``."""
+def load_source(source: str | os.PathLike, basis: str = "ptm") -> PTMFile | RTIFile:
+    """Read a relightable file: a ``.ptm`` or HSH ``.rti`` file, or from an output folder of
+    ``reconstruct run`` its ``coefficients.ptm`` (``basis="ptm"``) or ``coefficients.rti``
+    (``basis="hsh"``)."""
     source = Path(source)
     if source.is_dir():
-        candidate = source / "coefficients.ptm"
+        name = "coefficients.rti" if basis == "hsh" else "coefficients.ptm"
+        candidate = source / name
         if not candidate.is_file():
-            raise InputError("no coefficients.ptm in this folder (give a .ptm file or an output folder)", source)
+            hint = " (run with --hsh to write it)" if basis == "hsh" else ""
+            raise InputError(f"no {name} in this folder{hint}; give a .ptm or .rti file or an output folder", source)
         source = candidate
     elif not source.exists():
         raise InputError("not found", source)
-    return read_ptm(source)
+    return read_rti_hsh(source) if source.suffix.lower() == ".rti" else read_ptm(source)
 
 
 def as_lrgb(ptm: PTMFile) -> tuple[np.ndarray, np.ndarray]:
@@ -59,7 +64,7 @@ def as_lrgb(ptm: PTMFile) -> tuple[np.ndarray, np.ndarray]:
 
 
 def render(
-    ptm: PTMFile,
+    ptm: PTMFile | RTIFile,
     light: np.ndarray,
     mode: str = "default",
     *,
@@ -72,7 +77,8 @@ def render(
 
     Parameters
     ----------
-    ptm : PTMFile
+    ptm : PTMFile or RTIFile
+        A PTM (every mode) or an HSH file (default mode).
     light : ndarray, shape (3,)
         Unit vector towards the light.
     mode : {"default", "specular", "diffuse-gain"}
@@ -85,6 +91,10 @@ def render(
     -------
     ndarray, shape (H, W, 3), uint8
     """
+    if isinstance(ptm, RTIFile):
+        if mode != "default":
+            raise InputError(f"the {mode} mode needs a PTM; an HSH file renders in the default mode only")
+        return ptm.render(light)
     if mode == "default" and not ptm.is_lrgb:
         return ptm.render(light)
     coef, rgb = as_lrgb(ptm)
