@@ -20,7 +20,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -67,7 +66,7 @@ def main() -> None:
     for scene in ("tablet", "sphere"):
         for encoding in ("tiff16", "jpeg8"):
             rows += measure(scene, encoding, (h, w), args.lights, args.seed)
-    print(f"| scene | encoding | normals | mean ° | median ° | height RMSE mm (dct) | height RMSE mm (fc) |")
+    print("| scene | encoding | normals | mean ° | median ° | height RMSE mm (dct) | height RMSE mm (fc) |")
     print("| --- | --- | --- | --- | --- | --- | --- |")
     for r in rows:
         print(f"| {r['scene']} | {r['encoding']} | {r['normals']} | {r['mean_deg']:.2f} | {r['median_deg']:.2f} "

@@ -159,7 +159,6 @@ def _sample_pixels(
     A regular subsample is enough: the factors are one number per photograph, measured over
     thousands of pixels, and a grid keeps the result deterministic.
     """
-    n = len(stack)
     h, w = stack.shape
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)

@@ -72,7 +72,6 @@ import math
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -82,8 +81,8 @@ from .atomic import atomic_write
 from .bands import run_bands
 from .errors import InputError
 from .fit import fit_matrix, light_matrix
-from .images import read_image
 from .lp import as_directions
+from .streaming import check_same_size, encoded_rows, stream_photographs
 
 __all__ = [
     "FORMAT_JPEG_LRGB",
@@ -749,58 +748,6 @@ def write_ptm(
 # Fitting in the photographs' own encoding, as PTMfitter does
 
 
-def _as_image(img: np.ndarray, where: str) -> np.ndarray:
-    """Check a photograph's layout: ``(H, W)`` or ``(H, W, 3)``, 8/16-bit or float."""
-    a = np.asarray(img)
-    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (1, 3)):
-        raise ValueError(f"{where}: expected an (H, W) or (H, W, 3) image, not {a.shape}")
-    if a.dtype not in (np.uint8, np.uint16) and a.dtype.kind != "f":
-        raise ValueError(f"{where}: unsupported sample type {a.dtype}")
-    return a
-
-
-def _encoded(block: np.ndarray) -> np.ndarray:
-    """Rows of a photograph as float32 ``(rows, W, 3)`` in 8-bit units (0..255)."""
-    if block.dtype == np.uint8:
-        out = block.astype(np.float32)
-    elif block.dtype == np.uint16:
-        out = block.astype(np.float32) * np.float32(1 / 257)  # 65535 ↦ 255
-    else:
-        out = block.astype(np.float32) * np.float32(255)
-    if out.ndim == 2:
-        out = out[..., None]
-    return np.repeat(out, 3, axis=2) if out.shape[2] == 1 else out
-
-
-def _photographs(
-    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray, threads: int | None
-) -> Iterator[tuple[int, np.ndarray, Path | None]]:
-    """Yield ``(k, image, path)`` in order, decoding files a few at a time in threads."""
-    items = [images[k] for k in range(len(images))] if isinstance(images, np.ndarray) else list(images)
-    if not any(isinstance(x, (str, os.PathLike)) for x in items):
-        for k, x in enumerate(items):
-            yield k, _as_image(x, f"image {k}"), None
-        return
-
-    def load(x: str | os.PathLike | np.ndarray) -> np.ndarray:
-        return read_image(x) if isinstance(x, (str, os.PathLike)) else np.asarray(x)
-
-    workers = max(1, threads or os.cpu_count() or 1)
-    # At most `workers` decoded photographs wait at a time, so memory stays bounded.
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending: list[Future] = [pool.submit(load, x) for x in items[:workers]]
-        try:
-            for k, x in enumerate(items):
-                img = pending.pop(0).result()
-                if k + workers < len(items):
-                    pending.append(pool.submit(load, items[k + workers]))
-                path = Path(x) if isinstance(x, (str, os.PathLike)) else None
-                yield k, _as_image(img, str(path) if path else f"image {k}"), path
-        finally:
-            for f in pending:
-                f.cancel()
-
-
 def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray, solver: str) -> tuple[int, np.ndarray]:
     n = len(images)
     # Fewer than six photographs leave the six coefficients underdetermined; the
@@ -809,15 +756,6 @@ def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray, solver: st
         raise InputError("no photographs given")
     pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
     return n, pinv
-
-
-def _check_size(img: np.ndarray, shape: tuple[int, int], k: int, path: Path | None) -> None:
-    if img.shape[:2] != shape:
-        raise InputError(
-            f"image is {img.shape[1]}×{img.shape[0]} but the first photograph is "
-            f"{shape[1]}×{shape[0]}; all photographs of a capture must have the same size",
-            path if path is not None else f"image {k}",
-        )
 
 
 def fit_ptm_encoded(
@@ -870,7 +808,7 @@ def fit_ptm_encoded(
     wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
     acc = peak = cy = y2 = None
     shape: tuple[int, int] = (0, 0)
-    for k, img, path in _photographs(images, threads):
+    for k, img, path in stream_photographs(images, threads):
         if acc is None:
             shape = img.shape[:2]
             # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
@@ -879,11 +817,11 @@ def fit_ptm_encoded(
             peak = np.zeros(shape, dtype=np.float32)
             cy = np.zeros((3,) + shape, dtype=np.float32)
             y2 = np.zeros(shape, dtype=np.float32)
-        _check_size(img, shape, k, path)
+        check_same_size(img, shape, k, path)
         col = pinv[:, k]
 
         def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = _encoded(img[r0:r1])
+            c = encoded_rows(img[r0:r1])
             y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
             for j in range(6):
                 acc[j, r0:r1] += y * col[j]
@@ -947,15 +885,15 @@ def fit_ptm_rgb_encoded(
     n, pinv = _fit_setup(images, directions, solver)
     acc = None
     shape: tuple[int, int] = (0, 0)
-    for k, img, path in _photographs(images, threads):
+    for k, img, path in stream_photographs(images, threads):
         if acc is None:
             shape = img.shape[:2]
             acc = np.zeros((3, 6) + shape, dtype=np.float32)  # plane by plane, as above
-        _check_size(img, shape, k, path)
+        check_same_size(img, shape, k, path)
         col = pinv[:, k]
 
         def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = _encoded(img[r0:r1])
+            c = encoded_rows(img[r0:r1])
             for ch in range(3):
                 for j in range(6):
                     acc[ch, j, r0:r1] += c[..., ch] * col[j]

@@ -52,7 +52,7 @@ from .bands import run_bands
 from .errors import InputError
 from .hsh import ORDERS, hsh_basis, hsh_fit_matrix
 from .lp import as_directions
-from .ptmfile import _check_size, _encoded, _photographs
+from .streaming import check_same_size, encoded_rows, stream_photographs
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -388,19 +388,19 @@ def fit_rti_hsh(
     if n < 1:
         raise InputError("no photographs given")
     k = order * order
-    # Photographs in 0..255 (ptmfile._encoded) → divide by 255 once, in the matrix.
+    # Photographs in 0..255 (streaming.encoded_rows) → divide by 255 once, in the matrix.
     pinv = (hsh_fit_matrix(as_directions(directions, n), order) / 255.0).astype(np.float32)
     acc = None
     shape: tuple[int, int] = (0, 0)
-    for idx, img, path in _photographs(images, threads):
+    for idx, img, path in stream_photographs(images, threads):
         if acc is None:
             shape = img.shape[:2]
             acc = np.zeros((3, k) + shape, dtype=np.float32)  # plane by plane: fast adds
-        _check_size(img, shape, idx, path)
+        check_same_size(img, shape, idx, path)
         col = pinv[:, idx]
 
         def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = _encoded(img[r0:r1])
+            c = encoded_rows(img[r0:r1])
             for ch in range(3):
                 for j in range(k):
                     acc[ch, j, r0:r1] += c[..., ch] * col[j]
