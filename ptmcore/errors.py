@@ -25,3 +25,19 @@ class InputError(Exception):
         self.problem = problem
         self.path = None if path is None else os.fspath(path)
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
+
+
+def read_input_file(path: str | os.PathLike, what: str) -> bytes:
+    """The bytes of a user's file, or an :class:`InputError` that says why not.
+
+    ``what`` names the kind of file in the message ("PTM file", "RTI file", ...).
+    """
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except FileNotFoundError:
+        raise InputError(f"{what} not found", path) from None
+    except IsADirectoryError:
+        raise InputError(f"is a folder, not a {what}", path) from None
+    except OSError as exc:
+        raise InputError(f"cannot read {what} ({exc.strerror or exc})", path) from None

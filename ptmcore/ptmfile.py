@@ -79,7 +79,7 @@ import numpy as np
 
 from .atomic import atomic_write
 from .bands import run_bands
-from .errors import InputError
+from .errors import InputError, read_input_file
 from .fit import fit_matrix, light_matrix
 from .lp import as_directions
 from .streaming import check_same_size, encoded_rows, stream_photographs
@@ -294,17 +294,6 @@ class _Cursor:
         return self.pos
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("PTM file not found", path) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, not a PTM file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read PTM file ({exc.strerror or exc})", path) from None
-
-
 def _decode_block(
     raw: np.ndarray, scale: np.ndarray, bias: np.ndarray, out: np.ndarray | None = None
 ) -> np.ndarray:
@@ -452,7 +441,7 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
         file's length before anything is allocated.
     """
     path = Path(path)
-    data = _read_bytes(path)
+    data = read_input_file(path, "PTM file")
     if not data:
         raise InputError("PTM file is empty", path)
     cur = _Cursor(data, path)

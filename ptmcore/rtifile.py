@@ -49,7 +49,7 @@ import numpy as np
 
 from .atomic import atomic_write
 from .bands import run_bands
-from .errors import InputError
+from .errors import InputError, read_input_file
 from .hsh import ORDERS, hsh_basis, hsh_fit_matrix
 from .lp import as_directions
 from .streaming import check_same_size, encoded_rows, stream_photographs
@@ -245,17 +245,6 @@ def write_rti_hsh(path: str | os.PathLike, coefficients: np.ndarray, *, order: i
 # Reading
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("RTI file not found", path) from None
-    except IsADirectoryError:
-        raise InputError("is a folder, not an RTI file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read RTI file ({exc.strerror or exc})", path) from None
-
-
 def _ints(data: bytes, pos: int, count: int, what: str, path: Path) -> tuple[list[int], int]:
     """Parse one text line of `count` integers starting at `pos`; returns them and the next pos."""
     end = data.find(b"\n", pos, pos + _MAX_LINE)
@@ -285,7 +274,7 @@ def read_rti_hsh(path: str | os.PathLike) -> RTIFile:
         anything is allocated.
     """
     path = Path(path)
-    data = _read_bytes(path)
+    data = read_input_file(path, "RTI file")
     if not data:
         raise InputError("RTI file is empty", path)
     if data.startswith(b"PTM_"):

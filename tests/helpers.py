@@ -33,3 +33,41 @@ def sphere_normals(h: int, w: int, radius: float) -> tuple[np.ndarray, np.ndarra
     n = np.stack([x, y, z], -1)
     n[~mask] = (0, 0, 1)
     return n.astype(np.float32), mask
+
+
+#: Header tokens that parsers must reject or survive.
+GARBAGE_TOKENS = [b"-1", b"0", b"99999999", b"1e999", b"nan", b"x", b"", b"3.5", b"2147483648",
+                  b"-2147483649", b"18446744073709551617", b"\xff\xfe", b"1 2", b"+7", b"1_0"]
+
+
+def mutate(good: bytes, rng: np.random.Generator, *, header_bytes: int, header_lines: int) -> bytes:
+    """One random corruption of a valid file, for fuzzing readers.
+
+    Truncation, bytes flipped (half the time within the first ``header_bytes``), a token of one
+    of the first ``header_lines`` lines replaced by garbage, a line deleted or duplicated, or
+    random bytes inserted.
+    """
+    data = bytearray(good)
+    kind = rng.integers(0, 5)
+    if kind == 0:
+        return bytes(data[: rng.integers(0, len(data))])
+    if kind == 1:
+        for _ in range(rng.integers(1, 6)):
+            limit = header_bytes if rng.random() < 0.5 else len(data)
+            data[rng.integers(0, min(limit, len(data)))] = rng.integers(0, 256)
+        return bytes(data)
+    if kind in (2, 3):
+        lines = bytes(data).split(b"\n")
+        k = rng.integers(0, min(len(lines), header_lines))
+        if kind == 2:
+            toks = lines[k].split(b" ")
+            toks[rng.integers(0, len(toks))] = GARBAGE_TOKENS[rng.integers(0, len(GARBAGE_TOKENS))]
+            lines[k] = b" ".join(toks)
+        elif rng.random() < 0.5:
+            del lines[k]
+        else:
+            lines.insert(k, lines[k])
+        return b"\n".join(lines)
+    at = rng.integers(0, len(data))
+    data[at:at] = rng.integers(0, 256, rng.integers(1, 20), dtype=np.uint8).tobytes()
+    return bytes(data)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from helpers import mutate
 from ptmcore.errors import InputError
 from ptmcore.hsh import hsh_basis
 from ptmcore.rtifile import RTIFile, fit_rti_hsh, read_rti_hsh, render_float, write_rti_hsh
@@ -243,38 +244,11 @@ def test_reader_only_raises_input_error_under_fuzzing(tmp_path):
     returns a consistent file or raises InputError naming it, never anything else."""
     rng = np.random.default_rng(99)
     seeds = [_rti(), _rti(4, 3, 4, scale=[0.5, 1, 2, 3], bias=[-1, 0, 1, 2])]
-    garbage = [b"-1", b"0", b"99999999", b"1e999", b"nan", b"x", b"", b"3.5", b"2147483648",
-               b"18446744073709551617", b"\xff\xfe", b"1 2", b"+7", b"+-3", b"16", b"4"]
     path = tmp_path / "f.rti"
     outcomes = {"ok": 0, "error": 0}
     for case in range(1000):
         good = seeds[case % 2]
-        data = bytearray(good)
-        kind = rng.integers(0, 5)
-        if kind == 0:
-            data = data[: rng.integers(0, len(data))]
-        elif kind == 1:
-            for _ in range(rng.integers(1, 6)):
-                limit = 60 if rng.random() < 0.5 else len(data)
-                data[rng.integers(0, min(limit, len(data)))] = rng.integers(0, 256)
-        elif kind == 2:
-            lines = bytes(data).split(b"\n")
-            k = rng.integers(0, min(len(lines), 5))
-            toks = lines[k].split(b" ")
-            toks[rng.integers(0, len(toks))] = garbage[rng.integers(0, len(garbage))]
-            lines[k] = b" ".join(toks)
-            data = bytearray(b"\n".join(lines))
-        elif kind == 3:
-            lines = bytes(data).split(b"\n")
-            k = rng.integers(0, min(len(lines), 5))
-            if rng.random() < 0.5:
-                del lines[k]
-            else:
-                lines.insert(k, lines[k])
-            data = bytearray(b"\n".join(lines))
-        else:
-            at = rng.integers(0, len(data))
-            data[at:at] = rng.integers(0, 256, rng.integers(1, 20), dtype=np.uint8).tobytes()
+        data = mutate(good, rng, header_bytes=60, header_lines=5)
         path.write_bytes(bytes(data))
         try:
             f = read_rti_hsh(path)
