@@ -12,6 +12,7 @@ from ptmcore import __version__
 from ptmcore.errors import InputError
 
 EXIT_BAD_INPUT = 2
+INTEGRATOR_CHOICES = ("dct", "fc")
 
 DESCRIPTION = """\
 Turn reflectance photographs (RTI captures) into surface normals, a height map and a
@@ -117,6 +118,22 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
 
+    integ = sub.add_parser(
+        "integrate",
+        help="height map and meshes from a normal map made elsewhere",
+        description="Integrate a normal map made by another tool (16- or 8-bit PNG/TIFF or JPEG in the "
+        "OpenGL mapping R=x, G=y up, B=z, such as relight's normals.jpg, or a .npy array) into "
+        "height.tif and meshes. Pixels without a valid normal are outside the object unless --mask "
+        "says otherwise.",
+    )
+    integ.add_argument("normals", type=Path, help="normal map (.png, .tif, .jpg or .npy)")
+    integ.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
+    integ.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object")
+    integ.add_argument("--pixel-size", type=_positive_float, metavar="MM", help="millimetres per pixel (heights then in mm)")
+    integ.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="dct", help="normal integration method (default: dct)")
+    integ.add_argument("--step", type=_positive_int, metavar="K", help="mesh vertex every K pixels")
+    integ.add_argument("-q", "--quiet", action="store_true", help="no progress display")
+
     lights = sub.add_parser(
         "lights",
         help="check a light layout (.lp) before or without photographs: rank, coverage, polar plot",
@@ -160,7 +177,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "trimmed (robust, leaves them out), plain (least squares)",
     )
     p.add_argument(
-        "--integrator", choices=("dct", "fc"), default="dct",
+        "--integrator", choices=INTEGRATOR_CHOICES, default="dct",
         help="normal integration: dct = Poisson with free (Neumann) boundary (default); fc = Frankot-Chellappa",
     )
     p.add_argument(
@@ -300,6 +317,21 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_integrate(args: argparse.Namespace) -> int:
+    from reconstruct.pipeline import RunOptions, run_normals
+
+    options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=args.mask)
+    with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
+        result = run_normals(args.normals, args.output, options, progress=progress)
+    report = result.report
+    print(f"Results in {result.output}/ ({report['inputs']['width']}×{report['inputs']['height']} normal map)")
+    print(f"  heights in {report['height_unit']}; mesh: {report['mesh']['vertices']:,} vertices, "
+          f"{report['mesh']['faces']:,} triangles (step {report['mesh']['step']})")
+    for w in report["warnings"]:
+        print(f"  warning: {w}")
+    return 0
+
+
 def _cmd_lights(args: argparse.Namespace) -> int:
     from ptmcore.lp import read_lp
     from reconstruct.lightcheck import check_lights, report_text, write_polar_plot
@@ -342,7 +374,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     try:
-        commands = {"run": _cmd_run, "relight": _cmd_relight, "lights": _cmd_lights, "demo": _cmd_demo}
+        commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate,
+                    "lights": _cmd_lights, "demo": _cmd_demo}
         return commands[args.command](args)
     except InputError as exc:
         print(f"reconstruct: error: {exc}", file=sys.stderr)

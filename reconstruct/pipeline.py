@@ -52,6 +52,7 @@ from . import outputs
 from .accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
 from .integrate import integrate
 from .mesh import grid_mesh, write_obj, write_ply
+from .normalmaps import read_normal_map, shaded
 from .profiling import StageTimer
 from .web import export_openlime
 
@@ -631,6 +632,48 @@ def run_ptm(
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
         outputs.write_json(staging / "report.json", report)
         final = _publish(staging, out, [*web, *names, "report.json"])
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return RunResult(out, final, report)
+
+
+def run_normals(
+    normal_map: str | os.PathLike,
+    output: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    progress: ProgressFn | None = None,
+) -> RunResult:
+    """Height map and meshes from a normal map made elsewhere (``reconstruct integrate``).
+
+    The map is read by :func:`reconstruct.normalmaps.read_normal_map`; pixels without a valid
+    normal are outside the object unless a mask says otherwise. The texture is a grey shaded
+    rendering of the normals. Parameters and output folder as :func:`run_capture`.
+    """
+    opt = options or RunOptions()
+    _check_options(opt)
+    path = Path(normal_map)
+    out = Path(output)
+    stage = _Stages(progress)
+    staging = _prepare_output(out)
+    warnings: list[str] = []
+    try:
+        with stage("decode"):
+            normals = read_normal_map(path)
+        h, w = normals.shape[:2]
+        valid = np.isfinite(normals[..., 0])
+        if opt.mask is not None:
+            mask = read_mask(opt.mask, (h, w))
+            if (mask & ~valid).any():
+                warnings.append(f"{int((mask & ~valid).sum())} pixels inside the mask have no valid normal")
+        else:
+            mask = None if valid.all() else valid
+        height, mesh, names = _surface_and_files(normals, shaded(normals), mask, opt, staging, stage)
+        inputs = {"normal_map": str(path.resolve()), "width": w, "height": h,
+                  "mask": str(opt.mask) if opt.mask else ("valid normals" if mask is not None else None)}
+        report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
+        outputs.write_json(staging / "report.json", report)
+        final = _publish(staging, out, [*names, "report.json"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)

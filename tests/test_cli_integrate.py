@@ -1,0 +1,56 @@
+"""``reconstruct integrate``: normal maps made elsewhere into height maps and meshes."""
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from cli.main import main
+
+from helpers import sphere_normals
+
+
+def _run(argv, capsys):
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def sphere_maps(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("maps")
+    n, mask = sphere_normals(64, 80, 28.0)
+    n16 = np.round((n + 1) * 32767.5).astype(np.uint16)
+    tifffile.imwrite(folder / "n16.tif", n16, photometric="rgb")
+    n8 = np.round((n + 1) * 127.5).astype(np.uint8)
+    n8[~mask] = 0  # a black background, as many tools write it
+    Image.fromarray(n8).save(folder / "n8.png")
+    Image.fromarray(n8).save(folder / "normals.jpg", quality=95)
+    np.save(folder / "n.npy", n)
+    return folder, n, mask
+
+
+@pytest.mark.parametrize("name", ["n16.tif", "n8.png", "normals.jpg", "n.npy"])
+def test_every_kind_of_normal_map_integrates_to_the_sphere(tmp_path, capsys, sphere_maps, name):
+    folder, n, mask = sphere_maps
+    out = tmp_path / "out"
+    code, stdout, err = _run(["integrate", folder / name, "-o", out, "-q"], capsys)
+    assert code == 0, err
+    height = tifffile.imread(out / "height.tif")
+    assert height.shape == (64, 80)
+    # The sphere bulges towards the camera: centre above the inner rim, whatever the encoding.
+    assert height[32, 40] > height[32, 16] + 5
+    if name == "n8.png":
+        assert np.isnan(height[0, 0])  # the black background is outside the object
+    assert (out / "mesh.obj").exists() and (out / "report.json").exists()
+
+
+def test_integrate_bad_inputs(tmp_path, capsys):
+    code, _, err = _run(["integrate", tmp_path / "none.png", "-o", tmp_path / "o"], capsys)
+    assert code == 2 and "not found" in err
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "grey.png")
+    code, _, err = _run(["integrate", tmp_path / "grey.png", "-o", tmp_path / "o"], capsys)
+    assert code == 2 and "three channels" in err
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "black.png")
+    code, _, err = _run(["integrate", tmp_path / "black.png", "-o", tmp_path / "o"], capsys)
+    assert code == 2 and "no valid normal" in err
