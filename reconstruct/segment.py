@@ -161,7 +161,7 @@ def foreground_mask(
     if not 0 < min_fraction <= 1:
         raise ValueError(f"min_fraction must be in (0, 1], got {min_fraction}")
 
-    width = max(2, int(round(border_fraction * min(shape))))
+    width = max(2, round(border_fraction * min(shape)))
     strip = _border_strip(shape, width)
     scores = []
     if method in ("auto", "albedo"):
@@ -190,7 +190,7 @@ def foreground_mask(
     threshold = max(float(filters.threshold_otsu(clipped)), 3.0)
     mask = score > threshold
 
-    r = max(1, int(round(radius)))
+    r = max(1, round(radius))
     disk = morphology.disk(r)
     # Padding by edge replication lets closing and opening treat an object that runs off the
     # frame as continuing beyond it, instead of eroding it along the frame's edge.
