@@ -197,7 +197,21 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loo", action="store_true",
                    help="compare relighting bases (PTM, HSH orders 2 and 3) by leave-one-out error: "
                    "loo_*.tif maps and their RMS in report.json")
-    p.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object; height and mesh stay inside it")
+    p.add_argument("--mask", metavar="FILE|auto",
+                   help="image whose non-zero pixels are the object, or 'auto' to find the object against its "
+                   "background; height and mesh stay inside it")
+    p.add_argument("--decimate", type=_positive_int, metavar="FACES",
+                   help="reduce the meshes to this many triangles (quadric edge collapse; error in report.json)")
+    p.add_argument("--max-error", type=_positive_float, metavar="E",
+                   help="reduce the meshes as far as the geometric error stays under E (height unit)")
+    p.add_argument("--solid", type=_positive_float, metavar="THICKNESS",
+                   help="also write solid.stl: the relief on a base this thick, watertight, for 3D printing")
+    p.add_argument("--glb", action="store_true", help="also write mesh.glb (binary glTF with the texture)")
+    p.add_argument("--flatten", choices=("plane", "poly2", "poly3", "highpass"),
+                   help="remove low-frequency bending of the height map (from errors in the light directions): "
+                   "a plane, a polynomial of order 2 or 3, or long wavelengths")
+    p.add_argument("--flatten-cutoff", type=_positive_float, default=200.0, metavar="PX",
+                   help="with --flatten highpass: the wavelength in pixels that keeps half its height (default 200)")
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
     p.add_argument("--ground-truth", type=Path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
@@ -246,7 +260,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     options = RunOptions(
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
-        step=args.step, linearize=args.linearize, mask=args.mask, threads=args.threads,
+        step=args.step, linearize=args.linearize, threads=args.threads,
+        mask=None if args.mask is None else (args.mask if args.mask == "auto" else Path(args.mask)),
+        flatten=args.flatten, flatten_cutoff=args.flatten_cutoff, decimate=args.decimate,
+        max_error=args.max_error, solid=args.solid, glb=args.glb,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
         loo=args.loo, intensities=args.intensities, fit=args.fit, hsh=args.hsh,
     )

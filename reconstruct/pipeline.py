@@ -50,10 +50,13 @@ from ptmcore.solvers import analyse_lights
 
 from . import outputs
 from .accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
+from .flatten import flatten
 from .integrate import integrate
 from .mesh import grid_mesh, write_obj, write_ply
+from .meshops import decimate, solid, write_glb, write_stl
 from .normalmaps import read_normal_map, shaded
 from .profiling import StageTimer
+from .segment import foreground_mask
 from .web import export_openlime
 
 #: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
@@ -63,6 +66,7 @@ NORMAL_METHODS = ("ps", "ptm", "ptm-debiased")
 FITS = ("irls", "trimmed", "plain")
 PTM_FORMATS = ("lrgb", "rgb")
 SOLVERS = ("pinv", "lstsq", "rohde")
+FLATTENINGS = ("plane", "poly2", "poly3", "highpass")
 INTEGRATORS = ("dct", "fc")
 #: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
 #: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
@@ -102,6 +106,20 @@ class RunOptions:
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
+    flatten : {"plane", "poly2", "poly3", "highpass"} or None
+        Remove low-frequency bending of the height map (from errors in the light directions):
+        a plane, a polynomial of order 2 or 3, or wavelengths above ``flatten_cutoff`` pixels.
+    flatten_cutoff : float
+        For ``flatten="highpass"``: the wavelength in pixels that keeps half its amplitude.
+    decimate, max_error : int or float, optional
+        Reduce the meshes by quadric edge collapse to this many triangles, or to the fewest
+        whose geometric error stays under ``max_error`` (in the height unit); the error
+        reached goes into report.json.
+    solid : float, optional
+        Also write ``solid.stl``: the relief on a base this thick (height unit), closed by
+        walls, watertight, for 3D printing.
+    glb : bool
+        Also write ``mesh.glb`` (binary glTF with the texture) for the web and Blender.
     hsh : bool
         Also write ``coefficients.rti``: hemispherical harmonics of order 3, RTIViewer's HSH
         format, fitted per channel to the photographs as encoded.
@@ -112,8 +130,10 @@ class RunOptions:
     loo : bool
         Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
         photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
-    mask : Path or None
-        Image whose non-zero pixels are the object; height and mesh are restricted to it.
+    mask : Path, "auto" or None
+        Image whose non-zero pixels are the object, or ``"auto"`` to segment the object from
+        its albedo and normals (:func:`reconstruct.segment.foreground_mask`); height and mesh
+        are restricted to it.
     threads : int or None
         Decoding threads (default: all CPUs).
     ground_truth : Path or None
@@ -132,6 +152,12 @@ class RunOptions:
     loo: bool = False
     fit: str = "irls"
     hsh: bool = False
+    flatten: str | None = None
+    decimate: int | None = None
+    max_error: float | None = None
+    solid: float | None = None
+    glb: bool = False
+    flatten_cutoff: float = 200.0
     intensities: str | None = None
     mask: Path | None = None
     threads: int | None = None
@@ -236,6 +262,13 @@ class _Stages:
             advance(total - done[0])
 
 
+def _mask_source(option: Path | str | None, mask: np.ndarray | None) -> str | None:
+    """How report.json describes the mask used."""
+    if str(option) == "auto":
+        return "automatic" if mask is not None else "automatic (failed: whole frame)"
+    return str(option) if option else None
+
+
 def _check_options(opt: RunOptions) -> None:
     if opt.normals not in NORMAL_METHODS:
         raise InputError(f"unknown normal method {opt.normals!r}; choose from {', '.join(NORMAL_METHODS)}")
@@ -245,6 +278,12 @@ def _check_options(opt: RunOptions) -> None:
         raise InputError(f"pixel size must be a positive number of millimetres, got {opt.pixel_size}")
     if opt.step is not None and opt.step < 1:
         raise InputError(f"mesh step must be at least 1, got {opt.step}")
+    if opt.decimate is not None and opt.max_error is not None:
+        raise InputError("give either a triangle count to decimate to or a maximum error, not both")
+    if opt.solid is not None and not (math.isfinite(opt.solid) and opt.solid > 0):
+        raise InputError(f"the solid's base thickness must be positive, got {opt.solid}")
+    if opt.flatten is not None and opt.flatten not in FLATTENINGS:
+        raise InputError(f"unknown flattening {opt.flatten!r}; choose from {', '.join(FLATTENINGS)}")
     if opt.fit not in FITS:
         raise InputError(f"unknown fit {opt.fit!r}; choose from {', '.join(FITS)}")
     if opt.solver not in SOLVERS:
@@ -271,10 +310,16 @@ def _surface_and_files(
     h, w = normals.shape[:2]
     with stage("integrate"):
         height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
+        if opt.flatten is not None:
+            extra = {"cutoff_px": opt.flatten_cutoff} if opt.flatten == "highpass" else {}
+            height = flatten(height, opt.flatten, mask=mask, **extra)
     unit = "mm" if opt.pixel_size else "pixel"
     step = opt.step or auto_step((h, w))
+    decimation = None
     with stage("mesh"):
         mesh = grid_mesh(height, texture=texture, step=step, pixel_size=opt.pixel_size, normals=normals)
+        if opt.decimate is not None or opt.max_error is not None:
+            mesh, decimation = decimate(mesh, target_faces=opt.decimate, max_error=opt.max_error)
     with stage("write"):
         outputs.write_png(staging / "albedo.png", texture)
         jobs: dict[str, Callable[[], None]] = {
@@ -288,10 +333,15 @@ def _surface_and_files(
         }
         if mask is not None:
             jobs["mask.png"] = lambda: outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
+        if opt.glb:
+            jobs["mesh.glb"] = lambda: write_glb(staging / "mesh.glb", mesh, texture)
+        if opt.solid is not None:
+            jobs["solid.stl"] = lambda: write_stl(staging / "solid.stl", solid(mesh, opt.solid))
         with ThreadPoolExecutor(max_workers=opt.threads or os.cpu_count() or 1) as pool:
             for future in [pool.submit(job) for job in jobs.values()]:
                 future.result()
-    facts = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step}
+    facts = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step,
+             "decimation": json_safe(decimation)}
     return height, facts, ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
 
 
@@ -481,7 +531,7 @@ def run_capture(
                 stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
         h, w = stack.shape
         bit_depth = stack.bit_depth
-        if opt.mask is not None:
+        if opt.mask is not None and str(opt.mask) != "auto":
             mask = read_mask(opt.mask, (h, w))
         else:
             mask = ds.mask if dataset else None
@@ -512,7 +562,14 @@ def run_capture(
                 f"{undetermined} pixels ({undetermined / (h * w):.2%}) had too few lit, unsaturated "
                 "photographs to determine a normal; their normal is set to (0, 0, 1)"
             )
-        texture, albedo_scale = outputs.albedo_to_srgb8(stack.chroma * albedo[..., None])
+        albedo_rgb = stack.chroma * albedo[..., None]
+        if str(opt.mask) == "auto":
+            try:
+                mask = foreground_mask(albedo_rgb, normals)
+            except ValueError as exc:
+                warnings.append(f"no automatic mask: {exc}")
+        texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
+        del albedo_rgb
         loo = None
         if opt.loo:
             with stage("loo", 3 * h) as advance:
@@ -564,7 +621,7 @@ def run_capture(
             "width": w,
             "height": h,
             "bit_depth": bit_depth,
-            "mask": str(opt.mask) if opt.mask else None,
+            "mask": _mask_source(opt.mask, mask),
         }
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,

@@ -54,3 +54,37 @@ def test_integrate_bad_inputs(tmp_path, capsys):
     Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(tmp_path / "black.png")
     code, _, err = _run(["integrate", tmp_path / "black.png", "-o", tmp_path / "o"], capsys)
     assert code == 2 and "no valid normal" in err
+
+
+def test_run_with_auto_mask_flattening_decimation_solid_and_glb(tmp_path, capsys):
+    import json
+
+    import trimesh
+
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(90, 120), n_lights=24, seed=6)
+    out = tmp_path / "out"
+    code, _, err = _run(["run", info.folder, "-o", out, "--pixel-size", info.pixel_size, "--mask", "auto",
+                         "--flatten", "plane", "--decimate", "3000", "--solid", "2", "--glb", "-q"], capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["inputs"]["mask"] == "automatic"
+    truth = np.asarray(Image.open(info.ground_truth_dir / "mask.png")) > 0
+    found = np.asarray(Image.open(out / "mask.png")) > 0
+    assert (found & truth).sum() / (found | truth).sum() > 0.95
+    assert np.isnan(tifffile.imread(out / "height.tif")[~found]).all()
+    # Quadric decimation stops within a few triangles of its target.
+    assert abs(report["mesh"]["faces"] - 3000) <= 30 and report["mesh"]["decimation"]["max_error"] > 0
+    solid = trimesh.load(out / "solid.stl")
+    assert solid.is_watertight and solid.volume > 0
+    scene = trimesh.load(out / "mesh.glb")
+    assert len(scene.geometry) == 1
+
+
+def test_run_rejects_conflicting_mesh_options(tmp_path, capsys):
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(40, 50), n_lights=12, seed=6)
+    code, _, err = _run(["run", info.folder, "-o", tmp_path / "o", "--decimate", "100", "--max-error", "0.1"], capsys)
+    assert code == 2 and "not both" in err
