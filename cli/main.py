@@ -12,7 +12,7 @@ from ptmcore import __version__
 from ptmcore.errors import InputError
 
 EXIT_BAD_INPUT = 2
-INTEGRATOR_CHOICES = ("dct", "fc")
+INTEGRATOR_CHOICES = ("auto", "dct", "fc", "masked", "bilateral")
 
 DESCRIPTION = """\
 Turn reflectance photographs (RTI captures) into surface normals, a height map and a
@@ -130,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     integ.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
     integ.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object")
     integ.add_argument("--pixel-size", type=_positive_float, metavar="MM", help="millimetres per pixel (heights then in mm)")
-    integ.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="dct", help="normal integration method (default: dct)")
+    integ.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
+                       help="normal integration method (default: auto = masked when a mask is known, else dct)")
     integ.add_argument("--step", type=_positive_int, metavar="K", help="mesh vertex every K pixels")
     integ.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
@@ -156,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--encoding", choices=("tiff16", "jpeg8"), default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
     demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
     demo.add_argument("--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps", help="normal method (default: ps)")
-    demo.add_argument("--integrator", choices=("dct", "fc"), default="dct", help="integrator (default: dct)")
+    demo.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto", help="integrator (default: auto)")
     return parser
 
 
@@ -177,8 +178,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "trimmed (robust, leaves them out), plain (least squares)",
     )
     p.add_argument(
-        "--integrator", choices=INTEGRATOR_CHOICES, default="dct",
-        help="normal integration: dct = Poisson with free (Neumann) boundary (default); fc = Frankot-Chellappa",
+        "--integrator", choices=INTEGRATOR_CHOICES, default="auto",
+        help="normal integration: masked = least squares on the mask only; bilateral = the same keeping steps "
+        "sharp; dct = least squares on the whole frame, free boundary; fc = Frankot-Chellappa; "
+        "auto (default) = masked when a mask is known, else dct",
     )
     p.add_argument(
         "--step", type=_positive_int, metavar="K",

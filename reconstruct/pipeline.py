@@ -67,7 +67,7 @@ FITS = ("irls", "trimmed", "plain")
 PTM_FORMATS = ("lrgb", "rgb")
 SOLVERS = ("pinv", "lstsq", "rohde")
 FLATTENINGS = ("plane", "poly2", "poly3", "highpass")
-INTEGRATORS = ("dct", "fc")
+INTEGRATORS = ("auto", "dct", "fc", "masked", "bilateral")
 #: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
 #: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
 AUTO_MESH_VERTICES = 4_000_000
@@ -92,8 +92,11 @@ class RunOptions:
     fit : {"irls", "trimmed", "plain"}
         How each pixel's samples are weighted: robustly (Tukey IRLS, or 0/1 trimming, leaving
         out shadowed, clipped and specular samples) or by plain least squares.
-    integrator : {"dct", "fc"}
-        Poisson with Neumann boundary by DCT, or Frankot–Chellappa.
+    integrator : {"auto", "dct", "fc", "masked", "bilateral"}
+        Least squares on the mask only ("masked", conjugate gradients preconditioned by the
+        bounding box's DCT solver), the same with bilateral weights that keep steps sharp
+        ("bilateral"), Poisson with Neumann boundary by DCT on the whole frame ("dct"), or
+        Frankot–Chellappa. "auto": masked when a mask is known, else dct.
     step : int or None
         Mesh subsampling; None picks the smallest step that keeps the mesh under
         :data:`AUTO_MESH_VERTICES` vertices.
@@ -144,7 +147,7 @@ class RunOptions:
     lp: Path | None = None
     pixel_size: float | None = None
     normals: str = "ps"
-    integrator: str = "dct"
+    integrator: str = "auto"
     step: int | None = None
     linearize: bool = True
     ptm_format: str = "lrgb"
@@ -262,6 +265,15 @@ class _Stages:
             advance(total - done[0])
 
 
+def _integrator(choice: str, mask: np.ndarray | None) -> tuple[str, str]:
+    """The integrator to use and why (``auto`` decides by whether the object's outline is known)."""
+    if choice != "auto":
+        return choice, "chosen"
+    if mask is not None:
+        return "masked", "a mask is known: least squares on the object only, so its outline does not bend it"
+    return "dct", "no mask: least squares on the whole frame with a free boundary"
+
+
 def _mask_source(option: Path | str | None, mask: np.ndarray | None) -> str | None:
     """How report.json describes the mask used."""
     if str(option) == "auto":
@@ -308,8 +320,9 @@ def _surface_and_files(
 ) -> tuple[np.ndarray, dict, list[str]]:
     """Integrate, mesh and write the files every run has; return height, mesh facts, file names."""
     h, w = normals.shape[:2]
+    method, why = _integrator(opt.integrator, mask)
     with stage("integrate"):
-        height = integrate(normals, opt.integrator, mask=mask, pixel_size=opt.pixel_size or 1.0)
+        height = integrate(normals, method, mask=mask, pixel_size=opt.pixel_size or 1.0)
         if opt.flatten is not None:
             extra = {"cutoff_px": opt.flatten_cutoff} if opt.flatten == "highpass" else {}
             height = flatten(height, opt.flatten, mask=mask, **extra)
@@ -341,6 +354,7 @@ def _surface_and_files(
             for future in [pool.submit(job) for job in jobs.values()]:
                 future.result()
     facts = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step,
+             "integrator": method, "integrator_reason": why,
              "decimation": json_safe(decimation)}
     return height, facts, ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
 

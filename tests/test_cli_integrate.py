@@ -88,3 +88,16 @@ def test_run_rejects_conflicting_mesh_options(tmp_path, capsys):
     info = write_capture(tmp_path / "cap", "tablet", shape=(40, 50), n_lights=12, seed=6)
     code, _, err = _run(["run", info.folder, "-o", tmp_path / "o", "--decimate", "100", "--max-error", "0.1"], capsys)
     assert code == 2 and "not both" in err
+
+
+def test_auto_integrator_follows_the_mask_and_bilateral_runs(tmp_path, capsys, sphere_maps):
+    import json
+
+    folder, _, _ = sphere_maps
+    for name, extra, used in [("plain", [], "dct"), ("masked", ["--mask", folder / "n8.png"], "masked"),
+                              ("bilateral", ["--integrator", "bilateral"], "bilateral")]:
+        out = tmp_path / name
+        code, _, err = _run(["integrate", folder / "n16.tif", "-o", out, "-q", *extra], capsys)
+        assert code == 0, err
+        mesh = json.loads((out / "report.json").read_text())["mesh"]
+        assert mesh["integrator"] == used and mesh["integrator_reason"]
