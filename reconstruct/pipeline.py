@@ -16,7 +16,11 @@ Output folder layout (stable; later versions add files, never rename them)::
     height.tif         float32 height map, NaN outside the mask; unit in report.json
     mesh.ply           binary PLY: vertex colours, texture coordinates, normals
     mesh.obj           OBJ with mesh.mtl and mesh_texture.png
-    mask.png           the mask used (only when one was given)
+    mask.png           the mask used (when one was given or found)
+    coefficients.rti   with --hsh: HSH of order 3 (RTIViewer's .rti)
+    solid.stl          with --solid: watertight relief on a base, for 3D printing
+    mesh.glb           with --glb: binary glTF with the texture
+    loo_*.tif          with --loo: leave-one-out relighting error of each basis
     report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
 """
 
