@@ -128,7 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     integ.add_argument("normals", type=Path, help="normal map (.png, .tif, .jpg or .npy)")
     integ.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
-    integ.add_argument("--mask", type=Path, help="image whose non-zero pixels are the object")
+    integ.add_argument("--mask", metavar="FILE|auto", help="image whose non-zero pixels are the object, or 'auto'")
     integ.add_argument("--pixel-size", type=_positive_float, metavar="MM", help="millimetres per pixel (heights then in mm)")
     integ.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
                        help="normal integration method (default: auto = masked when a mask is known, else dct)")
@@ -340,7 +340,8 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 def _cmd_integrate(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import RunOptions, run_normals
 
-    options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=args.mask)
+    mask = None if args.mask is None else (args.mask if args.mask == "auto" else Path(args.mask))
+    options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=mask)
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run_normals(args.normals, args.output, options, progress=progress)
     report = result.report

@@ -278,6 +278,15 @@ def _integrator(choice: str, mask: np.ndarray | None) -> tuple[str, str]:
     return "dct", "no mask: least squares on the whole frame with a free boundary"
 
 
+def _auto_mask(albedo: np.ndarray, normals: np.ndarray, warnings: list[str]) -> np.ndarray | None:
+    """The object found against its background, or None (whole frame) with a warning."""
+    try:
+        return foreground_mask(albedo, normals)
+    except ValueError as exc:
+        warnings.append(f"no automatic mask: {exc}")
+        return None
+
+
 def _mask_source(option: Path | str | None, mask: np.ndarray | None) -> str | None:
     """How report.json describes the mask used."""
     if str(option) == "auto":
@@ -582,10 +591,7 @@ def run_capture(
             )
         albedo_rgb = stack.chroma * albedo[..., None]
         if str(opt.mask) == "auto":
-            try:
-                mask = foreground_mask(albedo_rgb, normals)
-            except ValueError as exc:
-                warnings.append(f"no automatic mask: {exc}")
+            mask = _auto_mask(albedo_rgb, normals, warnings)
         texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
         del albedo_rgb
         loo = None
@@ -688,7 +694,7 @@ def run_ptm(
         with stage("decode"):
             ptm = read_ptm(ptm_path)
         h, w = ptm.coefficients.shape[:2]
-        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None else None
+        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None and str(opt.mask) != "auto" else None
         with stage("normals", h):
             coef = ptm.coefficients
             # RGB format: one polynomial per channel, and luminance is linear in them.
@@ -700,10 +706,12 @@ def run_ptm(
             else:
                 top = _evaluate(coef, lu, lv)
             texture = np.clip(np.round(top), 0, 255).astype(np.uint8)
+        if str(opt.mask) == "auto":
+            mask = _auto_mask(texture.astype(np.float32) / 255, normals, warnings)
         web = _web_export(staging, ptm.coefficients, ptm.rgb, opt.pixel_size) if ptm.rgb is not None else []
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staging, stage)
         inputs = {"ptm": str(ptm_path.resolve()), "format": ptm.format, "width": w, "height": h,
-                  "mask": str(opt.mask) if opt.mask else None}
+                  "mask": _mask_source(opt.mask, mask)}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
         outputs.write_json(staging / "report.json", report)
         final = _publish(staging, out, [*web, *names, "report.json"])
@@ -737,7 +745,9 @@ def run_normals(
             normals = read_normal_map(path)
         h, w = normals.shape[:2]
         valid = np.isfinite(normals[..., 0])
-        if opt.mask is not None:
+        if str(opt.mask) == "auto":
+            mask = _auto_mask(shaded(normals).astype(np.float32) / 255, np.nan_to_num(normals), warnings)
+        elif opt.mask is not None:
             mask = read_mask(opt.mask, (h, w))
             if (mask & ~valid).any():
                 warnings.append(f"{int((mask & ~valid).sum())} pixels inside the mask have no valid normal")
@@ -745,7 +755,7 @@ def run_normals(
             mask = None if valid.all() else valid
         height, mesh, names = _surface_and_files(normals, shaded(normals), mask, opt, staging, stage)
         inputs = {"normal_map": str(path.resolve()), "width": w, "height": h,
-                  "mask": str(opt.mask) if opt.mask else ("valid normals" if mask is not None else None)}
+                  "mask": _mask_source(opt.mask, mask) if opt.mask else ("valid normals" if mask is not None else None)}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
         outputs.write_json(staging / "report.json", report)
         final = _publish(staging, out, [*names, "report.json"])
