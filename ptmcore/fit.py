@@ -52,13 +52,15 @@ def fit_matrix(directions: np.ndarray, method: str = "pinv", **options) -> np.nd
 
 
 @dataclass
-class PTM:
-    """An LRGB Polynomial Texture Map.
+class LinearRelighting:
+    """Per-pixel luminance as a linear combination of basis functions of the light, plus colour.
+
+    Subclasses name the basis (:class:`PTM`, :class:`ptmcore.hsh.HSH`) by :meth:`basis`.
 
     Attributes
     ----------
-    coefficients : ndarray, shape (H, W, 6), float32
-        a0..a5 per pixel, in the units of the luminance that was fitted (linear, 0..1).
+    coefficients : ndarray, shape (H, W, K), float32
+        Per pixel, in the units of the luminance that was fitted (linear, 0..1).
     chroma : ndarray, shape (H, W, 3), float32
         Per-pixel colour of unit luminance: the RGB under a light is ``chroma · L``.
     """
@@ -68,16 +70,28 @@ class PTM:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """Image height and width."""
         return self.coefficients.shape[:2]
+
+    def basis(self, light: np.ndarray) -> np.ndarray:
+        """The K basis functions at one light direction."""
+        raise NotImplementedError
 
     def luminance(self, light: np.ndarray) -> np.ndarray:
         """Luminance ``(H, W)`` under one light direction (x, y, z) or (lu, lv)."""
-        row = light_matrix(np.asarray(light, dtype=np.float64)[None, :2]).astype(np.float32)[0]
-        return self.coefficients @ row
+        return self.coefficients @ self.basis(np.asarray(light, dtype=np.float64)).astype(np.float32)
 
     def relight(self, light: np.ndarray) -> np.ndarray:
         """Linear RGB image ``(H, W, 3)`` under one light direction."""
         return self.chroma * self.luminance(light)[..., None]
+
+
+@dataclass
+class PTM(LinearRelighting):
+    """An LRGB Polynomial Texture Map: coefficients a0..a5, shape (H, W, 6)."""
+
+    def basis(self, light: np.ndarray) -> np.ndarray:
+        return light_matrix(light[None, :2])[0]
 
 
 def fit_ptm(

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .fit import apply_fit_matrix
+from .fit import LinearRelighting, apply_fit_matrix
 from .images import ImageStack
 from .lp import as_directions
 
@@ -150,38 +150,17 @@ def hsh_fit_matrix(directions: np.ndarray, order: int = 3) -> np.ndarray:
 
 
 @dataclass
-class HSH:
-    """A luminance HSH relighting model with per-pixel colour, the analogue of an LRGB PTM.
-
-    Attributes
-    ----------
-    coefficients : ndarray, shape (H, W, order²), float32
-        c0 … c(order²−1) per pixel, in the units of the luminance that was fitted (linear, 0..1).
-    chroma : ndarray, shape (H, W, 3), float32
-        Per-pixel colour of unit luminance: the RGB under a light is ``chroma · L``.
-    """
-
-    coefficients: np.ndarray
-    chroma: np.ndarray
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """Image height and width."""
-        return self.coefficients.shape[:2]
+class HSH(LinearRelighting):
+    """A luminance HSH relighting model with per-pixel colour, the analogue of an LRGB PTM:
+    coefficients c0 … c(order²−1), shape (H, W, order²)."""
 
     @property
     def order(self) -> int:
         """The HSH order, √(number of terms)."""
         return int(round(np.sqrt(self.coefficients.shape[-1])))
 
-    def luminance(self, light: np.ndarray) -> np.ndarray:
-        """Luminance ``(H, W)`` under one light direction (x, y, z) or (lu, lv)."""
-        row = hsh_basis(np.asarray(light, dtype=np.float64).reshape(1, -1), self.order)
-        return self.coefficients @ row[0].astype(np.float32)
-
-    def relight(self, light: np.ndarray) -> np.ndarray:
-        """Linear RGB image ``(H, W, 3)`` under one light direction."""
-        return self.chroma * self.luminance(light)[..., None]
+    def basis(self, light: np.ndarray) -> np.ndarray:
+        return hsh_basis(light.reshape(1, -1), self.order)[0]
 
 
 def fit_hsh(
