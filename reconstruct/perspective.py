@@ -28,9 +28,9 @@ from reconstruct.integrate import masked_poisson, poisson_dct
 
 __all__ = [
     "Intrinsics",
+    "integrate_perspective",
     "parse_intrinsics",
     "perspective_gradients",
-    "integrate_perspective",
 ]
 
 
@@ -72,7 +72,7 @@ class Intrinsics:
         sensor_width_mm: float,
         image_width_px: int,
         image_height_px: int,
-    ) -> "Intrinsics":
+    ) -> Intrinsics:
         """Intrinsics from the lens focal length and the sensor width.
 
         Assumes square pixels (pitch = sensor width / image width) and the principal point
@@ -163,8 +163,9 @@ def perspective_gradients(
         ∂ log d/∂u = −nx / (fx·s),    ∂ log d/∂v = +ny / (fy·s),
 
     i.e. ∂ log d/∂u = nx / (fx·nz + (fx/fy)·v·ny − u·nx), the survey's formula (Quéau,
-    Durou et al. 2018/2020) written for y up and z towards the camera. As f → ∞ this tends
-    to d·∂(−z)/∂x = d·nx/nz per pixel of footprint d/fx, the orthographic gradient.
+    Durou et al. 2018/2020) written for y up and z towards the camera. As f → ∞,
+    ∂d/∂u → (d/fx)·nx/nz: the orthographic slope ∂(−z)/∂x = nx/nz times the footprint
+    d/fx of a pixel, as it should.
 
     Parameters
     ----------
@@ -269,9 +270,17 @@ def integrate_perspective(
     ------
     ValueError
         For an unknown `method`, a non-positive `distance` or mismatched inputs.
+
+    Notes
+    -----
+    The scale is fixed once for the whole object. With ``method="masked"`` each
+    4-connected component of the mask gets its own free constant in log-depth (the
+    solver's zero-mean rule), so separate pieces have arbitrary relative scales.
     """
     if method not in ("masked", "dct"):
-        raise ValueError(f"unknown perspective integration method {method!r}; use 'masked' or 'dct'")
+        raise ValueError(
+            f"unknown perspective integration method {method!r}; use 'masked' or 'dct'"
+        )
     if distance is not None and not (math.isfinite(distance) and distance > 0):
         raise ValueError(f"distance must be a positive number of mm, not {distance}")
     normals = np.asarray(normals)

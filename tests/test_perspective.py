@@ -4,7 +4,7 @@ Measured at the time of writing (160×120 image, fx = fy = 160, objects at 300 m
 error as a fraction of the true depth range over the mask:
 
 * sphere R = 90 mm, view angle < 72.5°: perspective ``masked`` 0.033 %, ``dct`` 0.18 %;
-  orthographic (pixel = 300/160 mm) 5.6 % after removing the mean offset, 2.4 % even after
+  orthographic (pixel = footprint at the median depth) 5.6 % after removing the mean offset, 2.4 % even after
   the best affine fit of its heights;
 * tilted plane: perspective 2e-5 % (both solvers); orthographic 2.3 %.
 """
@@ -66,9 +66,12 @@ def _rel_rms(est: np.ndarray, true: np.ndarray, mask: np.ndarray) -> float:
 
 def _ortho_errors(normals, depth, mask, method):
     """Orthographic reconstruction errors: after the best offset, and after the best affine
-    map of its heights (generous: it also fixes the unknown pixel size)."""
-    h = integrate(normals, method, mask=mask, pixel_size=D / CAM.fx)
-    est = D - h
+    map of its heights (generous: it also fixes the unknown pixel size). The pixel size is
+    the footprint of a pixel at the median depth, what a user of the orthographic model
+    would measure with a scale bar there."""
+    ref = float(np.median(depth[mask]))
+    h = integrate(normals, method, mask=mask, pixel_size=ref / CAM.fx)
+    est = ref - h
     est -= np.mean(est[mask] - depth[mask])
     a = np.stack([h[mask], np.ones(mask.sum())], axis=1)
     coef, *_ = np.linalg.lstsq(a, depth[mask], rcond=None)
