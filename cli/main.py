@@ -133,6 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     integ.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto",
                        help="normal integration method (default: auto = masked when a mask is known, else dct)")
     integ.add_argument("--step", type=_positive_int, metavar="K", help="mesh vertex every K pixels")
+    _add_camera_options(integ)
     integ.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
     lights = sub.add_parser(
@@ -159,6 +160,13 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps", help="normal method (default: ps)")
     demo.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto", help="integrator (default: auto)")
     return parser
+
+
+def _add_camera_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
+                   help="perspective camera in pixels, for short lenses (default: orthographic)")
+    p.add_argument("--distance", type=_positive_float, metavar="MM",
+                   help="with --intrinsics: camera-to-object distance, so heights come out in mm")
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
@@ -203,6 +211,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mask", metavar="FILE|auto",
                    help="image whose non-zero pixels are the object, or 'auto' to find the object against its "
                    "background; height and mesh stay inside it")
+    _add_camera_options(p)
     p.add_argument("--decimate", type=_positive_int, metavar="FACES",
                    help="reduce the meshes to this many triangles (quadric edge collapse; error in report.json)")
     p.add_argument("--max-error", type=_positive_float, metavar="E",
@@ -267,6 +276,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         mask=None if args.mask is None else (args.mask if args.mask == "auto" else Path(args.mask)),
         flatten=args.flatten, flatten_cutoff=args.flatten_cutoff, decimate=args.decimate,
         max_error=args.max_error, solid=args.solid, glb=args.glb,
+        intrinsics=args.intrinsics, distance=args.distance,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
         loo=args.loo, intensities=args.intensities, fit=args.fit, hsh=args.hsh,
     )
@@ -341,7 +351,8 @@ def _cmd_integrate(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import RunOptions, run_normals
 
     mask = None if args.mask is None else (args.mask if args.mask == "auto" else Path(args.mask))
-    options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=mask)
+    options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=mask,
+                         intrinsics=args.intrinsics, distance=args.distance)
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run_normals(args.normals, args.output, options, progress=progress)
     report = result.report

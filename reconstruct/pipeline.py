@@ -59,6 +59,7 @@ from .integrate import integrate
 from .mesh import grid_mesh, write_obj, write_ply
 from .meshops import decimate, solid, write_glb, write_stl
 from .normalmaps import read_normal_map, shaded
+from .perspective import integrate_perspective, parse_intrinsics
 from .profiling import StageTimer
 from .segment import foreground_mask
 from .web import export_openlime
@@ -127,6 +128,12 @@ class RunOptions:
         walls, watertight, for 3D printing.
     glb : bool
         Also write ``mesh.glb`` (binary glTF with the texture) for the web and Blender.
+    intrinsics : str, optional
+        A perspective (pinhole) camera, ``"fx,fy,cx,cy"`` in pixels, for short lenses; the
+        default is orthographic. Heights are then in millimetres when ``distance`` (the camera's
+        distance to the object, mm) is given, else relative to the object's median depth.
+    distance : float, optional
+        See ``intrinsics``.
     hsh : bool
         Also write ``coefficients.rti``: hemispherical harmonics of order 3, RTIViewer's HSH
         format, fitted per channel to the photographs as encoded.
@@ -164,6 +171,8 @@ class RunOptions:
     max_error: float | None = None
     solid: float | None = None
     glb: bool = False
+    intrinsics: str | None = None
+    distance: float | None = None
     flatten_cutoff: float = 200.0
     intensities: str | None = None
     mask: Path | None = None
@@ -307,6 +316,13 @@ def _check_options(opt: RunOptions) -> None:
         raise InputError("give either a triangle count to decimate to or a maximum error, not both")
     if opt.solid is not None and not (math.isfinite(opt.solid) and opt.solid > 0):
         raise InputError(f"the solid's base thickness must be positive, got {opt.solid}")
+    if opt.intrinsics is not None:
+        try:
+            parse_intrinsics(opt.intrinsics)
+        except ValueError as exc:
+            raise InputError(f"--intrinsics: {exc}") from None
+    if opt.distance is not None and not (math.isfinite(opt.distance) and opt.distance > 0):
+        raise InputError(f"the camera distance must be a positive number of millimetres, got {opt.distance}")
     if opt.flatten is not None and opt.flatten not in FLATTENINGS:
         raise InputError(f"unknown flattening {opt.flatten!r}; choose from {', '.join(FLATTENINGS)}")
     if opt.fit not in FITS:
@@ -335,11 +351,18 @@ def _surface_and_files(
     h, w = normals.shape[:2]
     method, why = _integrator(opt.integrator, mask)
     with stage("integrate"):
-        height = integrate(normals, method, mask=mask, pixel_size=opt.pixel_size or 1.0)
+        if opt.intrinsics is not None:
+            if method not in ("masked", "dct"):
+                raise InputError(f"a perspective camera integrates with masked or dct, not {method}")
+            camera = parse_intrinsics(opt.intrinsics)
+            height = integrate_perspective(normals, camera, mask=mask, method=method, distance=opt.distance)
+            unit = "mm" if opt.distance else "relative depth"
+        else:
+            height = integrate(normals, method, mask=mask, pixel_size=opt.pixel_size or 1.0)
+            unit = "mm" if opt.pixel_size else "pixel"
         if opt.flatten is not None:
             extra = {"cutoff_px": opt.flatten_cutoff} if opt.flatten == "highpass" else {}
             height = flatten(height, opt.flatten, mask=mask, **extra)
-    unit = "mm" if opt.pixel_size else "pixel"
     step = opt.step or auto_step((h, w))
     decimation = None
     with stage("mesh"):

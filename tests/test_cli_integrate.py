@@ -101,3 +101,20 @@ def test_auto_integrator_follows_the_mask_and_bilateral_runs(tmp_path, capsys, s
         assert code == 0, err
         mesh = json.loads((out / "report.json").read_text())["mesh"]
         assert mesh["integrator"] == used and mesh["integrator_reason"]
+
+
+def test_perspective_camera_option(tmp_path, capsys, sphere_maps):
+    import json
+
+    folder, _, _ = sphere_maps
+    out = tmp_path / "persp"
+    code, _, err = _run(["integrate", folder / "n16.tif", "-o", out, "--intrinsics", "80,80,39.5,31.5",
+                         "--distance", "250", "-q"], capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    assert report["height_unit"] == "mm" and report["parameters"]["intrinsics"] == "80,80,39.5,31.5"
+    code, _, err = _run(["integrate", folder / "n16.tif", "-o", tmp_path / "x", "--intrinsics", "80,80,1"], capsys)
+    assert code == 2 and "--intrinsics" in err
+    code, _, err = _run(["integrate", folder / "n16.tif", "-o", tmp_path / "x", "--intrinsics", "80,80,1,1",
+                         "--integrator", "fc"], capsys)
+    assert code == 2 and "perspective" in err
