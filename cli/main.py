@@ -118,6 +118,20 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
 
+    cmp_ = sub.add_parser(
+        "compare",
+        help="align a laser scan to a reconstruction and measure how far apart they are",
+        description="Align a scan (mesh: PLY, OBJ, STL, OFF, GLB; or point cloud: PLY, PCD, XYZ/TXT/CSV, PTS) "
+        "to a reconstruction (a mesh, or an output folder of `reconstruct run` made with --pixel-size) "
+        "and measure signed point-to-surface distances, as CloudCompare's cloud-to-mesh distance does. "
+        "Writes comparison.json, distances.ply, histogram.png and overlay.png.",
+        epilog="exit status: 0, or 1 when --tolerance is given and too few points are within it; 2 for bad input",
+    )
+    cmp_.add_argument("reconstruction", type=Path, help="mesh or output folder of reconstruct run")
+    cmp_.add_argument("scan", type=Path, help="the scan: a mesh or a point cloud")
+    cmp_.add_argument("-o", "--output", type=Path, required=True, help="folder for the comparison files")
+    _add_compare_options(cmp_)
+
     integ = sub.add_parser(
         "integrate",
         help="height map and meshes from a normal map made elsewhere",
@@ -160,6 +174,50 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps", help="normal method (default: ps)")
     demo.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto", help="integrator (default: auto)")
     return parser
+
+
+def _add_compare_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scan-units", choices=("mm", "cm", "m", "in"), default="mm",
+                   help="unit of the scan's coordinates (default mm)")
+    p.add_argument("--scale", action="store_true", help="also estimate a global scale (photometric heights may carry one)")
+    p.add_argument("--initial", type=Path, metavar="FILE", help="4×4 matrix (text) taking the scan near the reconstruction")
+    p.add_argument("--no-align", action="store_true", help="the two are already aligned")
+    p.add_argument("--tolerance", type=_positive_float, metavar="MM",
+                   help="report the share of points within this distance; exit 1 if below --min-fraction")
+    p.add_argument("--min-fraction", type=float, default=0.95, help="share within tolerance needed to pass (default 0.95)")
+    p.add_argument("--reverse", action="store_true", help="also measure the reconstruction's distances to the scan")
+    p.add_argument("--max-distance", type=_positive_float, metavar="MM",
+                   help="points farther than this are outside the overlap (default: from the alignment residual)")
+
+
+def _compare_summary(result) -> None:
+    stats = result.report["statistics_mm"]
+    al = result.report["alignment"]
+    print(f"Comparison in {result.output}/: {stats['count']:,} scan points in the overlap "
+          f"({stats['overlap_fraction']:.0%}), alignment fitness {al['fitness']:.2f}, "
+          f"residual {al['inlier_rmse_mm']:.4f} mm" + (f", scale {al['scale']:.4f}" if abs(al["scale"] - 1) > 1e-9 else ""))
+    print(f"  distances (mm): mean {stats['mean']:+.4f}, std {stats['std']:.4f}, RMS {stats['rms']:.4f}, "
+          f"median |d| {stats['median_abs']:.4f}, 95% |d| {stats['p95_abs']:.4f}, max |d| {stats['max_abs']:.4f}")
+    tol = result.report.get("tolerance")
+    if tol:
+        verdict = "PASS" if tol["passed"] else "FAIL"
+        print(f"  {tol['fraction_within']:.1%} within ±{tol['tolerance_mm']} mm "
+              f"(needed {tol['min_fraction']:.0%}): {verdict}")
+    for w in result.report["warnings"]:
+        print(f"  warning: {w}")
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from reconstruct.pipeline import CompareOptions, run_compare
+
+    options = CompareOptions(
+        scan_units=args.scan_units, scale=args.scale, initial=args.initial, no_align=args.no_align,
+        tolerance=args.tolerance, min_fraction=args.min_fraction, reverse=args.reverse,
+        max_distance=args.max_distance,
+    )
+    result = run_compare(args.reconstruction, args.scan, args.output, options)
+    _compare_summary(result)
+    return 1 if result.passed is False else 0
 
 
 def _add_camera_options(p: argparse.ArgumentParser) -> None:
@@ -212,6 +270,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="image whose non-zero pixels are the object, or 'auto' to find the object against its "
                    "background; height and mesh stay inside it")
     _add_camera_options(p)
+    p.add_argument("--scan", type=Path, metavar="FILE",
+                   help="compare with a laser scan as the last stage (needs --pixel-size); see `reconstruct compare`")
+    p.add_argument("--scan-units", choices=("mm", "cm", "m", "in"), default="mm", help="unit of the scan (default mm)")
     p.add_argument("--decimate", type=_positive_int, metavar="FACES",
                    help="reduce the meshes to this many triangles (quadric edge collapse; error in report.json)")
     p.add_argument("--max-error", type=_positive_float, metavar="E",
@@ -280,9 +341,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
         loo=args.loo, intensities=args.intensities, fit=args.fit, hsh=args.hsh,
     )
+    if args.scan is not None and args.pixel_size is None:
+        raise InputError("--scan needs --pixel-size: a scan is compared in millimetres")
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run(args.capture, args.output, options, progress=progress)
     _print_summary(result.report, result.output)
+    if args.scan is not None:
+        from reconstruct.pipeline import CompareOptions, run_compare
+
+        _compare_summary(run_compare(args.output, args.scan, args.output, CompareOptions(scan_units=args.scan_units)))
     return 0
 
 
@@ -406,7 +473,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     try:
-        commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate,
+        commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                     "lights": _cmd_lights, "demo": _cmd_demo}
         return commands[args.command](args)
     except InputError as exc:

@@ -488,7 +488,9 @@ def json_safe(value):
     if isinstance(value, np.ndarray):
         return json_safe(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None  # JSON has no NaN or infinity
     return value
 
 
@@ -785,3 +787,160 @@ def run_normals(
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)
+
+
+@dataclass
+class CompareOptions:
+    """Parameters of :func:`run_compare` (``reconstruct compare``).
+
+    Attributes
+    ----------
+    scan_units : {"mm", "cm", "m", "in"}
+        Unit of the scan's coordinates.
+    scale : bool
+        Also estimate a global scale (photometric heights can carry a scale error).
+    initial : Path or None
+        A 4×4 matrix (text) taking the scan near the reconstruction, to start from.
+    no_align : bool
+        The two are already aligned.
+    tolerance : float or None
+        Acceptance tolerance in mm: the share of scan points within it is reported, and
+        :attr:`CompareResult.passed` says whether it reaches ``min_fraction``.
+    min_fraction : float
+        Share of points within tolerance needed to pass.
+    reverse : bool
+        Also measure the reconstruction's distances to the scan.
+    max_distance : float or None
+        Points farther than this (mm) from the reconstruction are outside the overlap
+        (default: from the alignment's residual).
+    """
+
+    scan_units: str = "mm"
+    scale: bool = False
+    initial: Path | None = None
+    no_align: bool = False
+    tolerance: float | None = None
+    min_fraction: float = 0.95
+    reverse: bool = False
+    max_distance: float | None = None
+
+
+@dataclass
+class CompareResult:
+    """What :func:`run_compare` produced."""
+
+    output: Path
+    files: dict[str, Path]
+    report: dict
+    passed: bool | None = None
+
+
+def _read_initial(path: Path) -> np.ndarray:
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the initial transform ({exc})", path) from None
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise InputError(f"the initial transform must be a 4×4 matrix of numbers, got shape {m.shape}", path)
+    return m
+
+
+def run_compare(
+    reconstruction: str | os.PathLike,
+    scan: str | os.PathLike,
+    output: str | os.PathLike,
+    options: CompareOptions | None = None,
+) -> CompareResult:
+    """Align a scan to a reconstruction, measure their distances and write the comparison.
+
+    ``reconstruction`` is a mesh or an output folder of ``reconstruct run`` (its mesh.ply,
+    which must be in millimetres). Writes ``comparison.json``, ``distances.ply`` (the
+    reconstruction coloured by its distance to the scan, or the scan points when the
+    reconstruction is a point cloud), ``histogram.png`` and ``overlay.png`` (an off-screen
+    render; skipped with a warning where the machine cannot render).
+    """
+    from .compare import align, distances, load_geometry, within_tolerance
+    from .compare_report import default_limit, write_distance_ply, write_histogram, write_overlay
+
+    opt = options or CompareOptions()
+    if opt.tolerance is not None and not (math.isfinite(opt.tolerance) and opt.tolerance > 0):
+        raise InputError(f"the tolerance must be a positive number of millimetres, got {opt.tolerance}")
+    if not 0 < opt.min_fraction <= 1:
+        raise InputError(f"the fraction needed within tolerance must be in (0, 1], got {opt.min_fraction}")
+    rec_path = Path(reconstruction)
+    warnings: list[str] = []
+    if rec_path.is_dir():
+        report_file = rec_path / "report.json"
+        if report_file.exists():
+            import json
+
+            unit = json.loads(report_file.read_text()).get("height_unit")
+            if unit != "mm":
+                raise InputError(f"this reconstruction's heights are in {unit}, not mm: run it with --pixel-size", rec_path)
+        rec_path = rec_path / "mesh.ply"
+    rec = load_geometry(rec_path)
+    scan_geometry = load_geometry(scan, units=opt.scan_units)
+    initial = _read_initial(opt.initial) if opt.initial is not None else None
+    out = Path(output)
+    staging = _prepare_output(out)
+    timer = StageTimer()
+    try:
+        with timer.stage("align"):
+            alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align)
+        with timer.stage("distances"):
+            result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
+                               max_distance=opt.max_distance)
+        d = result.signed[result.mask]
+        limit = default_limit(d)
+        names = ["comparison.json", "distances.ply", "histogram.png"]
+        with timer.stage("write"):
+            if rec.faces is not None and result.reverse is not None:
+                # The reconstruction's distance to the scan, with the scan's sign convention
+                # (positive: the scan lies on the camera side).
+                on_rec = np.where(result.reverse_mask, -result.reverse, np.nan)
+                write_distance_ply(staging / "distances.ply", rec.points, rec.faces, on_rec, limit)
+            else:
+                on_rec = None
+                write_distance_ply(staging / "distances.ply", result.aligned_points, None,
+                                   np.where(result.mask, result.signed, np.nan), limit)
+            fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
+            write_histogram(staging / "histogram.png", d, result.stats, tolerance=opt.tolerance)
+            try:
+                if rec.faces is not None:
+                    shown = on_rec if on_rec is not None else np.where(result.mask, result.signed, np.nan)
+                    write_overlay(staging / "overlay.png", rec.points, rec.faces, result.aligned_points, shown, limit)
+                    names.append("overlay.png")
+                else:
+                    warnings.append("no overlay.png: the reconstruction is a point cloud")
+            except RuntimeError as exc:
+                warnings.append(f"no overlay.png: {exc}")
+        passed = None if fraction is None else bool(fraction >= opt.min_fraction)
+        report = json_safe({
+            "reconstruction": str(rec_path.resolve()),
+            "scan": str(Path(scan).resolve()),
+            "units": {"distances": "mm", "scan_input": opt.scan_units},
+            "parameters": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opt).items()},
+            "alignment": {
+                "transform_scan_to_reconstruction": alignment.transform,
+                "scale": alignment.scale,
+                "fitness": alignment.fitness,
+                "inlier_rmse_mm": alignment.inlier_rmse,
+                "method": alignment.method,
+            },
+            "statistics_mm": result.stats,
+            "reverse_statistics_mm": result.reverse_stats,
+            "tolerance": None if fraction is None else {
+                "tolerance_mm": opt.tolerance, "fraction_within": fraction,
+                "min_fraction": opt.min_fraction, "passed": passed,
+            },
+            "colour_range_mm": [-limit, limit],
+            "sign_convention": "positive: the scan lies on the camera side of the reconstruction",
+            "stages": timer.stages,
+            "versions": _versions(),
+            "warnings": warnings,
+        })
+        outputs.write_json(staging / "comparison.json", report)
+        final = _publish(staging, out, names)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return CompareResult(out, final, report, passed)
