@@ -1,0 +1,589 @@
+"""Light directions from the highlights on black glossy spheres ("highlight RTI").
+
+A hand-held flash lights the object from a different direction in each photograph; one or
+more black glossy spheres beside the object show a small mirror highlight where the sphere
+normal bisects the light and the viewing direction. With an orthographic camera (a distant
+lens, view v = (0, 0, 1)) the light follows from the highlight position alone.
+
+Coordinates: image positions are (x_img, y_img) = (column, row) with pixel centres at integers;
+spheres are (cx, cy, r) in those units. Directions use the project frame: x right, y up,
+z towards the camera (so y = (cy − hy)/r, rows go down).
+
+Near lights (a flash close to the object) would need the highlights on two or more spheres
+to be triangulated; this module assumes distant lights and reports the spheres'
+disagreement instead.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy import ndimage
+
+from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError
+from ptmcore.images import read_image, srgb_to_linear
+from ptmcore.lp import write_lp
+
+Sphere = tuple[float, float, float]
+
+#: Rec. 709 luminance weights for turning a colour photograph into grey.
+_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+
+
+@dataclass
+class Calibration:
+    """Light directions read from sphere highlights.
+
+    Attributes
+    ----------
+    directions : np.ndarray
+        (N, 3) unit vectors towards the lights; rows of NaN for unusable photographs.
+    confidence : np.ndarray
+        (N,) in [0, 1]; 0 for unusable photographs. Lowered when spheres disagree.
+    sphere_directions : np.ndarray
+        (S, N, 3) the direction each sphere gives (NaN where it has no usable highlight).
+    sphere_confidence : np.ndarray
+        (S, N) confidence of each sphere's highlight (0 where none).
+    highlights : np.ndarray
+        (S, N, 2) highlight positions (x_img, y_img) in pixels, NaN where none.
+    disagreement_deg : np.ndarray
+        (N,) largest angle between any sphere's direction and the combined one (0 for a
+        single usable sphere, NaN for unusable photographs).
+    spheres : list of (cx, cy, r)
+        The spheres used.
+    names : list of str
+        File names of the photographs, in order.
+    flagged : list of str
+        Names of the photographs whose direction could not be read (NaN rows).
+    """
+
+    directions: np.ndarray
+    confidence: np.ndarray
+    sphere_directions: np.ndarray
+    sphere_confidence: np.ndarray
+    highlights: np.ndarray
+    disagreement_deg: np.ndarray
+    spheres: list[Sphere]
+    names: list[str] = field(default_factory=list)
+    flagged: list[str] = field(default_factory=list)
+
+    @property
+    def usable(self) -> np.ndarray:
+        """(N,) bool: photographs with a direction."""
+        return np.isfinite(self.directions).all(axis=1)
+
+
+# --------------------------------------------------------------------------- image input
+
+
+def to_linear_gray(image: np.ndarray) -> np.ndarray:
+    """A photograph as float32 linear grey in [0, 1].
+
+    8-bit images are taken to be sRGB-encoded and decoded; 16-bit and float images are
+    taken to be linear already (the usual raw-conversion output).
+    """
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        v = srgb_to_linear(img.astype(np.float32) / 255.0)
+    elif img.dtype == np.uint16:
+        v = img.astype(np.float32) / 65535.0
+    else:
+        v = img.astype(np.float32, copy=False)
+    if v.ndim == 3:
+        v = v[..., :3] @ _LUMA if v.shape[2] >= 3 else v[..., 0]
+    return v.astype(np.float32, copy=False)
+
+
+def _load_gray_stack(paths: list[Path]) -> np.ndarray:
+    """(N, H, W) float32 linear grey stack, or InputError on mismatched sizes."""
+    if not paths:
+        raise InputError("no photographs given")
+    first = to_linear_gray(read_image(paths[0]))
+    stack = np.empty((len(paths),) + first.shape, dtype=np.float32)
+    stack[0] = first
+    for k, p in enumerate(paths[1:], start=1):
+        g = to_linear_gray(read_image(p))
+        if g.shape != first.shape:
+            raise InputError(f"image is {g.shape[1]}×{g.shape[0]} but {paths[0].name} is "
+                             f"{first.shape[1]}×{first.shape[0]}", p)
+        stack[k] = g
+    return stack
+
+
+# --------------------------------------------------------------------------- circles
+
+
+def fit_circle(x: np.ndarray, y: np.ndarray) -> Sphere:
+    """Least-squares circle through points: algebraic (Kåsa) fit, then Gauss–Newton.
+
+    The algebraic fit is biased towards small circles on partial arcs; a few geometric
+    iterations minimise the true radial distances and remove that bias.
+    """
+    x = np.asarray(x, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    if x.size < 3:
+        raise ValueError("need at least 3 points to fit a circle")
+    A = np.column_stack([x, y, np.ones_like(x)])
+    b = x * x + y * y
+    (a0, a1, a2), *_ = np.linalg.lstsq(A, b, rcond=None)
+    cx, cy = a0 / 2.0, a1 / 2.0
+    r = np.sqrt(max(a2 + cx * cx + cy * cy, 0.0))
+    for _ in range(10):
+        dx, dy = x - cx, y - cy
+        d = np.hypot(dx, dy)
+        d = np.where(d == 0, 1e-12, d)
+        J = np.column_stack([-dx / d, -dy / d, -np.ones_like(d)])
+        res = d - r
+        step, *_ = np.linalg.lstsq(J, -res, rcond=None)
+        cx, cy, r = cx + step[0], cy + step[1], r + step[2]
+        if np.abs(step).max() < 1e-6:
+            break
+    return float(cx), float(cy), float(r)
+
+
+def refine_circle(image: np.ndarray, sphere: Sphere, *, n_rays: int = 360,
+                  search: float | None = None) -> Sphere:
+    """Sub-pixel sphere outline from the limb's intensity profile.
+
+    Along rays from the centre, each ray's limb is where the profile crosses halfway between
+    its own inside and outside levels (the background varies around a sphere, so one global
+    level would move the edge); a robust circle fit of those points follows.
+
+    Parameters
+    ----------
+    image : np.ndarray
+        (H, W) linear grey image in which the sphere is dark (e.g. the stack median).
+    sphere : (cx, cy, r)
+        Starting estimate, good to a few pixels.
+    n_rays : int
+        Number of rays.
+    search : float, optional
+        Half-width of the radial search band in pixels; default max(4, 0.15 r).
+
+    Returns
+    -------
+    (cx, cy, r)
+    """
+    cx, cy, r = sphere
+    search = max(4.0, 0.15 * r) if search is None else search
+    step = 0.25
+    t = np.arange(-search, search + step / 2, step)
+    theta = np.linspace(0.0, 2 * np.pi, n_rays, endpoint=False)
+    radii = r + t  # (T,)
+    xs = cx + np.cos(theta)[:, None] * radii[None, :]
+    ys = cy + np.sin(theta)[:, None] * radii[None, :]
+    prof = ndimage.map_coordinates(image, [ys.ravel(), xs.ravel()], order=1,
+                                   mode="nearest").reshape(xs.shape)
+    edge = max(2, len(t) // 6)
+    inside = np.median(prof[:, :edge], axis=1)
+    outside = np.median(prof[:, -edge:], axis=1)
+    level = 0.5 * (inside + outside)
+    contrast = outside - inside
+    above = prof >= level[:, None]
+    # First sample above the level, scanning outwards; the crossing is interpolated between
+    # it and the sample before.
+    first = np.argmax(above, axis=1)
+    ok = (contrast > 0.02 * max(float(np.median(outside)), 1e-6)) & (first > 0) & above.any(1)
+    i1 = np.clip(first, 1, len(t) - 1)
+    rows = np.arange(n_rays)
+    p0, p1 = prof[rows, i1 - 1], prof[rows, i1]
+    frac = np.clip((level - p0) / np.where(p1 - p0 == 0, 1e-12, p1 - p0), 0, 1)
+    rad = radii[i1 - 1] + frac * step
+    ok &= np.isfinite(rad)
+    if ok.sum() < 12:
+        return sphere
+    ex = cx + np.cos(theta[ok]) * rad[ok]
+    ey = cy + np.sin(theta[ok]) * rad[ok]
+    fit = fit_circle(ex, ey)
+    # Rays that hit something else dark (a shadow, the object) give outliers; drop them.
+    for _ in range(3):
+        res = np.hypot(ex - fit[0], ey - fit[1]) - fit[2]
+        mad = np.median(np.abs(res - np.median(res))) + 1e-3
+        keep = np.abs(res) < max(4.0 * 1.4826 * mad, 0.3)
+        if keep.sum() < 12 or keep.all():
+            break
+        ex, ey = ex[keep], ey[keep]
+        fit = fit_circle(ex, ey)
+    return fit
+
+
+def stack_statistics(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel median and maximum of an (N, H, W) linear grey stack."""
+    stack = np.asarray(stack, dtype=np.float32)
+    if stack.ndim != 3 or len(stack) < 1:
+        raise InputError(f"need an (N, H, W) stack of grey images, got shape {stack.shape}")
+    return np.median(stack, axis=0), stack.max(axis=0)
+
+
+def detect_spheres(
+    median: np.ndarray,
+    maximum: np.ndarray,
+    *,
+    expected: int | None = None,
+    min_radius: float | None = None,
+    max_radius: float | None = None,
+) -> list[Sphere]:
+    """Find the dark glossy spheres from a capture's per-pixel statistics.
+
+    A sphere is a dark disc in the per-pixel median (the moving highlight is absent from
+    most photographs) whose per-pixel maximum shows a bright trail (the highlight moved over
+    it). Candidates are the dark regions (Otsu threshold of the median, holes filled), kept
+    when their size is in the radius range, they are round (area close to that of the
+    fitted circle) and their maximum is bright; each outline is then refined to sub-pixel
+    precision from the limb profile (:func:`refine_circle`).
+
+    Parameters
+    ----------
+    median, maximum : np.ndarray
+        (H, W) linear grey per-pixel median and maximum (see :func:`stack_statistics`).
+    expected : int, optional
+        Number of spheres to return (the most convincing); InputError if fewer are found.
+    min_radius, max_radius : float, optional
+        Radius range in pixels; default 2 % to 50 % of the shorter image side.
+
+    Returns
+    -------
+    list of (cx, cy, r)
+        Sorted left to right.
+
+    Raises
+    ------
+    InputError
+        If no sphere (or fewer than ``expected``) is found.
+    """
+    from skimage.filters import threshold_otsu
+    from skimage.measure import label, regionprops
+
+    median = np.asarray(median, dtype=np.float32)
+    maximum = np.asarray(maximum, dtype=np.float32)
+    if median.ndim != 2 or median.shape != maximum.shape:
+        raise InputError("median and maximum must be (H, W) images of the same size")
+    h, w = median.shape
+    side = min(h, w)
+    rmin = max(6.0, 0.02 * side) if min_radius is None else float(min_radius)
+    rmax = 0.5 * side if max_radius is None else float(max_radius)
+    if np.ptp(median) <= 0:
+        raise InputError("no spheres found: the photographs have no contrast")
+
+    dark = median < threshold_otsu(median)
+    dark = ndimage.binary_opening(dark, iterations=2)
+    dark = ndimage.binary_fill_holes(dark)
+    labels = label(dark)
+    found: list[tuple[float, Sphere]] = []
+    bg_level = float(np.median(median[~dark])) if (~dark).any() else float(median.max())
+    for region in regionprops(labels):
+        r0 = np.sqrt(region.area / np.pi)
+        if not rmin * 0.8 <= r0 <= rmax * 1.2:
+            continue
+        # Roundness: a disc fills its bounding box by π/4 and is nearly convex.
+        minr, minc, maxr, maxc = region.bbox
+        bw, bh = maxc - minc, maxr - minr
+        if region.solidity < 0.9 or not 0.8 < bw / max(bh, 1) < 1.25:
+            continue
+        if abs(region.area / (bw * bh) - np.pi / 4) > 0.08:
+            continue
+        cy0, cx0 = region.centroid
+        rr, cc = region.coords[:, 0], region.coords[:, 1]
+        inside_d = np.hypot(cc - cx0, rr - cy0) < 0.9 * r0
+        inner_med = float(np.median(median[rr[inside_d], cc[inside_d]]))
+        trail = float(np.percentile(maximum[rr[inside_d], cc[inside_d]], 99.5))
+        # A glossy sphere's highlight trail is far brighter than its dark body.
+        if trail < max(4.0 * inner_med, 0.1 * bg_level, 0.05):
+            continue
+        cx, cy, r = refine_circle(median, (cx0, cy0, r0))
+        if not (rmin <= r <= rmax and abs(r - r0) < 0.2 * r0):
+            continue
+        found.append((trail / max(inner_med, 1e-4), (cx, cy, r)))
+    if not found:
+        raise InputError("no spheres found: no dark round disc with a moving highlight "
+                         "(pass the spheres explicitly if they are there)")
+    found.sort(key=lambda item: -item[0])
+    if expected is not None:
+        if len(found) < expected:
+            raise InputError(f"found {len(found)} sphere(s) but {expected} were expected")
+        found = found[:expected]
+    return sorted((s for _, s in found), key=lambda s: (s[0], s[1]))
+
+
+# --------------------------------------------------------------------------- highlights
+
+
+def find_highlight(
+    image_gray: np.ndarray,
+    sphere: Sphere,
+    *,
+    min_peak: float = 0.15,
+    max_area_fraction: float = 0.02,
+) -> tuple[float, float, float] | None:
+    """Sub-pixel position of the specular highlight on one sphere.
+
+    Inside the sphere (the anti-aliased limb excluded), pixels above a threshold halfway
+    between the disc's median and its brightest pixel form blobs; the blob holding the
+    brightest pixel gives the highlight as its intensity-weighted centroid (weights are the
+    excess over the threshold, so the estimate is insensitive to the dark body).
+
+    Parameters
+    ----------
+    image_gray : np.ndarray
+        (H, W) linear grey image in [0, 1].
+    sphere : (cx, cy, r)
+        The sphere, in pixels.
+    min_peak : float
+        The brightest pixel must reach this linear level; dimmer means no highlight.
+    max_area_fraction : float
+        A blob larger than this fraction of the disc is not a mirror highlight (a diffuse
+        sheen or a blown-out sphere).
+
+    Returns
+    -------
+    (hx, hy, confidence) or None
+        Position in image coordinates (column, row) and a confidence in (0, 1]; None when
+        there is no usable highlight.
+    """
+    img = np.asarray(image_gray, dtype=np.float32)
+    cx, cy, r = sphere
+    h, w = img.shape
+    r0, r1 = max(int(np.floor(cy - r)), 0), min(int(np.ceil(cy + r)) + 1, h)
+    c0, c1 = max(int(np.floor(cx - r)), 0), min(int(np.ceil(cx + r)) + 1, w)
+    if r1 - r0 < 3 or c1 - c0 < 3:
+        return None
+    crop = img[r0:r1, c0:c1]
+    yy, xx = np.mgrid[r0:r1, c0:c1]
+    disc = np.hypot(xx - cx, yy - cy) < r - 1.5
+    if disc.sum() < 10:
+        return None
+    vals = crop[disc]
+    peak = float(vals.max())
+    body = float(np.median(vals))
+    if peak < min_peak or peak < 3.0 * body:
+        return None
+    thresh = body + 0.5 * (peak - body)
+    blobs, _ = ndimage.label((crop > thresh) & disc)
+    iy, ix = np.unravel_index(np.argmax(np.where(disc, crop, -np.inf)), crop.shape)
+    blob = blobs == blobs[iy, ix]
+    area = int(blob.sum())
+    if area > max_area_fraction * disc.sum():
+        return None
+    # Grow the blob by one pixel so its anti-aliased rim weighs in symmetrically.
+    grown = ndimage.binary_dilation(blob, iterations=2) & disc
+    wgt = np.clip(crop - body, 0, None) * grown
+    total = float(wgt.sum())
+    if total <= 0:
+        return None
+    hx = float((wgt * xx).sum() / total)
+    hy = float((wgt * yy).sum() / total)
+    # Confidence: contrast against the body, penalised for large or saturated blobs and for
+    # highlights on the limb (light nearly behind the sphere: foreshortened, unreliable).
+    contrast = (peak - body) / peak
+    saturated = int((crop[blob] >= 0.98).sum())
+    size_pen = 1.0 - area / (max_area_fraction * disc.sum())
+    # A flash highlight's core is often clipped; only a clipped area that is large for a
+    # mirror highlight suggests a blown-out or non-specular blob.
+    sat_pen = 1.0 if saturated <= 0.25 * max_area_fraction * disc.sum() else 0.5
+    rho = np.hypot(hx - cx, hy - cy) / r
+    limb_pen = float(np.clip((0.97 - rho) / 0.07, 0.0, 1.0))
+    conf = float(np.clip(contrast * (0.5 + 0.5 * size_pen) * sat_pen * limb_pen, 0.0, 1.0))
+    if conf <= 0:
+        return None
+    return hx, hy, conf
+
+
+def light_from_highlight(hx: float, hy: float, sphere: Sphere) -> np.ndarray:
+    """Light direction from a highlight on a mirror sphere, orthographic view.
+
+    The sphere normal at the highlight is s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) (rows go
+    down, y goes up); the light is the mirror image of the view v = (0, 0, 1) about it:
+    l = 2(s·v)s − v.
+
+    Returns
+    -------
+    np.ndarray
+        (3,) float64 unit vector towards the light.
+    """
+    cx, cy, r = sphere
+    sx, sy = (hx - cx) / r, (cy - hy) / r
+    rho2 = sx * sx + sy * sy
+    if rho2 > 1.0:
+        # A highlight measured just outside the outline is on the limb.
+        scale = 1.0 / np.sqrt(rho2)
+        sx, sy, rho2 = sx * scale, sy * scale, 1.0
+    s = np.array([sx, sy, np.sqrt(1.0 - rho2)])
+    light = 2.0 * s[2] * s - np.array([0.0, 0.0, 1.0])
+    return light / np.linalg.norm(light)
+
+
+# --------------------------------------------------------------------------- calibration
+
+
+def calibrate_stack(
+    stack: np.ndarray,
+    *,
+    spheres: list[Sphere] | None = None,
+    expected: int | None = None,
+    names: list[str] | None = None,
+    min_confidence: float = 0.2,
+    disagreement_tol_deg: float = 5.0,
+) -> Calibration:
+    """Calibrate from an (N, H, W) linear grey stack; see :func:`calibrate`."""
+    stack = np.asarray(stack, dtype=np.float32)
+    if stack.ndim != 3 or len(stack) < 1:
+        raise InputError(f"need an (N, H, W) stack of grey images, got shape {stack.shape}")
+    n = len(stack)
+    names = [f"#{k}" for k in range(n)] if names is None else list(names)
+    if spheres is None:
+        if n < 3:
+            raise InputError("need at least 3 photographs to detect the spheres; "
+                             "pass the spheres explicitly for fewer")
+        spheres = detect_spheres(*stack_statistics(stack), expected=expected)
+    else:
+        spheres = [tuple(float(v) for v in s) for s in spheres]
+        h, w = stack.shape[1:]
+        for s in spheres:
+            if len(s) != 3 or not np.isfinite(s).all() or s[2] <= 0:
+                raise InputError(f"a sphere must be (cx, cy, r) with r > 0, got {s!r}")
+            if not (0 <= s[0] < w and 0 <= s[1] < h):
+                raise InputError(f"sphere centre ({s[0]}, {s[1]}) lies outside the "
+                                 f"{w}×{h} image")
+        if not spheres:
+            raise InputError("the list of spheres is empty")
+    m = len(spheres)
+    sdirs = np.full((m, n, 3), np.nan)
+    sconf = np.zeros((m, n))
+    hl = np.full((m, n, 2), np.nan)
+    for i, sph in enumerate(spheres):
+        for k in range(n):
+            found = find_highlight(stack[k], sph)
+            if found is None:
+                continue
+            hx, hy, c = found
+            hl[i, k] = hx, hy
+            sdirs[i, k] = light_from_highlight(hx, hy, sph)
+            sconf[i, k] = c
+
+    # Combine spheres per photograph: confidence-weighted mean of unit vectors.
+    wts = np.where(np.isfinite(sdirs).all(-1), sconf, 0.0)  # (M, N)
+    summed = np.einsum("mn,mnc->nc", wts, np.nan_to_num(sdirs))
+    norm = np.linalg.norm(summed, axis=1)
+    has = wts.sum(0) > 0
+    combined = np.full((n, 3), np.nan)
+    combined[has] = summed[has] / norm[has, None]
+    cosang = np.einsum("mnc,nc->mn", np.nan_to_num(sdirs), np.nan_to_num(combined))
+    ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    ang = np.where(wts > 0, ang, 0.0)
+    disagree = np.where(has, ang.max(0), np.nan)
+    mean_conf = np.where(has, wts.sum(0) / np.maximum((wts > 0).sum(0), 1), 0.0)
+    # Spheres that disagree mean a bad highlight or a near light; either way trust it less.
+    conf = mean_conf * np.clip(1.0 - np.nan_to_num(disagree) / disagreement_tol_deg, 0, 1)
+    bad = ~has | (conf < min_confidence)
+    combined[bad] = np.nan
+    conf = np.where(bad, 0.0, conf)
+    flagged = [names[k] for k in np.flatnonzero(bad)]
+    return Calibration(directions=combined, confidence=conf, sphere_directions=sdirs,
+                       sphere_confidence=sconf, highlights=hl, disagreement_deg=disagree,
+                       spheres=[tuple(s) for s in spheres], names=names, flagged=flagged)
+
+
+def calibrate(
+    paths: list[str | os.PathLike],
+    *,
+    spheres: list[Sphere] | None = None,
+    expected: int | None = None,
+    min_confidence: float = 0.2,
+    disagreement_tol_deg: float = 5.0,
+) -> Calibration:
+    """Light directions of a highlight-RTI capture from its glossy spheres.
+
+    Parameters
+    ----------
+    paths : list of str or PathLike
+        The photographs (JPEG, PNG, TIFF; 8-bit is decoded from sRGB).
+    spheres : list of (cx, cy, r), optional
+        Known spheres in pixels (cx = column, cy = row); detected when omitted.
+    expected : int, optional
+        Number of spheres to detect.
+    min_confidence : float
+        Photographs whose combined confidence is lower are flagged (NaN direction).
+    disagreement_tol_deg : float
+        Angle between spheres' directions at which the confidence drops to 0.
+
+    Returns
+    -------
+    Calibration
+
+    Raises
+    ------
+    InputError
+        Missing or unreadable photographs, mismatched sizes, no spheres found.
+    """
+    paths = [Path(p) for p in paths]
+    stack = _load_gray_stack(paths)
+    return calibrate_stack(stack, spheres=spheres, expected=expected,
+                           names=[p.name for p in paths], min_confidence=min_confidence,
+                           disagreement_tol_deg=disagreement_tol_deg)
+
+
+def write_calibration_lp(path: str | os.PathLike, calibration: Calibration,
+                         names: list[str] | None = None) -> int:
+    """Write an ``.lp`` file of the usable photographs only.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        Destination.
+    calibration : Calibration
+        Result of :func:`calibrate`.
+    names : list of str, optional
+        Names to write (relative to the ``.lp`` file's folder); default the calibration's.
+
+    Returns
+    -------
+    int
+        Number of photographs written.
+    """
+    names = calibration.names if names is None else list(names)
+    if len(names) != len(calibration.directions):
+        raise InputError(f"{len(names)} names for {len(calibration.directions)} photographs")
+    ok = calibration.usable
+    if not ok.any():
+        raise InputError("no photograph has a usable light direction", path)
+    write_lp(path, [nm for nm, u in zip(names, ok) if u], calibration.directions[ok])
+    return int(ok.sum())
+
+
+def write_diagnostic(path: str | os.PathLike, image: np.ndarray, calibration: Calibration,
+                     k: int) -> None:
+    """A PNG of photograph ``k`` with the sphere outlines and the highlights found.
+
+    Outlines are green; a found highlight is a red cross; a sphere without a usable
+    highlight in this photograph gets a yellow outline instead.
+    """
+    from PIL import Image, ImageDraw
+
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        rgb = img
+    else:
+        v = img.astype(np.float32)
+        if img.dtype == np.uint16:
+            v = v / 65535.0
+        rgb = (np.clip(v, 0, 1) * 255 + 0.5).astype(np.uint8)
+    if rgb.ndim == 2:
+        rgb = np.repeat(rgb[..., None], 3, axis=2)
+    pil = Image.fromarray(np.ascontiguousarray(rgb[..., :3]))
+    draw = ImageDraw.Draw(pil)
+    for i, (cx, cy, r) in enumerate(calibration.spheres):
+        hx, hy = calibration.highlights[i, k]
+        colour = (0, 255, 0) if np.isfinite(hx) else (255, 255, 0)
+        draw.ellipse([cx - r, cy - r, cx + r, cy + r], outline=colour, width=1)
+        draw.line([cx - 3, cy, cx + 3, cy], fill=colour)
+        draw.line([cx, cy - 3, cx, cy + 3], fill=colour)
+        if np.isfinite(hx):
+            a = max(4.0, 0.08 * r)
+            draw.line([hx - a, hy, hx + a, hy], fill=(255, 0, 0), width=1)
+            draw.line([hx, hy - a, hx, hy + a], fill=(255, 0, 0), width=1)
+    with atomic_write(path, "wb") as f:
+        pil.save(f, format="PNG")

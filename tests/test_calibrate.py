@@ -1,0 +1,179 @@
+"""Light calibration from glossy-sphere highlights (highlight RTI), on synthetic captures."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from data_synthetic.spheres import render_sphere_capture
+from ptmcore.errors import InputError
+from ptmcore.images import read_image
+from ptmcore.lp import read_lp
+from reconstruct.calibrate import (
+    calibrate,
+    calibrate_stack,
+    detect_spheres,
+    find_highlight,
+    fit_circle,
+    light_from_highlight,
+    write_calibration_lp,
+    write_diagnostic,
+)
+
+HIDDEN = (3, 10)
+
+
+def _angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=-1), -1.0, 1.0)))
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    out = tmp_path_factory.mktemp("spheres")
+    return render_sphere_capture(out, n_lights=20, hidden=HIDDEN, encoding="jpeg", seed=1)
+
+
+@pytest.fixture(scope="module")
+def calib(capture):
+    return calibrate(capture.image_paths)
+
+
+def test_spheres_detected_without_hints(capture, calib):
+    assert len(calib.spheres) == len(capture.spheres) == 2
+    for (cx, cy, r), (tx, ty, tr) in zip(calib.spheres, capture.spheres):
+        assert np.hypot(cx - tx, cy - ty) < 1.0
+        assert abs(r - tr) < 1.0
+
+
+def test_directions_meet_issue_targets(capture, calib):
+    ok = calib.usable
+    err = _angles_deg(calib.directions[ok], capture.directions[ok])
+    # Measured on this capture (JPEG q95, two spheres, r ≈ 80 px): mean ≈ 0.08°, max ≈ 0.16°.
+    assert err.mean() <= 0.5
+    assert err.max() <= 2.0
+    assert calib.directions.shape == (20, 3)
+    np.testing.assert_allclose(np.linalg.norm(calib.directions[ok], axis=1), 1.0, atol=1e-9)
+
+
+def test_hidden_highlights_are_flagged_not_guessed(capture, calib):
+    names = [p.name for p in capture.image_paths]
+    assert calib.flagged == [names[k] for k in HIDDEN]
+    assert np.isnan(calib.directions[list(HIDDEN)]).all()
+    assert (calib.confidence[list(HIDDEN)] == 0).all()
+    visible = np.setdiff1d(np.arange(20), HIDDEN)
+    assert calib.usable[visible].all()
+    assert (calib.confidence[visible] > 0.5).all()
+
+
+def test_two_spheres_agree(capture, calib):
+    s0, s1 = calib.sphere_directions
+    ok = np.isfinite(s0).all(1) & np.isfinite(s1).all(1)
+    assert ok.sum() == 20 - len(HIDDEN)
+    assert _angles_deg(s0[ok], s1[ok]).max() < 1.0
+    assert np.nanmax(calib.disagreement_deg) < 1.0
+
+
+def test_given_sphere_hints(capture):
+    # One sphere given: no detection runs and that sphere alone meets the targets.
+    cx, cy, r = capture.spheres[1]
+    cal = calibrate(capture.image_paths, spheres=[(cx, cy, r)])
+    assert cal.spheres == [(cx, cy, r)]
+    ok = cal.usable
+    assert ok.sum() == 20 - len(HIDDEN)
+    err = _angles_deg(cal.directions[ok], capture.directions[ok])
+    assert err.mean() <= 0.5 and err.max() <= 2.0
+    np.testing.assert_array_equal(cal.disagreement_deg[ok], 0.0)
+
+
+def test_single_sphere_png_capture(tmp_path):
+    info = render_sphere_capture(tmp_path, shape=(200, 220), n_lights=8,
+                                 spheres=[(110.4, 99.7, 76.0)], encoding="png", seed=3)
+    cal = calibrate(info.image_paths, expected=1)
+    (cx, cy, r), = cal.spheres
+    assert np.hypot(cx - 110.4, cy - 99.7) < 1.0 and abs(r - 76.0) < 1.0
+    assert cal.usable.all()
+    assert _angles_deg(cal.directions, info.directions).max() <= 2.0
+
+
+def test_light_from_highlight_frame():
+    sph = (100.0, 100.0, 50.0)
+    np.testing.assert_allclose(light_from_highlight(100.0, 100.0, sph), [0, 0, 1], atol=1e-12)
+    # Highlight above the centre (smaller row) → light from +y (y up).
+    up = light_from_highlight(100.0, 80.0, sph)
+    assert up[1] > 0 and abs(up[0]) < 1e-12 and up[2] > 0
+    # Normal at 45° reflects the view to a horizontal light.
+    right = light_from_highlight(100.0 + 50.0 * np.sqrt(0.5), 100.0, sph)
+    np.testing.assert_allclose(right, [1, 0, 0], atol=1e-9)
+    # Highlights measured just outside the outline are clamped to the limb, stay unit.
+    out = light_from_highlight(151.0, 100.0, sph)
+    assert abs(np.linalg.norm(out) - 1) < 1e-12
+
+
+def test_find_highlight_rejects_dull_and_blown_spheres():
+    yy, xx = np.mgrid[0:120, 0:120]
+    sph = (60.0, 60.0, 40.0)
+    dull = np.full((120, 120), 0.01, dtype=np.float32)
+    assert find_highlight(dull, sph) is None
+    blown = dull.copy()
+    blown[np.hypot(xx - 60, yy - 50) < 20] = 1.0  # a quarter of the disc saturated
+    assert find_highlight(blown, sph) is None
+    spot = dull + 0.9 * np.exp(-((xx - 70.3) ** 2 + (yy - 52.6) ** 2) / 4.0).astype(np.float32)
+    hx, hy, conf = find_highlight(spot, sph)
+    assert abs(hx - 70.3) < 0.05 and abs(hy - 52.6) < 0.05 and conf > 0.5
+
+
+def test_fit_circle_exact():
+    t = np.linspace(0, np.pi, 40)  # a half arc: the algebraic fit alone is biased here
+    rng = np.random.default_rng(0)
+    x = 12.3 + 30.0 * np.cos(t) + rng.normal(0, 0.05, t.size)
+    y = -4.5 + 30.0 * np.sin(t) + rng.normal(0, 0.05, t.size)
+    cx, cy, r = fit_circle(x, y)
+    assert abs(cx - 12.3) < 0.05 and abs(cy + 4.5) < 0.05 and abs(r - 30.0) < 0.05
+
+
+def test_write_lp_and_diagnostic(tmp_path, capture, calib):
+    lp = tmp_path / "lights.lp"
+    names = [p.name for p in capture.image_paths]
+    assert write_calibration_lp(lp, calib, names) == 20 - len(HIDDEN)
+    lights = read_lp(lp)
+    assert [p.name for p in lights.paths] == [n for k, n in enumerate(names) if k not in HIDDEN]
+    ok = calib.usable
+    np.testing.assert_allclose(lights.directions, calib.directions[ok], atol=1e-5)
+
+    png = tmp_path / "diag.png"
+    write_diagnostic(png, read_image(capture.image_paths[0]), calib, 0)
+    with Image.open(png) as im:
+        assert im.size == (capture.shape[1], capture.shape[0])
+        px = np.asarray(im.convert("RGB"))
+    # The outline of sphere 0 is drawn in green at its leftmost point.
+    cx, cy, r = calib.spheres[0]
+    row, left = round(cy), round(cx - r)
+    assert (px[row, left - 1:left + 2, 1] == 255).any()
+
+
+def test_bad_inputs_raise_input_error(tmp_path, capture):
+    flat = np.full((5, 60, 80), 0.4, dtype=np.float32)
+    with pytest.raises(InputError, match="no spheres found"):
+        calibrate_stack(flat)
+    noisy = flat + np.random.default_rng(0).normal(0, 0.02, flat.shape).astype(np.float32)
+    with pytest.raises(InputError, match="no spheres found"):
+        calibrate_stack(noisy)
+    with pytest.raises(InputError, match="no photographs"):
+        calibrate([])
+    with pytest.raises(InputError, match="not found"):
+        calibrate([tmp_path / "missing.jpg"])
+    small = tmp_path / "small.png"
+    Image.new("RGB", (10, 10)).save(small)
+    with pytest.raises(InputError, match="10×10"):
+        calibrate([capture.image_paths[0], small])
+    with pytest.raises(InputError, match="expected"):
+        calibrate(capture.image_paths, expected=3)
+    with pytest.raises(InputError, match="outside"):
+        calibrate(capture.image_paths[:2], spheres=[(1000.0, 10.0, 50.0)])
+    with pytest.raises(InputError, match="at least 3"):
+        calibrate(capture.image_paths[:2])
+    with pytest.raises(InputError):
+        detect_spheres(np.zeros((4, 4)), np.zeros((5, 5)))
+    with pytest.raises(InputError):
+        render_sphere_capture(tmp_path / "x", spheres=[(5.0, 5.0, 80.0)])
