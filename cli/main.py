@@ -118,6 +118,20 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
 
+    cal = sub.add_parser(
+        "calibrate",
+        help="light directions from glossy spheres in the photographs (highlight RTI): writes an .lp",
+        description="Find the black glossy spheres in a capture (or take them from --sphere), read the "
+        "highlight on each in every photograph, and write the light directions as an .lp file. "
+        "Photographs without a usable highlight are named and left out.",
+    )
+    cal.add_argument("capture", type=Path, help="folder of photographs")
+    cal.add_argument("-o", "--output", type=Path, required=True, help="the .lp file to write")
+    cal.add_argument("--sphere", action="append", metavar="X,Y,R",
+                     help="a sphere's centre (column, row) and radius in pixels; repeat for several")
+    cal.add_argument("--diagnostic", type=Path, metavar="PNG",
+                     help="also draw the spheres and highlights on the first photograph, and a polar plot beside it")
+
     cmp_ = sub.add_parser(
         "compare",
         help="align a laser scan to a reconstruction and measure how far apart they are",
@@ -205,6 +219,42 @@ def _compare_summary(result) -> None:
               f"(needed {tol['min_fraction']:.0%}): {verdict}")
     for w in result.report["warnings"]:
         print(f"  warning: {w}")
+
+
+def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] | None:
+    if not texts:
+        return None
+    spheres = []
+    for text in texts:
+        try:
+            x, y, r = (float(v) for v in text.split(","))
+        except ValueError:
+            raise InputError(f"--sphere must be X,Y,R in pixels, got {text!r}") from None
+        if not r > 0:
+            raise InputError(f"--sphere radius must be positive, got {text!r}")
+        spheres.append((x, y, r))
+    return spheres
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    from ptmcore.images import read_image
+    from reconstruct.calibrate import calibrate, write_calibration_lp, write_diagnostic
+    from reconstruct.lightcheck import write_polar_plot
+    from reconstruct.pipeline import capture_images
+
+    paths = capture_images(args.capture)
+    result = calibrate(paths, spheres=_parse_spheres(args.sphere))
+    count = write_calibration_lp(args.output, result, [p.name for p in paths])
+    print(f"{args.output}: {count} of {len(paths)} photographs with a light direction, from "
+          f"{len(result.spheres)} sphere(s)")
+    for name in result.flagged:
+        print(f"  warning: {name}: no usable highlight; left out")
+    if args.diagnostic is not None:
+        write_diagnostic(args.diagnostic, read_image(paths[0]), result, 0)
+        polar = args.diagnostic.with_name(args.diagnostic.stem + "_lights.png")
+        write_polar_plot(polar, result.directions[result.usable], title=args.output.name)
+        print(f"  diagnostics: {args.diagnostic}, {polar}")
+    return 0
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
@@ -474,6 +524,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     try:
         commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
+                    "calibrate": _cmd_calibrate,
                     "lights": _cmd_lights, "demo": _cmd_demo}
         return commands[args.command](args)
     except InputError as exc:

@@ -44,7 +44,7 @@ from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
 from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
-from ptmcore.lp import read_lp
+from ptmcore.lp import LightSet, read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
@@ -208,6 +208,44 @@ def find_lp(capture: Path, lp: Path | None = None) -> Path:
         names = ", ".join(p.name for p in found)
         raise InputError(f"several .lp files ({names}); choose one with --lp", capture)
     return found[0]
+
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+
+def capture_images(folder: str | os.PathLike) -> list[Path]:
+    """The photographs of a capture folder, in name order."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("capture folder not found", folder)
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not paths:
+        raise InputError("no photographs (JPEG, PNG or TIFF) in the capture folder", folder)
+    return paths
+
+
+def _calibrated_lights(capture: Path, warnings: list[str]) -> tuple[LightSet, np.ndarray]:
+    """Lights read from the glossy spheres of a capture without an .lp file, and a mask that
+    leaves the spheres out of the reconstruction."""
+    from .calibrate import calibrate
+
+    paths = capture_images(capture)
+    result = calibrate(paths)
+    for name in result.flagged:
+        warnings.append(f"{name}: no usable highlight on the spheres; left out")
+    usable = result.usable
+    if usable.sum() < 3:
+        raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
+    shape = read_image(paths[0]).shape[:2]
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    keep = np.ones(shape, bool)
+    for cx, cy, r in result.spheres:
+        # A margin of a few pixels keeps the spheres' dark rims out too.
+        keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
+    lights = LightSet([p for p, u in zip(paths, usable) if u], result.directions[usable], None)
+    warnings.append(f"no .lp file: light directions read from {len(result.spheres)} sphere(s) "
+                    f"for {int(usable.sum())} of {len(paths)} photographs")
+    return lights, keep
 
 
 def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -555,9 +593,18 @@ def run_capture(
     capture = Path(capture)
     out = Path(output)
     dataset = opt.lp is None and capture.is_dir() and is_ps_dataset(capture)
+    calibrate_spheres = (
+        opt.lp is None and not dataset and capture.is_dir()
+        and not any(p.suffix.lower() == ".lp" for p in capture.iterdir())
+    )
+    early_warnings: list[str] = []
+    sphere_mask = None
     if dataset:
         lp_path = None
         lights = None
+    elif calibrate_spheres:
+        lp_path = None
+        lights, sphere_mask = _calibrated_lights(capture, early_warnings)
     else:
         lp_path = find_lp(capture, opt.lp)
         lights = read_lp(lp_path)
@@ -568,7 +615,7 @@ def run_capture(
 
     stage = _Stages(progress)
     staging = _prepare_output(out)
-    warnings: list[str] = []
+    warnings: list[str] = early_warnings
     try:
         truth = None
         if dataset:
@@ -587,6 +634,8 @@ def run_capture(
             mask = read_mask(opt.mask, (h, w))
         else:
             mask = ds.mask if dataset else None
+        if sphere_mask is not None:
+            mask = sphere_mask if mask is None else (mask & sphere_mask)
         intensity = None
         if opt.intensities is not None:
             if opt.intensities == "estimate":
@@ -665,7 +714,8 @@ def run_capture(
         inputs = {
             "capture": str(capture.resolve()),
             "lp": str(lp_path.resolve()) if lp_path else None,
-            "layout": "photometric-stereo dataset" if dataset else "capture with .lp",
+            "layout": "photometric-stereo dataset" if dataset else (
+                "capture with spheres (calibrated)" if calibrate_spheres else "capture with .lp"),
             "photographs": len(lights),
             "width": w,
             "height": h,
