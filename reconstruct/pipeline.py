@@ -229,8 +229,14 @@ def _calibrated_lights(capture: Path, warnings: list[str]) -> tuple[LightSet, np
     leaves the spheres out of the reconstruction."""
     from .calibrate import calibrate
 
-    paths = capture_images(capture)
-    result = calibrate(paths)
+    try:
+        paths = capture_images(capture)
+        result = calibrate(paths)
+    except InputError as exc:
+        raise InputError(
+            f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
+            capture,
+        ) from None
     for name in result.flagged:
         warnings.append(f"{name}: no usable highlight on the spheres; left out")
     usable = result.usable
