@@ -71,3 +71,12 @@ def mutate(good: bytes, rng: np.random.Generator, *, header_bytes: int, header_l
     at = rng.integers(0, len(data))
     data[at:at] = rng.integers(0, 256, rng.integers(1, 20), dtype=np.uint8).tobytes()
     return bytes(data)
+
+
+def run_cli(argv, capsys):
+    """Run the ``reconstruct`` command in-process; return (status, stdout, stderr)."""
+    from cli.main import main
+
+    code = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return code, out.out, out.err

@@ -13,7 +13,7 @@ import tifffile
 from cli.main import main
 from ptmcore.lp import write_lp
 
-from helpers import dome, sphere_normals
+from helpers import dome, sphere_normals, run_cli as _run
 
 
 def _make_capture(folder: Path, n: int = 12, h: int = 40, w: int = 48, ext: str = "tif") -> Path:
@@ -33,12 +33,6 @@ def _make_capture(folder: Path, n: int = 12, h: int = 40, w: int = 48, ext: str 
 @pytest.fixture
 def capture(tmp_path):
     return _make_capture(tmp_path / "cap")
-
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def _assert_one_line_error(code, err, *needles):

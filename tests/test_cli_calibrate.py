@@ -5,14 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from cli.main import main
+
+from helpers import run_cli as _run
 from ptmcore.lp import read_lp
-
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")

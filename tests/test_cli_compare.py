@@ -7,11 +7,7 @@ import pytest
 
 from cli.main import main
 
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from helpers import run_cli as _run
 
 
 @pytest.fixture(scope="module")

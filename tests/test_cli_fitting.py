@@ -5,15 +5,10 @@ import json
 import numpy as np
 import pytest
 
-from cli.main import main
+
+from helpers import run_cli as _run
 from data_synthetic.lights import dome_lights, ring_lights
 from ptmcore.lp import write_lp
-
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 def test_lights_command_on_a_ring_and_a_dome(tmp_path, capsys):

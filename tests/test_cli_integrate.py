@@ -5,15 +5,8 @@ import pytest
 import tifffile
 from PIL import Image
 
-from cli.main import main
 
-from helpers import sphere_normals
-
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
+from helpers import sphere_normals, run_cli as _run
 
 
 @pytest.fixture(scope="module")

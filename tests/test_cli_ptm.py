@@ -7,16 +7,12 @@ import pytest
 from PIL import Image
 
 from cli.main import main
+
+from helpers import run_cli as _run
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
 from ptmcore.fit import light_matrix
 from ptmcore.ptmfile import fit_ptm_encoded, read_ptm
-
-
-def _run(argv, capsys):
-    code = main([str(a) for a in argv])
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
