@@ -204,6 +204,14 @@ class ImageStack:
     def __len__(self) -> int:
         return self.luminance.shape[0]
 
+    def select(self, keep: np.ndarray) -> ImageStack:
+        """The stack of the photographs where ``keep`` (N,) is true (the colour stays)."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.all():
+            return self
+        return ImageStack(self.luminance[keep], self.chroma, [p for p, k in zip(self.paths, keep) if k],
+                          self.bit_depth, self.linearized, self.saturated[keep])
+
     def band(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
         """Linear luminance of rows ``r0:r1`` of every photograph.
 
@@ -308,6 +316,7 @@ def load_stack(
     *,
     linearize: bool = True,
     channel_gains: np.ndarray | None = None,
+    min_photographs: int = 3,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> ImageStack:
@@ -323,6 +332,8 @@ def load_stack(
     channel_gains : ndarray, shape (N, 3), optional
         Factors for each photograph's linear R, G, B (e.g. 1 / light intensity), applied
         before the reduction to luminance; at most 1, so no sample leaves the stored range.
+    min_photographs : int
+        Fewer photographs are an error (three determine a normal; calibration needs fewer).
     threads : int, optional
         Decoding threads; default: the number of CPUs.
     progress : callable, optional
@@ -338,8 +349,12 @@ def load_stack(
         If fewer than three photographs are given, one cannot be read, or sizes differ.
     """
     paths = [Path(p) for p in paths]
-    if len(paths) < 3:
-        raise InputError(f"{len(paths)} photograph(s) given; at least 3 are needed to recover normals")
+    if not paths:
+        raise InputError("no photographs given")
+    if len(paths) < min_photographs:
+        raise InputError(
+            f"{len(paths)} photograph(s) given; at least {min_photographs} are needed to recover normals"
+        )
     if channel_gains is not None:
         channel_gains = np.asarray(channel_gains, dtype=np.float32).reshape(len(paths), 3)
         if not (np.all(np.isfinite(channel_gains)) and np.all(channel_gains > 0) and channel_gains.max() <= 1):

@@ -25,13 +25,12 @@ from scipy import ndimage
 
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
-from ptmcore.images import read_image, srgb_to_linear
+from ptmcore.bands import band_rows, run_bands
+from ptmcore.images import ImageStack, load_stack
 from ptmcore.lp import write_lp
 
 Sphere = tuple[float, float, float]
 
-#: Rec. 709 luminance weights for turning a colour photograph into grey.
-_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 
 
 @dataclass
@@ -78,40 +77,6 @@ class Calibration:
 
 
 # --------------------------------------------------------------------------- image input
-
-
-def to_linear_gray(image: np.ndarray) -> np.ndarray:
-    """A photograph as float32 linear grey in [0, 1].
-
-    8-bit images are taken to be sRGB-encoded and decoded; 16-bit and float images are
-    taken to be linear already (the usual raw-conversion output).
-    """
-    img = np.asarray(image)
-    if img.dtype == np.uint8:
-        v = srgb_to_linear(img.astype(np.float32) / 255.0)
-    elif img.dtype == np.uint16:
-        v = img.astype(np.float32) / 65535.0
-    else:
-        v = img.astype(np.float32, copy=False)
-    if v.ndim == 3:
-        v = v[..., :3] @ _LUMA if v.shape[2] >= 3 else v[..., 0]
-    return v.astype(np.float32, copy=False)
-
-
-def _load_gray_stack(paths: list[Path]) -> np.ndarray:
-    """(N, H, W) float32 linear grey stack, or InputError on mismatched sizes."""
-    if not paths:
-        raise InputError("no photographs given")
-    first = to_linear_gray(read_image(paths[0]))
-    stack = np.empty((len(paths),) + first.shape, dtype=np.float32)
-    stack[0] = first
-    for k, p in enumerate(paths[1:], start=1):
-        g = to_linear_gray(read_image(p))
-        if g.shape != first.shape:
-            raise InputError(f"image is {g.shape[1]}×{g.shape[0]} but {paths[0].name} is "
-                             f"{first.shape[1]}×{first.shape[0]}", p)
-        stack[k] = g
-    return stack
 
 
 # --------------------------------------------------------------------------- circles
@@ -211,12 +176,33 @@ def refine_circle(image: np.ndarray, sphere: Sphere, *, n_rays: int = 360,
     return fit
 
 
-def stack_statistics(stack: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel median and maximum of an (N, H, W) linear grey stack."""
-    stack = np.asarray(stack, dtype=np.float32)
-    if stack.ndim != 3 or len(stack) < 1:
-        raise InputError(f"need an (N, H, W) stack of grey images, got shape {stack.shape}")
-    return np.median(stack, axis=0), stack.max(axis=0)
+def stack_statistics(stack: ImageStack) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel median and maximum of a stack's linear luminance, in bands of rows."""
+    h, w = stack.shape
+    median = np.empty((h, w), dtype=np.float32)
+    maximum = np.empty((h, w), dtype=np.float32)
+
+    def work(r0: int, r1: int) -> None:
+        values, _ = stack.band(r0, r1)
+        median[r0:r1] = np.median(values, axis=0)
+        maximum[r0:r1] = values.max(axis=0)
+
+    run_bands(h, band_rows(len(stack), w), work)
+    return median, maximum
+
+
+def _sphere_crops(stack: ImageStack, sphere: Sphere) -> tuple[np.ndarray, int, int]:
+    """Every photograph's linear luminance in the sphere's bounding box, and the box's corner.
+
+    Only these few thousand pixels per photograph are needed to find highlights, so the
+    whole stack is never converted to float.
+    """
+    h, w = stack.shape
+    cx, cy, r = sphere
+    x0, x1 = max(0, int(cx - r) - 2), min(w, int(np.ceil(cx + r)) + 3)
+    y0, y1 = max(0, int(cy - r) - 2), min(h, int(np.ceil(cy + r)) + 3)
+    values, _ = stack.band(y0, y1)
+    return values[:, :, x0:x1], x0, y0
 
 
 def detect_spheres(
@@ -420,7 +406,7 @@ def light_from_highlight(hx: float, hy: float, sphere: Sphere) -> np.ndarray:
 
 
 def calibrate_stack(
-    stack: np.ndarray,
+    stack: ImageStack,
     *,
     spheres: list[Sphere] | None = None,
     expected: int | None = None,
@@ -428,10 +414,7 @@ def calibrate_stack(
     min_confidence: float = 0.2,
     disagreement_tol_deg: float = 5.0,
 ) -> Calibration:
-    """Calibrate from an (N, H, W) linear grey stack; see :func:`calibrate`."""
-    stack = np.asarray(stack, dtype=np.float32)
-    if stack.ndim != 3 or len(stack) < 1:
-        raise InputError(f"need an (N, H, W) stack of grey images, got shape {stack.shape}")
+    """Calibrate from a decoded capture (:func:`ptmcore.load_stack`); see :func:`calibrate`."""
     n = len(stack)
     names = [f"#{k}" for k in range(n)] if names is None else list(names)
     if spheres is None:
@@ -441,7 +424,7 @@ def calibrate_stack(
         spheres = detect_spheres(*stack_statistics(stack), expected=expected)
     else:
         spheres = [tuple(float(v) for v in s) for s in spheres]
-        h, w = stack.shape[1:]
+        h, w = stack.shape
         for s in spheres:
             if len(s) != 3 or not np.isfinite(s).all() or s[2] <= 0:
                 raise InputError(f"a sphere must be (cx, cy, r) with r > 0, got {s!r}")
@@ -455,11 +438,13 @@ def calibrate_stack(
     sconf = np.zeros((m, n))
     hl = np.full((m, n, 2), np.nan)
     for i, sph in enumerate(spheres):
+        crops, x0, y0 = _sphere_crops(stack, sph)
+        local = (sph[0] - x0, sph[1] - y0, sph[2])
         for k in range(n):
-            found = find_highlight(stack[k], sph)
+            found = find_highlight(crops[k], local)
             if found is None:
                 continue
-            hx, hy, c = found
+            hx, hy, c = float(found[0]) + x0, float(found[1]) + y0, found[2]
             hl[i, k] = hx, hy
             sdirs[i, k] = light_from_highlight(hx, hy, sph)
             sconf[i, k] = c
@@ -474,7 +459,8 @@ def calibrate_stack(
     cosang = np.einsum("mnc,nc->mn", np.nan_to_num(sdirs), np.nan_to_num(combined))
     ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
     ang = np.where(wts > 0, ang, 0.0)
-    disagree = np.where(has, ang.max(0), np.nan)
+    # With one sphere there is nothing to disagree with (and arccos near 1 is only rounding).
+    disagree = np.where(has, np.where((wts > 0).sum(0) >= 2, ang.max(0), 0.0), np.nan)
     mean_conf = np.where(has, wts.sum(0) / np.maximum((wts > 0).sum(0), 1), 0.0)
     # Spheres that disagree mean a bad highlight or a near light; either way trust it less.
     conf = mean_conf * np.clip(1.0 - np.nan_to_num(disagree) / disagreement_tol_deg, 0, 1)
@@ -520,7 +506,7 @@ def calibrate(
         Missing or unreadable photographs, mismatched sizes, no spheres found.
     """
     paths = [Path(p) for p in paths]
-    stack = _load_gray_stack(paths)
+    stack = load_stack(paths, min_photographs=1)
     return calibrate_stack(stack, spheres=spheres, expected=expected,
                            names=[p.name for p in paths], min_confidence=min_confidence,
                            disagreement_tol_deg=disagreement_tol_deg)

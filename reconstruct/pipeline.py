@@ -42,7 +42,7 @@ import ptmcore
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
-from ptmcore.images import LUMA_WEIGHTS, load_stack, read_image
+from ptmcore.images import LUMA_WEIGHTS, ImageStack, load_stack, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
@@ -224,14 +224,16 @@ def capture_images(folder: str | os.PathLike) -> list[Path]:
     return paths
 
 
-def _calibrated_lights(capture: Path, warnings: list[str]) -> tuple[LightSet, np.ndarray]:
-    """Lights read from the glossy spheres of a capture without an .lp file, and a mask that
-    leaves the spheres out of the reconstruction."""
-    from .calibrate import calibrate
+def _calibrate_from_spheres(stack: ImageStack, capture: Path, warnings: list[str]) -> tuple[ImageStack, LightSet, np.ndarray]:
+    """Lights read from the glossy spheres of a decoded capture that has no .lp file.
+
+    Returns the stack of the photographs with a usable highlight, their lights, and a mask
+    that leaves the spheres out of the reconstruction.
+    """
+    from .calibrate import calibrate_stack
 
     try:
-        paths = capture_images(capture)
-        result = calibrate(paths)
+        result = calibrate_stack(stack, names=[p.name for p in stack.paths])
     except InputError as exc:
         raise InputError(
             f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
@@ -242,16 +244,15 @@ def _calibrated_lights(capture: Path, warnings: list[str]) -> tuple[LightSet, np
     usable = result.usable
     if usable.sum() < 3:
         raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
-    shape = read_image(paths[0]).shape[:2]
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
-    keep = np.ones(shape, bool)
+    rows, cols = np.mgrid[0 : stack.shape[0], 0 : stack.shape[1]]
+    keep = np.ones(stack.shape, bool)
     for cx, cy, r in result.spheres:
         # A margin of a few pixels keeps the spheres' dark rims out too.
         keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
-    lights = LightSet([p for p, u in zip(paths, usable) if u], result.directions[usable], None)
+    stack = stack.select(usable)
     warnings.append(f"no .lp file: light directions read from {len(result.spheres)} sphere(s) "
-                    f"for {int(usable.sum())} of {len(paths)} photographs")
-    return lights, keep
+                    f"for {int(usable.sum())} of {len(usable)} photographs")
+    return stack, LightSet(stack.paths, result.directions[usable], None), keep
 
 
 def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -603,14 +604,16 @@ def run_capture(
         opt.lp is None and not dataset and capture.is_dir()
         and not any(p.suffix.lower() == ".lp" for p in capture.iterdir())
     )
-    early_warnings: list[str] = []
     sphere_mask = None
     if dataset:
         lp_path = None
         lights = None
     elif calibrate_spheres:
         lp_path = None
-        lights, sphere_mask = _calibrated_lights(capture, early_warnings)
+        try:
+            photographs = capture_images(capture)
+        except InputError as exc:
+            raise InputError(f"no .lp light file, and {exc.problem}", capture) from None
     else:
         lp_path = find_lp(capture, opt.lp)
         lights = read_lp(lp_path)
@@ -621,7 +624,7 @@ def run_capture(
 
     stage = _Stages(progress)
     staging = _prepare_output(out)
-    warnings: list[str] = early_warnings
+    warnings: list[str] = []
     try:
         truth = None
         if dataset:
@@ -631,6 +634,10 @@ def run_capture(
             if ds.ground_truth_normals is not None and gt_dir is None:
                 gt_mask = ds.mask if ds.mask is not None else np.ones(stack.shape, bool)
                 truth = GroundTruth(ds.ground_truth_normals, gt_mask)
+        elif calibrate_spheres:
+            with stage("decode", len(photographs)) as advance:
+                stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance)
+            stack, lights, sphere_mask = _calibrate_from_spheres(stack, capture, warnings)
         else:
             with stage("decode", len(lights)) as advance:
                 stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)

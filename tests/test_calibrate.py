@@ -10,6 +10,7 @@ from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
+from helpers import stack_from_luminance
 from reconstruct.calibrate import (
     calibrate,
     calibrate_stack,
@@ -155,10 +156,10 @@ def test_write_lp_and_diagnostic(tmp_path, capture, calib):
 def test_bad_inputs_raise_input_error(tmp_path, capture):
     flat = np.full((5, 60, 80), 0.4, dtype=np.float32)
     with pytest.raises(InputError, match="no spheres found"):
-        calibrate_stack(flat)
+        calibrate_stack(stack_from_luminance(flat))
     noisy = flat + np.random.default_rng(0).normal(0, 0.02, flat.shape).astype(np.float32)
     with pytest.raises(InputError, match="no spheres found"):
-        calibrate_stack(noisy)
+        calibrate_stack(stack_from_luminance(noisy))
     with pytest.raises(InputError, match="no photographs"):
         calibrate([])
     with pytest.raises(InputError, match="not found"):
