@@ -78,11 +78,10 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
-from .bands import run_bands
 from .errors import InputError, read_input_file
 from .fit import fit_matrix, light_matrix
 from .lp import as_directions
-from .streaming import check_same_size, encoded_rows, stream_photographs
+from .streaming import accumulate_photographs, fit_channels
 
 __all__ = [
     "FORMAT_JPEG_LRGB",
@@ -793,37 +792,27 @@ def fit_ptm_encoded(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
-    n, pinv = _fit_setup(images, directions, solver)
+    _, pinv = _fit_setup(images, directions, solver)
     wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
-    acc = peak = cy = y2 = None
-    shape: tuple[int, int] = (0, 0)
-    for k, img, path in stream_photographs(images, threads):
-        if acc is None:
-            shape = img.shape[:2]
-            # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
-            # NumPy loop over the last axis of 6 and runs several times slower.
-            acc = np.zeros((6,) + shape, dtype=np.float32)
-            peak = np.zeros(shape, dtype=np.float32)
-            cy = np.zeros((3,) + shape, dtype=np.float32)
-            y2 = np.zeros(shape, dtype=np.float32)
-        check_same_size(img, shape, k, path)
-        col = pinv[:, k]
+    sums: dict[str, np.ndarray] = {}
 
-        def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = encoded_rows(img[r0:r1])
-            y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
-            for j in range(6):
-                acc[j, r0:r1] += y * col[j]
-            np.maximum(peak[r0:r1], y, out=peak[r0:r1])
-            for j in range(3):
-                cy[j, r0:r1] += c[..., j] * y
-            y2[r0:r1] += y * y
+    def allocate(shape: tuple[int, int]) -> None:
+        # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
+        # NumPy loop over the last axis of 6 and runs several times slower.
+        sums.update(acc=np.zeros((6,) + shape, np.float32), peak=np.zeros(shape, np.float32),
+                    cy=np.zeros((3,) + shape, np.float32), y2=np.zeros(shape, np.float32))
 
-        # Bands of rows never overlap, so threads can add one photograph's bands at once.
-        run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
-        if progress is not None:
-            progress(1)
+    def add(k: int, c: np.ndarray, r0: int, r1: int) -> None:
+        y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
+        for j in range(6):
+            sums["acc"][j, r0:r1] += y * pinv[j, k]
+        np.maximum(sums["peak"][r0:r1], y, out=sums["peak"][r0:r1])
+        for j in range(3):
+            sums["cy"][j, r0:r1] += c[..., j] * y
+        sums["y2"][r0:r1] += y * y
 
+    shape = accumulate_photographs(images, allocate, add, threads=threads, progress=progress)
+    acc, peak, cy, y2 = sums["acc"], sums["peak"], sums["cy"], sums["y2"]
     coefficients = np.empty(shape + (6,), dtype=np.float32)
     rgb = np.empty(shape + (3,), dtype=np.uint8)
     step = max(1, (1 << 18) // shape[1])
@@ -871,23 +860,5 @@ def fit_ptm_rgb_encoded(
     ndarray, shape (H, W, 3, 6), float32
         Per-channel coefficients in 0..255 units, row 0 at the top.
     """
-    n, pinv = _fit_setup(images, directions, solver)
-    acc = None
-    shape: tuple[int, int] = (0, 0)
-    for k, img, path in stream_photographs(images, threads):
-        if acc is None:
-            shape = img.shape[:2]
-            acc = np.zeros((3, 6) + shape, dtype=np.float32)  # plane by plane, as above
-        check_same_size(img, shape, k, path)
-        col = pinv[:, k]
-
-        def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = encoded_rows(img[r0:r1])
-            for ch in range(3):
-                for j in range(6):
-                    acc[ch, j, r0:r1] += c[..., ch] * col[j]
-
-        run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
-        if progress is not None:
-            progress(1)
-    return np.ascontiguousarray(np.moveaxis(acc, (0, 1), (2, 3)))
+    _, pinv = _fit_setup(images, directions, solver)
+    return fit_channels(images, pinv, threads=threads, progress=progress)

@@ -48,11 +48,10 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_write
-from .bands import run_bands
 from .errors import InputError, read_input_file
 from .hsh import ORDERS, hsh_basis, hsh_fit_matrix
 from .lp import as_directions
-from .streaming import check_same_size, encoded_rows, stream_photographs
+from .streaming import fit_channels
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -376,25 +375,6 @@ def fit_rti_hsh(
     n = len(images)
     if n < 1:
         raise InputError("no photographs given")
-    k = order * order
     # Photographs in 0..255 (streaming.encoded_rows) → divide by 255 once, in the matrix.
     pinv = (hsh_fit_matrix(as_directions(directions, n), order) / 255.0).astype(np.float32)
-    acc = None
-    shape: tuple[int, int] = (0, 0)
-    for idx, img, path in stream_photographs(images, threads):
-        if acc is None:
-            shape = img.shape[:2]
-            acc = np.zeros((3, k) + shape, dtype=np.float32)  # plane by plane: fast adds
-        check_same_size(img, shape, idx, path)
-        col = pinv[:, idx]
-
-        def add(r0: int, r1: int, img: np.ndarray = img, col: np.ndarray = col) -> None:
-            c = encoded_rows(img[r0:r1])
-            for ch in range(3):
-                for j in range(k):
-                    acc[ch, j, r0:r1] += c[..., ch] * col[j]
-
-        run_bands(shape[0], max(1, (1 << 18) // shape[1]), add, threads=threads)
-        if progress is not None:
-            progress(1)
-    return np.ascontiguousarray(np.moveaxis(acc, (0, 1), (2, 3)))
+    return fit_channels(images, pinv, threads=threads, progress=progress)

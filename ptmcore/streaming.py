@@ -9,12 +9,13 @@ over in order, so memory stays at the sums plus a few photographs.
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
+from .bands import run_bands
 from .errors import InputError
 from .images import read_image
 
@@ -78,3 +79,66 @@ def check_same_size(img: np.ndarray, shape: tuple[int, int], k: int, path: Path 
             f"{shape[1]}×{shape[0]}; all photographs of a capture must have the same size",
             path if path is not None else f"image {k}",
         )
+
+
+def accumulate_photographs(
+    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
+    allocate: Callable[[tuple[int, int]], None],
+    add: Callable[[int, np.ndarray, int, int], None],
+    *,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[int, int]:
+    """Stream the photographs into running per-pixel sums; return the image shape.
+
+    ``allocate(shape)`` is called once with the first photograph's (H, W); then, for every
+    photograph k, ``add(k, rows, r0, r1)`` gets its rows ``r0:r1`` in 0..255 units
+    (:func:`encoded_rows`). Bands of rows never overlap, so threads add one photograph's bands
+    at once.
+    """
+    shape: tuple[int, int] | None = None
+    for k, img, path in stream_photographs(images, threads):
+        if shape is None:
+            shape = img.shape[:2]
+            allocate(shape)
+        check_same_size(img, shape, k, path)
+        run_bands(shape[0], max(1, (1 << 18) // shape[1]),
+                  lambda r0, r1, k=k, img=img: add(k, encoded_rows(img[r0:r1]), r0, r1), threads=threads)
+        if progress is not None:
+            progress(1)
+    if shape is None:
+        raise InputError("no photographs given")
+    return shape
+
+
+def fit_channels(
+    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
+    matrix: np.ndarray,
+    *,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> np.ndarray:
+    """Per-channel linear fit of the photographs as encoded: ``matrix`` (K, N) times each
+    channel's values in 0..255 units, streamed one photograph at a time.
+
+    Returns
+    -------
+    ndarray, shape (H, W, 3, K), float32
+    """
+    m = np.asarray(matrix, dtype=np.float32)
+    k_terms = m.shape[0]
+    sums: list[np.ndarray] = []
+
+    def allocate(shape: tuple[int, int]) -> None:
+        # Plane by plane: adding into an interleaved (..., K) array makes NumPy loop over the
+        # short last axis and runs several times slower.
+        sums.append(np.zeros((3, k_terms) + shape, dtype=np.float32))
+
+    def add(k: int, c: np.ndarray, r0: int, r1: int) -> None:
+        acc = sums[0]
+        for ch in range(3):
+            for j in range(k_terms):
+                acc[ch, j, r0:r1] += c[..., ch] * m[j, k]
+
+    accumulate_photographs(images, allocate, add, threads=threads, progress=progress)
+    return np.ascontiguousarray(np.moveaxis(sums[0], (0, 1), (2, 3)))
