@@ -22,6 +22,7 @@ Output folder layout (stable; later versions add files, never rename them)::
     mesh.glb           with --glb: binary glTF with the texture
     loo_*.tif          with --loo: leave-one-out relighting error of each basis
     report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
+    report.html        self-contained page: inputs, photographs, relit renderings, maps, mesh
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ from .meshops import decimate, solid, write_glb, write_stl
 from .normalmaps import read_normal_map, shaded
 from .perspective import integrate_perspective, parse_intrinsics
 from .profiling import StageTimer
+from .report_html import write_report_html
 from .segment import foreground_mask
 from .web import export_openlime
 
@@ -539,6 +541,19 @@ def json_safe(value):
     return value
 
 
+def _write_reports(staging: Path, report: dict, stage: _Stages, **html) -> list[str]:
+    """Write report.json, then report.html from the staging folder; return their names.
+
+    report.json is written first so the page shows the other stages' timings; it is then
+    rewritten with the page's own time.
+    """
+    outputs.write_json(staging / "report.json", report)
+    with stage("report"):
+        write_report_html(staging, **html)
+    outputs.write_json(staging / "report.json", report)
+    return ["report.json", "report.html"]
+
+
 def _publish(staging: Path, out: Path, names: list[str]) -> dict[str, Path]:
     """Move the finished files from the staging folder into the output folder."""
     final = {}
@@ -740,9 +755,9 @@ def run_capture(
             lights=_rank_summary(rank), intensities=json_safe(intensity), ptm=_ptm_summary(quantisation),
             leave_one_out=loo, accuracy=accuracy,
         )
-        outputs.write_json(staging / "report.json", report)
+        reports = _write_reports(staging, report, stage, photographs=list(zip(lights.paths, lights.directions)))
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        final = _publish(staging, out, [*ptm_names, *loo_names, *names, "report.json"])
+        final = _publish(staging, out, [*ptm_names, *loo_names, *names, *reports])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)
@@ -801,8 +816,8 @@ def run_ptm(
         inputs = {"ptm": str(ptm_path.resolve()), "format": ptm.format, "width": w, "height": h,
                   "mask": _mask_source(opt.mask, mask)}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
-        outputs.write_json(staging / "report.json", report)
-        final = _publish(staging, out, [*web, *names, "report.json"])
+        reports = _write_reports(staging, report, stage)
+        final = _publish(staging, out, [*web, *names, *reports])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)
@@ -845,8 +860,8 @@ def run_normals(
         inputs = {"normal_map": str(path.resolve()), "width": w, "height": h,
                   "mask": _mask_source(opt.mask, mask) if opt.mask else ("valid normals" if mask is not None else None)}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
-        outputs.write_json(staging / "report.json", report)
-        final = _publish(staging, out, [*names, "report.json"])
+        reports = _write_reports(staging, report, stage)
+        final = _publish(staging, out, [*names, *reports])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return RunResult(out, final, report)
@@ -919,8 +934,9 @@ def run_compare(
     ``reconstruction`` is a mesh or an output folder of ``reconstruct run`` (its mesh.ply,
     which must be in millimetres). Writes ``comparison.json``, ``distances.ply`` (the
     reconstruction coloured by its distance to the scan, or the scan points when the
-    reconstruction is a point cloud), ``histogram.png`` and ``overlay.png`` (an off-screen
-    render; skipped with a warning where the machine cannot render).
+    reconstruction is a point cloud), ``histogram.png``, ``overlay.png`` (an off-screen
+    render; skipped with a warning where the machine cannot render) and ``report.html``
+    (with the reconstruction's own report when it is an output folder).
     """
     from .compare import align, distances, load_geometry, within_tolerance
     from .compare_report import default_limit, write_distance_ply, write_histogram, write_overlay
@@ -931,6 +947,7 @@ def run_compare(
     if not 0 < opt.min_fraction <= 1:
         raise InputError(f"the fraction needed within tolerance must be in (0, 1], got {opt.min_fraction}")
     rec_path = Path(reconstruction)
+    rec_folder = rec_path if rec_path.is_dir() else None
     warnings: list[str] = []
     if rec_path.is_dir():
         report_file = rec_path / "report.json"
@@ -1003,7 +1020,10 @@ def run_compare(
             "warnings": warnings,
         })
         outputs.write_json(staging / "comparison.json", report)
-        final = _publish(staging, out, names)
+        # The page also shows the reconstruction's report when the comparison is written
+        # beside it (``run --scan``) or made from its output folder.
+        write_report_html(staging, also=[out, *([rec_folder] if rec_folder else [])])
+        final = _publish(staging, out, [*names, "report.html"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return CompareResult(out, final, report, passed)

@@ -1,0 +1,109 @@
+"""Time and memory of ``report.html`` for a large output folder (24 megapixels by default).
+
+An output folder is made as ``reconstruct run`` writes it (normals.npy, normals.png, albedo.png,
+height.tif, mesh.ply with the automatic mesh step, report.json) from a synthetic relief, with 8
+full-size JPEG photographs for the contact sheet; then :func:`reconstruct.report_html.write_report_html`
+runs in a fresh process, which reports its wall time and the peak RSS above what the imports
+take. Relighting uses the normals and albedo (a 24-megapixel ``coefficients.ptm`` is above
+``report_figures.MAX_PTM_BYTES``).
+
+Run: ``.venv/bin/python benchmarks/report_html.py [--size 6000x4000]``
+Prints the numbers and writes ``benchmarks/results/report_html.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from reconstruct import outputs  # noqa: E402
+from reconstruct.mesh import grid_mesh, write_ply  # noqa: E402
+from reconstruct.pipeline import auto_step  # noqa: E402
+
+_MEASURE = """
+import json, sys, time
+sys.path.insert(0, {root!r})
+from reconstruct.profiling import peak_rss_mb, _reset_peak_rss
+from reconstruct import report_html, report_figures
+import matplotlib.figure, pyvista  # the imports' memory is not the report's
+import numpy as np
+photos = json.loads({photos!r})
+_reset_peak_rss()
+base = peak_rss_mb()
+t0 = time.perf_counter()
+report_html.write_report_html({folder!r}, photographs=[(p, np.array(d)) for p, d in photos])
+print(json.dumps({{"seconds": time.perf_counter() - t0, "peak_rss_mb_above_imports": peak_rss_mb() - base}}))
+"""
+
+
+def make_folder(folder: Path, shape: tuple[int, int]) -> list[tuple[str, list[float]]]:
+    """A synthetic output folder of ``shape`` pixels; returns the photographs and their lights."""
+    import cv2
+
+    h, w = shape
+    rows = np.arange(h, dtype=np.float32)[:, None]
+    cols = np.arange(w, dtype=np.float32)[None, :]
+    height = (np.sin(cols / 90) * np.cos(rows / 70) * 8).astype(np.float32)
+    gy, gx = np.gradient(height)
+    normals = np.dstack([-gx, gy, np.ones_like(gx)])
+    del gx, gy
+    normals /= np.linalg.norm(normals, axis=2, keepdims=True)
+    normals = normals.astype(np.float32)
+    albedo = np.full((h, w, 3), 180, np.uint8)
+    outputs.write_npy(folder / "normals.npy", normals)
+    outputs.write_png(folder / "normals.png", outputs.normals_to_rgb16(normals))
+    outputs.write_png(folder / "albedo.png", albedo)
+    outputs.write_height_tiff(folder / "height.tif", height, "mm", 0.02)
+    step = auto_step(shape)
+    write_ply(folder / "mesh.ply", grid_mesh(height, texture=albedo, step=step, pixel_size=0.02))
+    outputs.write_json(folder / "report.json", {
+        "inputs": {"capture": "synthetic", "width": w, "height": h},
+        "parameters": {"pixel_size": 0.02, "step": step}, "height_unit": "mm",
+        "mesh": {"step": step, "unit": "mm"}, "stages": {}, "versions": {}, "warnings": [],
+    })
+    photos = []
+    for k, az in enumerate(np.radians(np.arange(8) * 45.0)):
+        light = [0.5 * np.cos(az), 0.5 * np.sin(az), np.sqrt(0.75)]
+        shade = np.clip(normals @ np.asarray(light, np.float32), 0, 1)
+        path = folder / f"photo_{k}.jpg"
+        cv2.imwrite(str(path), np.round(shade * 230).astype(np.uint8))
+        photos.append((str(path), light))
+    return photos
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", default="6000x4000", help="WxH of the output folder")
+    args = parser.parse_args()
+    w, h = map(int, args.size.lower().split("x"))
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        t0 = time.perf_counter()
+        photos = make_folder(folder, (h, w))
+        made = time.perf_counter() - t0
+        code = _MEASURE.format(root=str(ROOT), folder=str(folder), photos=json.dumps(photos))
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+        result = json.loads(out.stdout.strip().splitlines()[-1])
+        size_kb = (folder / "report.html").stat().st_size / 1024
+        page = (folder / "report.html").read_text()
+    result.update({"size": args.size, "mesh_step": auto_step((h, w)), "report_kib": round(size_kb),
+                   "mesh_render": "no mesh render" not in page, "folder_made_seconds": round(made, 1),
+                   "machine": f"{platform.machine()}, {platform.python_version()}"})
+    print(json.dumps(result, indent=2))
+    (ROOT / "benchmarks" / "results").mkdir(exist_ok=True)
+    (ROOT / "benchmarks" / "results" / "report_html.json").write_text(json.dumps(result, indent=2) + "\n")
+
+
+if __name__ == "__main__":
+    main()

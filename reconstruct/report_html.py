@@ -1,0 +1,376 @@
+"""``report.html``: one self-contained page that shows what a run made and how.
+
+The page is built from an output folder (``report.json``, ``comparison.json`` and the images
+and maps beside them) plus, for the contact sheet, a few of the photographs. Every picture is
+embedded as a ``data:`` URI and the style is inline, so the file opens anywhere (a USB stick,
+no network) and references nothing else. A picture that cannot be made (no off-screen
+rendering, no matplotlib, an unreadable photograph) becomes a note in its place: the page is
+always written.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import os
+from collections.abc import Callable, Iterable, Sequence
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.atomic import atomic_write
+
+from . import report_figures as figures
+
+#: At most this many photographs on the contact sheet.
+CONTACT_SHEET = 8
+
+_STYLE = """
+body{font:15px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;color:#222;background:#f4f4f2;margin:0}
+main{max-width:1100px;margin:0 auto;padding:12px 20px 40px;background:#fff}
+h1{font-size:1.5em;margin:.4em 0 .1em}h2{font-size:1.2em;border-bottom:1px solid #ccc;margin-top:1.6em}
+.meta{color:#555;margin:0 0 .6em}nav a{margin-right:.8em}
+table{border-collapse:collapse;margin:.4em 0;font-size:.92em}
+td,th{border:1px solid #ddd;padding:3px 8px;text-align:left;vertical-align:top}
+th{background:#f0f0ee}td.num{text-align:right;font-variant-numeric:tabular-nums}
+.grid{display:grid;grid-template-columns:repeat(auto-fill,minmax(var(--min,320px),1fr));gap:10px}
+.sheet{--min:120px}figure{margin:0}figure img{width:100%;height:auto;border:1px solid #ddd;display:block}
+figcaption{font-size:.85em;color:#444;margin-top:2px}
+.note{background:#eef3fb;border-left:4px solid #6a8fd0;padding:6px 10px;margin:.5em 0}
+.warnings{background:#fff4e0;border-left:4px solid #e09a1a;padding:6px 10px 6px 28px}
+.tables{display:flex;flex-wrap:wrap;gap:0 28px}
+"""
+
+
+def _esc(value: object) -> str:
+    return html.escape(str(value), quote=True)
+
+
+def _fmt(value: object) -> str:
+    """A value as a short readable string: numbers to 4 significant digits, lists compactly."""
+    if isinstance(value, bool) or value is None:
+        return "—" if value is None else ("yes" if value else "no")
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    if isinstance(value, (list, tuple)):
+        text = ", ".join(_fmt(v) for v in value)
+        return text if len(text) <= 160 else text[:157] + "…"
+    if isinstance(value, dict):
+        return json.dumps(value, ensure_ascii=False)[:160]
+    return str(value)
+
+
+def _flatten(data: dict, prefix: str = "") -> Iterable[tuple[str, object]]:
+    """Nested dictionaries as ``("a.b", value)`` rows."""
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, dict) and value:
+            yield from _flatten(value, name + ".")
+        else:
+            yield name, value
+
+
+def _table(rows: Iterable[Sequence[object]], header: Sequence[str] | None = None) -> str:
+    head = "<tr>" + "".join(f"<th>{_esc(h)}</th>" for h in header) + "</tr>" if header else ""
+    body = []
+    for row in rows:
+        cells = []
+        for k, value in enumerate(row):
+            numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+            cls = ' class="num"' if numeric and k > 0 else ""
+            cells.append(f"<td{cls}>{_esc(_fmt(value))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table>{head}{''.join(body)}</table>"
+
+
+def _data_uri(data: bytes, mime: str) -> str:
+    return f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}"
+
+
+def _img(data: bytes, mime: str, alt: str) -> str:
+    return f'<img src="{_data_uri(data, mime)}" alt="{_esc(alt)}">'
+
+
+def _figure(data: bytes, mime: str, caption: str) -> str:
+    return f"<figure>{_img(data, mime, caption)}<figcaption>{_esc(caption)}</figcaption></figure>"
+
+
+def _note(text: str) -> str:
+    return f'<p class="note">{_esc(text)}</p>'
+
+
+class _Folder:
+    """Files of the report: the folder being written first, then earlier output folders."""
+
+    def __init__(self, folder: Path, also: Sequence[Path]) -> None:
+        self.places = [folder, *also]
+
+    def find(self, name: str) -> Path | None:
+        return next((p / name for p in self.places if (p / name).is_file()), None)
+
+    def json(self, name: str) -> dict | None:
+        path = self.find(name)
+        return json.loads(path.read_text(encoding="utf-8")) if path else None
+
+
+def _attempt(make: Callable[[], str], what: str, notes: list[str]) -> str:
+    """``make()``, or a note in its place when the picture cannot be made."""
+    try:
+        return make()
+    except Exception as exc:  # noqa: BLE001 - a picture must never fail the run, whatever the cause
+        message = f"no {what}: {exc}"
+        notes.append(message)
+        return _note(message)
+
+
+def _attempt_value(make: Callable[[], object], what: str, notes: list[str]):
+    """``make()``, or None with a note when it fails."""
+    try:
+        return make()
+    except Exception as exc:  # noqa: BLE001 - an unreadable .lp only costs the contact sheet
+        notes.append(f"no {what}: {exc}")
+        return None
+
+
+def _photographs_from_report(report: dict | None) -> list[tuple[Path, np.ndarray]] | None:
+    """The photographs named by the run's ``.lp`` file, when it is still where it was."""
+    lp = ((report or {}).get("inputs") or {}).get("lp")
+    if not lp or not Path(lp).is_file():
+        return None
+    from ptmcore.lp import read_lp
+
+    lights = read_lp(lp)
+    return list(zip(lights.paths, lights.directions))
+
+
+def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]]) -> str:
+    n = len(photographs)
+    picks = sorted(set(np.linspace(0, n - 1, min(n, CONTACT_SHEET)).round().astype(int).tolist()))
+    items = []
+    for k in picks:
+        path, light = photographs[k]
+        light = np.asarray(light, dtype=np.float64)
+        az = np.degrees(np.arctan2(light[1], light[0])) % 360
+        el = np.degrees(np.arcsin(np.clip(light[2], -1, 1)))
+        thumb = figures.photograph_thumbnail(path)
+        items.append(_figure(figures.encode(thumb, "JPEG"), "image/jpeg",
+                             f"{Path(path).name} — light az {az:.0f}°, el {el:.0f}°"))
+    shown = f"{len(picks)} of {n} photographs" if len(picks) < n else f"all {n} photographs"
+    return f"<p>{_esc(shown)}; azimuth 0° = light from the right, 90° = from the top.</p>" \
+           f'<div class="grid sheet">{"".join(items)}</div>'
+
+
+def _relit(files: _Folder, report: dict | None) -> str:
+    ptm = files.find("coefficients.ptm")
+    source = ((report or {}).get("inputs") or {}).get("ptm")
+    if ptm is None and source and Path(source).is_file():
+        ptm = Path(source)  # a run from a .ptm file: relight the file itself
+    normals = files.find("normals.npy")
+    if ptm is not None and ptm.stat().st_size <= figures.MAX_PTM_BYTES:
+        images = figures.relit_from_ptm(ptm)
+        how = f"RTIViewer's default rendering of {ptm.name}"
+    elif normals is not None:
+        from ptmcore.images import read_image
+
+        n = np.load(normals, mmap_mode="r")
+        albedo_path = files.find("albedo.png")
+        # A normal map from elsewhere has no albedo (its albedo.png is a shaded rendering).
+        from_normal_map = "normal_map" in ((report or {}).get("inputs") or {})
+        albedo = read_image(albedo_path) if albedo_path and not from_normal_map else None
+        images = figures.relit_lambertian(n, albedo)
+        how = "Lambertian shading of the normals" + (" and albedo" if albedo is not None else " (uniform grey)")
+    else:
+        return _note("no relit renderings: neither coefficients.ptm nor normals.npy is in the folder")
+    items = "".join(_figure(figures.encode(img, "JPEG"), "image/jpeg", label) for label, img in images)
+    return f"<p>{_esc(how)}, under six lights (elevation above the object plane).</p>" \
+           f'<div class="grid">{items}</div>'
+
+
+def _maps(files: _Folder, report: dict | None, notes: list[str]) -> str:
+    parts = []
+    normals = files.find("normals.npy")
+    if normals is not None:
+        parts.append(_attempt(lambda: _figure(
+            figures.encode(figures.normal_map_image(np.load(normals, mmap_mode="r"))), "image/png",
+            "normal map (R = x right, G = y up, B = z towards the camera)"), "normal map picture", notes))
+    height = files.find("height.tif")
+    if height is not None:
+        unit = (report or {}).get("height_unit", "pixel")
+        params = (report or {}).get("parameters") or {}
+        # A perspective camera's pixels do not all cover the same size on the object.
+        pixel_size = params.get("pixel_size") if not params.get("intrinsics") else None
+
+        def make() -> str:
+            sub, stride = figures.read_subsampled(height, 1200)
+            png = figures.height_figure(sub, stride, unit, pixel_size)
+            bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
+            return _figure(png, "image/png", f"height map in {unit}; {bar}")
+
+        parts.append(_attempt(make, "height map picture", notes))
+    if not parts:
+        return _note("no normal or height map in the folder")
+    return f'<div class="grid" style="--min:420px">{"".join(parts)}</div>'
+
+
+def _mesh(files: _Folder, report: dict | None, notes: list[str]) -> str:
+    mesh = files.find("mesh.ply")
+    if mesh is None:
+        return _note("no mesh.ply in the folder")
+    faces = figures.ply_face_count(mesh)
+    height = files.find("height.tif")
+
+    def make() -> str:
+        if faces is not None and faces <= figures.MAX_RENDER_FACES or height is None:
+            image = figures.mesh_render(mesh)
+            what = "mesh.ply"
+        else:
+            params = (report or {}).get("parameters") or {}
+            sub, stride = figures.read_subsampled(height, 600)
+            image = figures.mesh_render(figures.surface_from_height(sub, stride, params.get("pixel_size")))
+            what = f"mesh.ply's surface ({faces:,} triangles) sampled every {stride} pixels"
+        return _figure(figures.encode(image, "JPEG", 90), "image/jpeg",
+                       f"{what}, shaded, seen obliquely from the front (true scale)")
+
+    return _attempt(make, "mesh render", notes)
+
+
+def _comparison(files: _Folder, comparison: dict, notes: list[str]) -> str:
+    stats = comparison.get("statistics_mm") or {}
+    tables = [_table(stats.items(), ("scan → reconstruction", "mm"))]
+    if comparison.get("reverse_statistics_mm"):
+        tables.append(_table(comparison["reverse_statistics_mm"].items(), ("reconstruction → scan", "mm")))
+    alignment = {k: v for k, v in (comparison.get("alignment") or {}).items()
+                 if k != "transform_scan_to_reconstruction"}
+    tables.append(_table(alignment.items(), ("alignment", "")))
+    if comparison.get("tolerance"):
+        tables.append(_table(comparison["tolerance"].items(), ("tolerance", "")))
+    parts = [f'<p>{_esc(comparison.get("sign_convention", ""))}. Scan: {_esc(comparison.get("scan", ""))}</p>',
+             f'<div class="tables">{"".join(tables)}</div>']
+    for name, fmt, caption in (("histogram.png", "PNG", "histogram of the signed distances"),
+                               ("overlay.png", "JPEG", "aligned pair and distance map")):
+        path = files.find(name)
+        if path is not None:
+            parts.append(_attempt(lambda path=path, fmt=fmt, caption=caption: _figure(
+                figures.downscale_file(path, fmt=fmt), f"image/{fmt.lower()}", caption), name, notes))
+        elif name == "overlay.png":
+            parts.append(_note("no overlay.png (see the warnings)"))
+    return "".join(parts)
+
+
+def _timings(report: dict | None, comparison: dict | None) -> str:
+    rows = []
+    for prefix, doc in (("", report), ("compare: ", comparison)):
+        for name, s in ((doc or {}).get("stages") or {}).items():
+            rows.append((prefix + name, s.get("seconds"), s.get("peak_rss_mb")))
+    if not rows:
+        return _note("no stage timings recorded")
+    total = sum(r[1] or 0 for r in rows)
+    scope = (report or {}).get("peak_rss_scope", "per stage")
+    return _table([*rows, ("total", round(total, 3), None)], ("stage", "wall time (s)", f"peak memory (MiB, {scope})"))
+
+
+def report_html(
+    folder: str | os.PathLike,
+    *,
+    photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
+    title: str | None = None,
+    also: Sequence[str | os.PathLike] = (),
+) -> str:
+    """The text of ``report.html`` for an output folder.
+
+    Parameters
+    ----------
+    folder : path
+        The folder holding ``report.json`` and/or ``comparison.json`` and the maps.
+    photographs : sequence of (path, light direction), optional
+        The photographs of the capture, for the contact sheet (at most
+        :data:`CONTACT_SHEET`, evenly spread, are shown). Default: those of the ``.lp`` file
+        named in ``report.json``, when it still exists.
+    title : str, optional
+        The page's title (default: the source's name).
+    also : sequence of paths
+        Further folders to look in for files not in ``folder`` (an output folder published
+        earlier, e.g. the reconstruction a comparison was written beside).
+
+    Returns
+    -------
+    str
+        A complete HTML5 document with every picture embedded.
+    """
+    files = _Folder(Path(folder), [Path(p) for p in also])
+    report = files.json("report.json")
+    comparison = files.json("comparison.json")
+    notes: list[str] = []
+    inputs = (report or {}).get("inputs") or {}
+    source = inputs.get("capture") or inputs.get("ptm") or inputs.get("normal_map") \
+        or (comparison or {}).get("reconstruction") or str(folder)
+    title = title or f"ptm-reconstruct report: {Path(source).name}"
+    versions = (report or comparison or {}).get("versions") or {}
+
+    sections: list[tuple[str, str, str]] = []
+    if report is not None:
+        tables = [_table(inputs.items(), ("input", "")),
+                  _table((report.get("parameters") or {}).items(), ("parameter", "value"))]
+        result = dict(report.get("mesh") or {})
+        for key in ("albedo_scale", "lights", "ptm", "intensities", "leave_one_out"):
+            if report.get(key) is not None:
+                result.update(_flatten({key: report[key]}))
+        tables.append(_table(result.items(), ("result", "")))
+        sections.append(("inputs", "Inputs and parameters", f'<div class="tables">{"".join(tables)}</div>'))
+        if photographs is None:
+            photographs = _attempt_value(lambda: _photographs_from_report(report), "contact sheet", notes)
+        if photographs:
+            sections.append(("photographs", "Photographs",
+                             _attempt(lambda: _contact_sheet(photographs), "contact sheet", notes)))
+        sections.append(("relit", "Relit renderings", _attempt(lambda: _relit(files, report), "relit renderings", notes)))
+        sections.append(("maps", "Normal map and height map", _maps(files, report, notes)))
+        sections.append(("mesh", "Mesh", _mesh(files, report, notes)))
+        if report.get("accuracy"):
+            sections.append(("accuracy", "Accuracy against ground truth",
+                             _table(_flatten(report["accuracy"]), ("measure", "value"))))
+    if comparison is not None:
+        sections.append(("comparison", "Comparison with the scan", _comparison(files, comparison, notes)))
+    sections.append(("timings", "Stage timings", _timings(report, comparison)))
+    warnings = [*((report or {}).get("warnings") or []), *((comparison or {}).get("warnings") or []), *notes]
+    warning_body = ("<ul class=\"warnings\">" + "".join(f"<li>{_esc(w)}</li>" for w in warnings) + "</ul>"
+                    if warnings else "<p>none</p>")
+    sections.append(("warnings", f"Warnings ({len(warnings)})", warning_body))
+
+    made = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+    meta = [f"source: {source}", f"made {made}", f"ptm-reconstruct {versions.get('ptm-reconstruct', '?')}"]
+    if report is not None:
+        meta.append(f"heights in {report.get('height_unit')}")
+    nav = "".join(f'<a href="#{key}">{_esc(name)}</a>' for key, name, _ in sections)
+    body = "".join(f'<section id="{key}"><h2>{_esc(name)}</h2>{content}</section>' for key, name, content in sections)
+    return (
+        "<!DOCTYPE html>\n"
+        f'<html lang="en"><head><meta charset="utf-8">'
+        f'<meta name="viewport" content="width=device-width, initial-scale=1">'
+        f"<title>{_esc(title)}</title><style>{_STYLE}</style></head>\n"
+        f"<body><main><h1>{_esc(title)}</h1>"
+        f'<p class="meta">{" · ".join(_esc(m) for m in meta)}</p><nav>{nav}</nav>\n'
+        f"{body}</main></body></html>\n"
+    )
+
+
+def write_report_html(
+    folder: str | os.PathLike,
+    *,
+    photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
+    title: str | None = None,
+    also: Sequence[str | os.PathLike] = (),
+) -> Path:
+    """Write ``report.html`` into ``folder`` (atomically); see :func:`report_html`.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    text = report_html(folder, photographs=photographs, title=title, also=also)
+    path = Path(folder) / "report.html"
+    with atomic_write(path, "w") as f:
+        f.write(text)
+    return path

@@ -1,0 +1,193 @@
+"""``report.html``: written in every output folder, valid, self-contained, with its sections."""
+
+import base64
+import io
+import json
+import re
+from html.parser import HTMLParser
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from cli.main import main
+from ptmcore.lp import write_lp
+from reconstruct import report_figures
+from reconstruct.pipeline import RunOptions, run_capture
+from reconstruct.report_html import report_html
+
+from helpers import dome, sphere_normals
+
+VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
+
+
+class _Checker(HTMLParser):
+    """Collects structure errors, section ids, references and text of an HTML page."""
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.stack: list[str] = []
+        self.errors: list[str] = []
+        self.ids: set[str] = set()
+        self.refs: list[tuple[str, str, str]] = []  # (attribute, value, alt)
+        self.doctype = False
+        self.text: list[str] = []
+
+    def handle_decl(self, decl: str) -> None:
+        self.doctype |= decl.lower() == "doctype html"
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if "id" in a:
+            if a["id"] in self.ids:
+                self.errors.append(f"duplicate id {a['id']}")
+            self.ids.add(a["id"])
+        for key in ("src", "href"):
+            if key in a:
+                self.refs.append((key, a[key], a.get("alt", "")))
+        if tag not in VOID:
+            self.stack.append(tag)
+
+    def handle_startendtag(self, tag, attrs):
+        self.handle_starttag(tag, attrs)
+        if tag not in VOID:
+            self.stack.pop()
+
+    def handle_endtag(self, tag):
+        if tag in VOID:
+            self.errors.append(f"end tag for void element {tag}")
+        elif not self.stack or self.stack[-1] != tag:
+            self.errors.append(f"</{tag}> closes <{self.stack[-1] if self.stack else None}>")
+        else:
+            self.stack.pop()
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+
+def check_page(path) -> _Checker:
+    """Parse a report and assert it is well formed and references nothing outside itself."""
+    text = path.read_text(encoding="utf-8")
+    checker = _Checker()
+    checker.feed(text)
+    checker.close()
+    assert checker.doctype
+    assert not checker.errors, checker.errors[:5]
+    assert not checker.stack, f"unclosed: {checker.stack}"
+    assert "http://" not in text and "https://" not in text and "url(" not in text
+    for attribute, value, alt in checker.refs:
+        if attribute == "href":
+            assert value.startswith("#") and value[1:] in checker.ids, value
+            continue
+        match = re.fullmatch(r"data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)", value)
+        assert match, f"{alt}: not an embedded PNG or JPEG: {value[:60]}"
+        image = Image.open(io.BytesIO(base64.b64decode(match.group(2), validate=True)))
+        assert image.format == match.group(1).upper(), alt
+        image.load()
+        assert 0 < image.width <= 1000, (alt, image.size)
+    return checker
+
+
+@pytest.fixture(scope="module")
+def scanned(tmp_path_factory):
+    """A synthetic tablet reconstructed with ground truth and compared with its scan."""
+    from data_synthetic import write_capture
+
+    root = tmp_path_factory.mktemp("report")
+    info = write_capture(root / "cap", "tablet", shape=(90, 120), n_lights=24, seed=8)
+    out = root / "out"
+    assert main(["run", str(info.folder), "-o", str(out), "--pixel-size", str(info.pixel_size), "-q",
+                 "--scan", str(info.scan_path)]) == 0
+    return info, out
+
+
+def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
+    _, out = scanned
+    checker = check_page(out / "report.html")
+    assert {"inputs", "photographs", "relit", "maps", "mesh", "accuracy", "comparison",
+            "timings", "warnings"} <= checker.ids
+    text = " ".join(checker.text)
+    alts = [alt for _, _, alt in checker.refs]
+    # The contact sheet shows at most 8 of the 24 photographs, named, with their lights.
+    assert sum("light az" in a for a in alts) == 8
+    assert sum("raking" in a for a in alts) >= 3 and any("overhead" in a for a in alts)
+    assert any("normal map" in a for a in alts)
+    assert any("scale bar in mm" in a for a in alts)
+    assert any(a.startswith("mesh.ply") for a in alts), "no mesh render"
+    assert any("histogram" in a for a in alts) and any("distance map" in a for a in alts)
+    # Statistics of the comparison and the other stages' timings are in the page.
+    stats = json.loads((out / "comparison.json").read_text())["statistics_mm"]
+    assert f"{stats['rms']:.4g}" in text
+    report = json.loads((out / "report.json").read_text())
+    for name in ("decode", "normals", "ptm", "integrate", "mesh", "write", "compare: align"):
+        assert name in text, name
+    # The page's own time is recorded in report.json, which is rewritten after it.
+    assert "report" in report["stages"]
+    assert "accuracy" in report and "height_rmse_mm" in text
+
+
+def test_compare_into_another_folder_and_escaping(scanned, tmp_path):
+    info, out = scanned
+    other = tmp_path / "vs"
+    assert main(["compare", str(out), str(info.scan_path), "-o", str(other)]) == 0
+    checker = check_page(other / "report.html")
+    # The reconstruction's report is shown beside the comparison made from its folder.
+    assert {"comparison", "inputs", "mesh", "timings"} <= checker.ids
+    page = report_html(other, title='<script>alert("x")</script> & co')
+    assert "<script>" not in page and "&lt;script&gt;" in page
+
+
+def test_report_from_a_ptm_and_from_a_normal_map(scanned, tmp_path):
+    _, out = scanned
+    from_ptm = tmp_path / "ptm"
+    assert main(["run", str(out / "coefficients.ptm"), "-o", str(from_ptm), "-q", "--pixel-size", "0.5"]) == 0
+    checker = check_page(from_ptm / "report.html")
+    assert {"inputs", "relit", "maps", "mesh", "warnings"} <= checker.ids
+    assert "photographs" not in checker.ids
+    assert any("PTM's maximum" in t for t in checker.text), "the run's warning is shown"
+    assert any("default rendering of coefficients.ptm" in t for t in checker.text), "relit from the source PTM"
+
+    from_normals = tmp_path / "normals"
+    assert main(["integrate", str(out / "normals.png"), "-o", str(from_normals), "-q"]) == 0
+    checker = check_page(from_normals / "report.html")
+    alts = [alt for _, _, alt in checker.refs]
+    assert any("scale bar in pixels (no pixel size given)" in a for a in alts)
+    assert any("uniform grey" in t for t in checker.text)
+
+
+def _small_capture(folder, n=10, h=40, w=48):
+    folder.mkdir(parents=True)
+    normals, _ = sphere_normals(h, w, 18.0)
+    names = []
+    for k, d in enumerate(dome(n, seed=3)):
+        shade = np.clip(normals @ d, 0, None) * 0.7
+        names.append(f"p{k}.tif")
+        tifffile.imwrite(folder / names[-1], np.round(np.repeat(shade[..., None], 3, axis=2) * 65535).astype(np.uint16))
+    write_lp(folder / "lights.lp", names, dome(n, seed=3))
+    return folder
+
+
+def test_report_is_written_with_a_note_when_rendering_fails(tmp_path, monkeypatch):
+    def no_context(*args, **kwargs):
+        raise RuntimeError("off-screen rendering is not available (no OpenGL context: no EGL or OSMesa)")
+
+    monkeypatch.setattr(report_figures, "mesh_render", no_context)
+    result = run_capture(_small_capture(tmp_path / "cap"), tmp_path / "out", RunOptions(pixel_size=0.1))
+    checker = check_page(result.files["report.html"])
+    text = " ".join(checker.text)
+    assert "no mesh render: off-screen rendering is not available" in text
+    assert not any(alt.startswith("mesh.ply") for _, _, alt in checker.refs)
+    # The rest of the page is still there, and the run's outputs are all published.
+    assert {"relit", "maps", "timings"} <= checker.ids
+    assert (tmp_path / "out" / "mesh.ply").is_file()
+
+
+def test_height_figure_scale_bar_measures_the_full_map():
+    height = np.add.outer(np.arange(50.0), np.arange(80.0)).astype(np.float32)
+    height[:5] = np.nan
+    png = report_figures.height_figure(height, 4, "mm", 0.05, width_px=600)
+    image = Image.open(io.BytesIO(png))
+    assert image.format == "PNG" and image.width == 600
+    # 80 pixels at stride 4 and 0.05 mm: 16 mm wide, so the bar is the 2 mm nearest a quarter.
+    assert report_figures._nice_length(0.25 * 80 * 4 * 0.05) == 2
