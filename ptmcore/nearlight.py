@@ -134,6 +134,22 @@ def typical_distance(positions: np.ndarray, shape: tuple[int, int]) -> float:
     return float(np.median(np.linalg.norm(np.asarray(positions, np.float64) - centre, axis=1)))
 
 
+def centre_directions(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Unit directions from the image centre (on the base plane) towards each light.
+
+    The one direction per photograph that tools assuming distant lights (an ``.lp`` file,
+    RTIViewer, the light-layout check) take for a near light.
+
+    Returns
+    -------
+    ndarray, shape (N, 3), float64
+    """
+    h, w = shape
+    centre = np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
+    d = np.asarray(positions, np.float64) - centre
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
 def _check_positions(positions: np.ndarray, count: int | None = None) -> np.ndarray:
     p = np.asarray(positions, dtype=np.float64)
     if p.ndim != 2 or p.shape[1] != 3 or (count is not None and len(p) != count):
@@ -377,6 +393,7 @@ def fit_ptm_near(
 
 __all__ = [
     "POSITION_HEADER",
+    "centre_directions",
     "fit_ptm_near",
     "light_field",
     "near_photometric_stereo",

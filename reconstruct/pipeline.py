@@ -21,6 +21,7 @@ Output folder layout (stable; later versions add files, never rename them)::
     solid.stl          with --solid: watertight relief on a base, for 3D printing
     mesh.glb           with --glb: binary glTF with the texture
     loo_*.tif          with --loo: leave-one-out relighting error of each basis
+    light_positions.csv  with near lights: the light positions used (pixels)
     report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
     report.html        self-contained page: inputs, photographs, relit renderings, maps, mesh
 """
@@ -46,6 +47,14 @@ from ptmcore.fit import fit_ptm
 from ptmcore.images import LUMA_WEIGHTS, ImageStack, load_stack, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
+from ptmcore.nearlight import (
+    centre_directions,
+    fit_ptm_near,
+    near_photometric_stereo,
+    read_light_positions,
+    typical_distance,
+    write_light_positions,
+)
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
@@ -155,6 +164,14 @@ class RunOptions:
     ground_truth : Path or None
         Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
         default: ``CAPTURE/ground_truth`` when it exists.
+    light_positions : Path, "auto" or "none"
+        Near (point) lights: a light-position file (``name,x,y,z`` in pixels,
+        :func:`ptmcore.nearlight.read_light_positions`) whose positions give every pixel its
+        own light direction and inverse-square falloff. ``"auto"``: the file
+        ``light_positions.csv`` beside the ``.lp`` when there is one, or, for a capture
+        calibrated from two or more spheres, the lights triangulated from their highlights
+        when they are near (:func:`reconstruct.triangulate.lights_are_near`). ``"none"``:
+        distant lights, one direction per photograph.
     """
 
     lp: Path | None = None
@@ -180,6 +197,7 @@ class RunOptions:
     mask: Path | None = None
     threads: int | None = None
     ground_truth: Path | None = None
+    light_positions: Path | str = "auto"
 
 
 @dataclass
@@ -226,13 +244,26 @@ def capture_images(folder: str | os.PathLike) -> list[Path]:
     return paths
 
 
-def _calibrate_from_spheres(stack: ImageStack, capture: Path, warnings: list[str]) -> tuple[ImageStack, LightSet, np.ndarray]:
+@dataclass
+class NearLights:
+    """Point lights of a capture: positions (pixels, project frame) and where they came from."""
+
+    positions: np.ndarray
+    source: str
+
+
+def _calibrate_from_spheres(
+    stack: ImageStack, capture: Path, warnings: list[str], opt: RunOptions
+) -> tuple[ImageStack, LightSet, np.ndarray, NearLights | None]:
     """Lights read from the glossy spheres of a decoded capture that has no .lp file.
 
-    Returns the stack of the photographs with a usable highlight, their lights, and a mask
-    that leaves the spheres out of the reconstruction.
+    Returns the stack of the photographs with a usable light, their lights, a mask that leaves
+    the spheres out of the reconstruction, and the lights' positions when two or more spheres
+    show them to be near (then every triangulated photograph is kept, even where the spheres'
+    distant directions disagree, as they must for a near light).
     """
     from .calibrate import calibrate_stack
+    from .triangulate import OK, lights_are_near, triangulate
 
     try:
         result = calibrate_stack(stack, names=[p.name for p in stack.paths])
@@ -241,20 +272,59 @@ def _calibrate_from_spheres(stack: ImageStack, capture: Path, warnings: list[str
             f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
             capture,
         ) from None
-    for name in result.flagged:
-        warnings.append(f"{name}: no usable highlight on the spheres; left out")
-    usable = result.usable
-    if usable.sum() < 3:
-        raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
     rows, cols = np.mgrid[0 : stack.shape[0], 0 : stack.shape[1]]
     keep = np.ones(stack.shape, bool)
     for cx, cy, r in result.spheres:
         # A margin of a few pixels keeps the spheres' dark rims out too.
         keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
+
+    near = None
+    if len(result.spheres) >= 2 and str(opt.light_positions) == "auto":
+        tri = triangulate(result)
+        if lights_are_near(tri, stack.shape):
+            usable = tri.usable
+            for name, status in zip(result.names, tri.status):
+                if status != OK:
+                    warnings.append(f"{name}: no light position from the spheres ({status}); left out")
+            if usable.sum() < 3:
+                raise InputError("fewer than 3 photographs have a triangulated light position", capture)
+            stack = stack.select(usable)
+            near = NearLights(tri.positions[usable], f"triangulated from {len(result.spheres)} spheres")
+            directions = centre_directions(near.positions, stack.shape)
+            warnings.append(
+                f"no .lp file: near lights triangulated from {len(result.spheres)} spheres for "
+                f"{int(usable.sum())} of {len(usable)} photographs; each pixel has its own light direction"
+            )
+            return stack, LightSet(stack.paths, directions, None), keep, near
+    for name in result.flagged:
+        warnings.append(f"{name}: no usable highlight on the spheres; left out")
+    usable = result.usable
+    if usable.sum() < 3:
+        raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
     stack = stack.select(usable)
     warnings.append(f"no .lp file: light directions read from {len(result.spheres)} sphere(s) "
                     f"for {int(usable.sum())} of {len(usable)} photographs")
-    return stack, LightSet(stack.paths, result.directions[usable], None), keep
+    return stack, LightSet(stack.paths, result.directions[usable], None), keep, near
+
+
+def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) -> NearLights | None:
+    """Positions for the photographs of ``lights`` from a light-position file, if there is one.
+
+    With ``"auto"`` the file is ``light_positions.csv`` beside the ``.lp``; photographs are
+    matched by file name, and every photograph of the ``.lp`` needs a position.
+    """
+    if str(option) == "none":
+        return None
+    path = lp_path.parent / "light_positions.csv" if str(option) == "auto" else Path(option)
+    if str(option) == "auto" and not path.is_file():
+        return None
+    names, positions = read_light_positions(path)
+    by_name = dict(zip(names, positions))
+    missing = [p.name for p in lights.paths if p.name not in by_name]
+    if missing:
+        raise InputError(f"no light position for {missing[0]}"
+                         + (f" and {len(missing) - 1} more photograph(s)" if len(missing) > 1 else ""), path)
+    return NearLights(np.array([by_name[p.name] for p in lights.paths]), str(path))
 
 
 def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
@@ -456,12 +526,25 @@ def _report(inputs: dict, opt: RunOptions, mesh: dict, stage: _Stages, warnings:
     }
 
 
-def _estimate_normals(stack, directions, opt: RunOptions, advance) -> tuple[np.ndarray, np.ndarray, int]:
+def _estimate_normals(
+    stack, directions, opt: RunOptions, advance, near: NearLights | None = None
+) -> tuple[np.ndarray, np.ndarray, int]:
     """Normals, luminance albedo and the count of undetermined pixels, by ``opt.normals``/``opt.fit``.
 
     Every fit here works on linear light, where a Lambertian surface's shading is n·l; the
-    PTM written for viewers is fitted separately, to the photographs as encoded.
+    PTM written for viewers is fitted separately, to the photographs as encoded. With near
+    lights every pixel has its own light directions: photometric stereo (with the plain fit's
+    exclusion of shadowed and clipped samples) or the per-pixel PTM fit's maximum.
     """
+    if near is not None:
+        if opt.normals == "ptm-debiased":
+            raise InputError("--normals ptm-debiased assumes distant lights; with near lights "
+                             "use ps or ptm (or --light-positions none)")
+        ps = near_photometric_stereo(stack, near.positions, threads=opt.threads, progress=advance)
+        if opt.normals == "ptm":
+            coefficients = fit_ptm_near(stack, near.positions, threads=opt.threads).coefficients
+            return normals_from_ptm(coefficients), ps.albedo, 0
+        return ps.normals, ps.albedo, int((~ps.valid).sum())
     if opt.normals == "ps":
         if opt.fit == "plain":
             ps = photometric_stereo(stack, directions, threads=opt.threads, progress=advance)
@@ -503,6 +586,20 @@ def _leave_one_out(stack, directions, mask, staging: Path, threads, advance) -> 
             tifffile.imwrite(f, rms_map.astype(np.float32), metadata={"unit": "8-bit sRGB levels"})
         result[name] = float(rms)
     return {"rms_levels": result, "best": min(result, key=result.get), "unit": "8-bit sRGB levels"}
+
+
+def _light_model(near: NearLights | None, shape: tuple[int, int], opt: RunOptions) -> dict:
+    """What report.json says of the light model: distant directions or near point lights."""
+    if near is None:
+        return {"type": "distant", "detail": "one light direction per photograph"}
+    return json_safe({
+        "type": "near",
+        "source": near.source,
+        "median_distance_px": typical_distance(near.positions, shape),
+        "detail": "each pixel has its own light direction and inverse-square falloff "
+                  f"({'PTM maximum of a per-pixel fit' if opt.normals == 'ptm' else 'photometric stereo, plain fit'}); "
+                  "coefficients.ptm and the other relighting files use the direction from the image centre",
+    })
 
 
 def _rank_summary(rank) -> dict:
@@ -620,9 +717,13 @@ def run_capture(
         and not any(p.suffix.lower() == ".lp" for p in capture.iterdir())
     )
     sphere_mask = None
+    near = None
     if dataset:
         lp_path = None
         lights = None
+        if str(opt.light_positions) not in ("auto", "none"):
+            raise InputError("light positions apply to captures with an .lp file or spheres, "
+                             "not to a photometric-stereo dataset", capture)
     elif calibrate_spheres:
         lp_path = None
         try:
@@ -632,6 +733,7 @@ def run_capture(
     else:
         lp_path = find_lp(capture, opt.lp)
         lights = read_lp(lp_path)
+        near = _near_lights_from_file(lights, lp_path, opt.light_positions)
     gt_dir = opt.ground_truth
     if gt_dir is None:
         guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
@@ -652,7 +754,7 @@ def run_capture(
         elif calibrate_spheres:
             with stage("decode", len(photographs)) as advance:
                 stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance)
-            stack, lights, sphere_mask = _calibrate_from_spheres(stack, capture, warnings)
+            stack, lights, sphere_mask, near = _calibrate_from_spheres(stack, capture, warnings, opt)
         else:
             with stage("decode", len(lights)) as advance:
                 stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
@@ -685,7 +787,7 @@ def run_capture(
             )
 
         with stage("normals", h) as advance:
-            normals, albedo, undetermined = _estimate_normals(stack, lights.directions, opt, advance)
+            normals, albedo, undetermined = _estimate_normals(stack, lights.directions, opt, advance, near)
         if undetermined:
             warnings.append(
                 f"{undetermined} pixels ({undetermined / (h * w):.2%}) had too few lit, unsaturated "
@@ -752,9 +854,13 @@ def run_capture(
         }
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
-            lights=_rank_summary(rank), intensities=json_safe(intensity), ptm=_ptm_summary(quantisation),
+            lights=_rank_summary(rank), light_model=_light_model(near, (h, w), opt),
+            intensities=json_safe(intensity), ptm=_ptm_summary(quantisation),
             leave_one_out=loo, accuracy=accuracy,
         )
+        if near is not None:
+            write_light_positions(staging / "light_positions.csv", [p.name for p in lights.paths], near.positions)
+            names.append("light_positions.csv")
         reports = _write_reports(staging, report, stage, photographs=list(zip(lights.paths, lights.directions)))
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
         final = _publish(staging, out, [*ptm_names, *loo_names, *names, *reports])

@@ -225,3 +225,69 @@ def test_distant_sphere_capture_is_not_near(tmp_path):
     tri = triangulate(cal)
     assert not lights_are_near(tri, info.shape)
     assert all(s != OK for s in tri.status)
+
+
+# --------------------------------------------------------------------------- the pipeline
+
+
+def _spheres_only(info, folder):
+    """The capture's photographs and ground truth without its .lp: a highlight-RTI capture."""
+    import shutil
+
+    folder.mkdir()
+    for p in info.image_paths:
+        shutil.copy(p, folder / p.name)
+    shutil.copytree(info.ground_truth_dir, folder / "ground_truth")
+    return folder
+
+
+def test_run_without_lp_triangulates_near_lights(capture, tmp_path, capsys):
+    from helpers import run_cli
+
+    info = capture[0]
+    cap = _spheres_only(info, tmp_path / "cap")
+    code, _, err = run_cli(["run", cap, "-o", tmp_path / "near"], capsys)
+    assert code == 0, err
+    import json
+
+    near = json.loads((tmp_path / "near" / "report.json").read_text())
+    assert near["light_model"]["type"] == "near"
+    names, pos = read_light_positions(tmp_path / "near" / "light_positions.csv")
+    assert len(names) == len(info.image_paths)
+    assert np.median(np.linalg.norm(pos - info.positions, axis=1)) < 0.02 * 260
+
+    # Against the true directions from the image centre, one per photograph (what an .lp holds).
+    import shutil
+
+    shutil.copy(info.folder / "truth.lp", cap / "lights.lp")
+    code, _, err = run_cli(["run", cap, "-o", tmp_path / "far", "--light-positions", "none"], capsys)
+    assert code == 0, err
+    far = json.loads((tmp_path / "far" / "report.json").read_text())
+    assert far["light_model"]["type"] == "distant"
+    e_near = near["accuracy"]["normals"]["mean_deg"]
+    e_far = far["accuracy"]["normals"]["mean_deg"]
+    assert e_near <= 0.5 * e_far and e_near < 1.5
+
+
+def test_run_with_lp_uses_the_positions_beside_it(capture, tmp_path, capsys):
+    import json
+    import shutil
+
+    from helpers import run_cli
+
+    info = capture[0]
+    cap = _spheres_only(info, tmp_path / "cap")
+    shutil.copy(info.folder / "truth.lp", cap / "lights.lp")
+    shutil.copy(info.positions_csv, cap / "light_positions.csv")
+    code, _, err = run_cli(["run", cap, "-o", tmp_path / "out", "--mask", cap / "ground_truth" / "mask.png"], capsys)
+    assert code == 0, err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["light_model"]["type"] == "near"
+    assert report["accuracy"]["normals"]["mean_deg"] < 1.0
+
+    # A photograph of the .lp without a position: one line naming the file, exit 2.
+    lines = (cap / "light_positions.csv").read_text().splitlines()
+    (cap / "light_positions.csv").write_text("\n".join(lines[:-1]) + "\n")
+    code, _, err = run_cli(["run", cap, "-o", tmp_path / "bad"], capsys)
+    assert code == 2 and "light_positions.csv" in err and "no light position" in err
+    assert len(err.strip().splitlines()) == 1
