@@ -1,5 +1,6 @@
 # `make demo` and `make test` work on a fresh Debian machine with Python ≥ 3.10: they make
-# .venv, install the package with all its extras, and the Debian libraries its wheels need.
+# .venv, install the package with all its extras, and the Debian libraries its wheels need
+# (with Mesa's EGL/OSMesa when an off-screen render fails: tools/system-libs.sh checks one).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Install the Debian libraries that the Python wheels of open3d and VTK load at import time
-# but do not ship (open3d's wheel needs libusb-1.0-0, for example). It imports each module,
+# but do not ship (open3d's wheel needs libusb-1.0-0, for example), and Mesa's EGL/OSMesa
+# when off-screen rendering does not work (see the end). It imports each module,
 # reads the name of a missing shared library from the error, installs the package that holds
 # it, and tries again. Needs root for apt-get; otherwise it says what to install.
 set -u
@@ -29,3 +30,35 @@ for module in open3d vtk; do
     DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$deb" >/dev/null || exit 1
   done
 done
+
+# Off-screen rendering (reconstruct preview --screenshot, compare's overlay.png) needs an
+# OpenGL context without a display: VTK falls back to EGL, then OSMesa, both with Mesa's
+# software rasteriser. Render a sphere in a separate process (a missing driver may crash it)
+# and install Mesa's libraries when that fails. VTK_DEFAULT_OPENGL_WINDOW is left alone: set
+# to an empty string it crashes VTK.
+render_check='
+import pyvista as pv
+plotter = pv.Plotter(off_screen=True, window_size=(64, 48))
+ok = bool(plotter.ren_win.SupportsOpenGL())
+if ok:
+    plotter.add_mesh(pv.Sphere())
+    ok = float(plotter.screenshot(return_img=True).std()) > 0
+plotter.close()
+raise SystemExit(0 if ok else 1)
+'
+mesa="libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6"
+if ! "$python" -c "$render_check" >/dev/null 2>&1; then
+  if [ "$(id -u)" != 0 ]; then
+    # Only the preview and compare's overlay.png need it: say so, but do not stop the install.
+    echo "off-screen rendering does not work here: run 'sudo apt-get install $mesa'" >&2
+    exit 0
+  fi
+  if [ "$updated" = 0 ]; then apt-get update -qq >/dev/null && updated=1; fi
+  echo "installing $mesa (off-screen rendering with Mesa's software rasteriser)"
+  # shellcheck disable=SC2086  # one word per package
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq $mesa >/dev/null || exit 1
+  if ! "$python" -c "$render_check" >/dev/null 2>&1; then
+    echo "off-screen rendering still fails after installing $mesa:" >&2
+    "$python" -c "$render_check" >&2
+  fi
+fi

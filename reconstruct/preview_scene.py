@@ -1,0 +1,555 @@
+"""What ``reconstruct preview`` shows, as plain arrays: loading a source and colouring it.
+
+A source (an output folder of ``reconstruct run``, a mesh file or a ``.ptm`` file) becomes a
+:class:`PreviewScene`: a display mesh small enough to turn smoothly (at most
+``max_vertices`` vertices), and the data its view modes are made from, at a bounded texture
+resolution (at most ``max_texture`` pixels on the long side) so that relighting one frame
+stays fast enough to follow a slider. The window itself is in :mod:`reconstruct.preview`.
+
+View modes:
+
+* ``relit``: the PTM relit as RTIViewer's default rendering (:func:`ptmcore.relight.relight`),
+  or, without a PTM, Lambertian shading of the albedo by the normals;
+* ``albedo``: the surface colour without shading;
+* ``normals``: the normal map in the OpenGL mapping (R = x, G = y, B = z);
+* ``height``: the heights as a colour map (drawn by the window, with a scale bar);
+* ``distance``: the signed distance to a laser scan, when a comparison exists.
+
+Textured scenes (output folders and ``.ptm`` files) carry their colours as images ``(h, w,
+3)``; mesh files carry them per vertex ``(V, 3)``. The colouring functions work on either.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.errors import InputError
+from ptmcore.relight import light_direction, relight
+from reconstruct.mesh import grid_mesh
+
+__all__ = [
+    "MODES",
+    "PreviewScene",
+    "distance",
+    "light_from_angles",
+    "load_scene",
+    "mode_colors",
+    "profile",
+    "relit_texture",
+]
+
+MODES = ("relit", "albedo", "normals", "height", "distance")
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
+
+#: Display limits: a mesh of this many vertices turns smoothly in software OpenGL, and one
+#: relit frame of a 2048-pixel texture takes tens of milliseconds (see the report).
+MAX_VERTICES = 250_000
+MAX_TEXTURE = 2048
+
+# sRGB decoding of 8-bit values, and encoding through a table fine enough that neighbouring
+# output levels stay distinct (the steepest part of the curve is near black).
+_LEVELS = np.arange(256) / 255.0
+_SRGB_TO_LINEAR = np.where(
+    _LEVELS <= 0.04045, _LEVELS / 12.92, ((_LEVELS + 0.055) / 1.055) ** 2.4
+).astype(np.float32)
+_ENCODE_STEPS = 4096
+_LINEAR = np.linspace(0.0, 1.0, _ENCODE_STEPS)
+_LINEAR_TO_SRGB = np.round(
+    255 * np.where(_LINEAR <= 0.0031308, 12.92 * _LINEAR, 1.055 * _LINEAR ** (1 / 2.4) - 0.055)
+).astype(np.uint8)
+
+
+@dataclass
+class PreviewScene:
+    """A source ready to display.
+
+    Attributes
+    ----------
+    name : str
+        The source's name, for titles and screenshot file names.
+    vertices : numpy.ndarray
+        ``(V, 3)`` float32 display vertices (x right, y up, z towards the camera), in `unit`.
+    faces : numpy.ndarray
+        ``(F, 3)`` int vertex indices.
+    unit : str
+        ``"mm"``, ``"pixel"``, or ``"unknown"`` (a mesh file that does not say).
+    uv : numpy.ndarray or None
+        ``(V, 2)`` texture coordinates (v up) of textured scenes; None when the colours are
+        per vertex.
+    coefficients, rgb : numpy.ndarray or None
+        LRGB PTM at texture resolution: ``(h, w, 6)`` float32 and ``(h, w, 3)`` uint8.
+    normals : numpy.ndarray or None
+        ``(h, w, 3)`` (textured) or ``(V, 3)`` float32 unit normals.
+    albedo : numpy.ndarray or None
+        ``(h, w, 3)`` or ``(V, 3)`` uint8 sRGB colour without shading.
+    height : numpy.ndarray or None
+        ``(H, W)`` float32 full-resolution height map (NaN outside the object), for exact
+        profiles; None when only the mesh is known.
+    pixel_size : float
+        Size of one height-map pixel in `unit` (1 without a pixel size).
+    vertex_distance : numpy.ndarray or None
+        ``(V,)`` signed distance to a scan (mm, NaN where unknown) at the display vertices.
+    distance_limit : float or None
+        Colour range ±limit of the distances (mm), as the comparison drew them.
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    unit: str
+    uv: np.ndarray | None = None
+    coefficients: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    normals: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    height: np.ndarray | None = None
+    pixel_size: float = 1.0
+    vertex_distance: np.ndarray | None = None
+    distance_limit: float | None = None
+
+    @property
+    def modes(self) -> tuple[str, ...]:
+        """The view modes this scene can show, in the order of :data:`MODES`."""
+        have = {
+            "relit": self.coefficients is not None or (self.normals is not None and self.albedo is not None),
+            "albedo": self.albedo is not None,
+            "normals": self.normals is not None,
+            "height": self.height is not None or float(np.ptp(self.vertices[:, 2])) > 0,
+            "distance": self.vertex_distance is not None,
+        }
+        return tuple(m for m in MODES if have[m])
+
+
+# --- colouring ---------------------------------------------------------------------------
+
+
+def light_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit vector towards a light at an azimuth (0° from the right, 90° from the top) and an
+    elevation (0° grazing, 90° from the camera)."""
+    return light_direction(azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
+
+
+def _lambert(normals: np.ndarray, albedo: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """sRGB colours of a Lambertian surface: albedo × max(n·l, 0) in linear light."""
+    shade = np.maximum(normals @ light.astype(np.float32), 0.0)
+    linear = _SRGB_TO_LINEAR[albedo] * shade[..., None]
+    index = np.minimum(linear * (_ENCODE_STEPS - 1), _ENCODE_STEPS - 1).astype(np.int32)
+    return _LINEAR_TO_SRGB[index]
+
+
+def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) -> np.ndarray:
+    """The scene's colours under one light.
+
+    The PTM relit as RTIViewer's default rendering when the scene has one, else the albedo
+    shaded by the normals (Lambertian).
+
+    Parameters
+    ----------
+    scene : PreviewScene
+    light : array_like, shape (3,)
+        Direction towards the light (x right, y up, z towards the camera).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w, 3)`` uint8 image for textured scenes, ``(V, 3)`` for per-vertex colours.
+
+    Raises
+    ------
+    ValueError
+        If the scene cannot be relit or the light is below the horizon.
+    """
+    light = light_direction(light=light)
+    if scene.coefficients is not None:
+        return relight(scene.coefficients, scene.rgb, light)
+    if scene.normals is None or scene.albedo is None:
+        raise ValueError(f"{scene.name} has neither PTM coefficients nor normals and colours to relight")
+    return _lambert(scene.normals, scene.albedo, light)
+
+
+def normal_colors(normals: np.ndarray) -> np.ndarray:
+    """Unit normals as 8-bit OpenGL-style colours, (n + 1)/2."""
+    return np.round((np.clip(normals, -1, 1) + 1) * 127.5).astype(np.uint8)
+
+
+def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None) -> np.ndarray:
+    """Colours of a colour mode (``relit``, ``albedo`` or ``normals``).
+
+    ``height`` and ``distance`` are scalar modes, drawn through a colour map with a scale bar
+    by the window. `light` is needed for ``relit``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(h, w, 3)`` or ``(V, 3)`` uint8, as :func:`relit_texture`.
+    """
+    if mode not in scene.modes or mode in ("height", "distance"):
+        raise ValueError(f"{mode!r} is not a colour mode of {scene.name} (it has {', '.join(scene.modes)})")
+    if mode == "relit":
+        if light is None:
+            raise ValueError("the relit mode needs a light")
+        return relit_texture(scene, light)
+    if mode == "albedo":
+        return scene.albedo
+    return normal_colors(scene.normals)
+
+
+# --- measuring ---------------------------------------------------------------------------
+
+
+def distance(p0: np.ndarray, p1: np.ndarray) -> float:
+    """Euclidean distance between two 3-D points (in the scene's unit)."""
+    return float(np.linalg.norm(np.asarray(p1, dtype=np.float64) - np.asarray(p0, dtype=np.float64)))
+
+
+def _surface_z(scene: PreviewScene, xy: np.ndarray) -> np.ndarray:
+    """Height of the surface under points (x, y): from the full-resolution height map
+    (bilinear) when known, else the first hit of a ray cast down onto the display mesh."""
+    if scene.height is not None:
+        from scipy.ndimage import map_coordinates
+
+        rows, cols = -xy[:, 1] / scene.pixel_size, xy[:, 0] / scene.pixel_size
+        return map_coordinates(scene.height, [rows, cols], order=1, mode="constant", cval=np.nan)
+    import open3d as o3d
+
+    ray_scene = o3d.t.geometry.RaycastingScene()
+    ray_scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(scene.vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(scene.faces, dtype=np.uint32)),
+    )
+    top = float(scene.vertices[:, 2].max()) + 1.0
+    rays = np.zeros((len(xy), 6), np.float32)
+    rays[:, :2], rays[:, 2], rays[:, 5] = xy, top, -1.0
+    hit = ray_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return np.where(np.isfinite(hit), top - hit, np.nan)
+
+
+def profile(scene: PreviewScene, p0: np.ndarray, p1: np.ndarray, n: int = 200) -> tuple[np.ndarray, np.ndarray]:
+    """Heights along the straight line from `p0` to `p1` seen from the camera.
+
+    Parameters
+    ----------
+    scene : PreviewScene
+    p0, p1 : array_like, shape (3,)
+        End points (only x and y are used: the line is drawn on the image plane).
+    n : int
+        Number of samples, at least 2.
+
+    Returns
+    -------
+    distances : numpy.ndarray
+        ``(n,)`` distance along the line from `p0`, in the scene's unit.
+    heights : numpy.ndarray
+        ``(n,)`` surface height there (NaN off the object).
+    """
+    if n < 2:
+        raise ValueError(f"a profile needs at least 2 samples, not {n}")
+    a = np.asarray(p0, dtype=np.float64)[:2]
+    b = np.asarray(p1, dtype=np.float64)[:2]
+    t = np.linspace(0.0, 1.0, n)
+    xy = a + t[:, None] * (b - a)
+    return t * float(np.linalg.norm(b - a)), _surface_z(scene, xy).astype(np.float64)
+
+
+# --- loading -----------------------------------------------------------------------------
+
+
+def _resize(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Area-average an image to ``(h, w)`` (coefficients are linear in the light, so their
+    average relights as the average of the relit pixels before clipping)."""
+    import cv2
+
+    if image.shape[:2] == shape:
+        return np.asarray(image)
+    flat = image.reshape(image.shape[:2] + (-1,))
+    # OpenCV resamples at most 4 channels at a time with non-integer factors.
+    parts = [
+        cv2.resize(np.ascontiguousarray(flat[..., k:k + 4]), (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+        for k in range(0, flat.shape[2], 4)
+    ]
+    out = np.concatenate([p.reshape(shape + (-1,)) for p in parts], axis=2)
+    return out.reshape(shape + image.shape[2:])
+
+
+def _texture_shape(shape: tuple[int, int], max_texture: int) -> tuple[int, int]:
+    factor = max(1.0, max(shape) / max_texture)
+    return max(1, round(shape[0] / factor)), max(1, round(shape[1] / factor))
+
+
+def _grid_step(shape: tuple[int, int], max_vertices: int) -> int:
+    """Smallest grid step giving at most `max_vertices` vertices (last row and column kept)."""
+    step = 1
+    while (math.ceil((shape[0] - 1) / step) + 1) * (math.ceil((shape[1] - 1) / step) + 1) > max_vertices:
+        step += 1
+    return step
+
+
+def _unit_normals(normals: np.ndarray) -> np.ndarray:
+    normals = np.nan_to_num(np.asarray(normals, dtype=np.float32), nan=0.0)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    flat = np.zeros_like(normals)
+    flat[..., 2] = 1.0
+    return np.where(length > 1e-6, normals / np.maximum(length, 1e-6), flat).astype(np.float32)
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except OSError as exc:
+        raise InputError(f"cannot read the image ({exc})", path) from None
+
+
+def _lrgb(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    from reconstruct.relighting import as_lrgb, load_source
+
+    ptm = load_source(path)
+    return as_lrgb(ptm)
+
+
+def _read_distances(ply: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and signed distances (the ``quality`` property) of a ``distances.ply``."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(ply, process=False)
+        data = loaded.metadata["_ply_raw"]["vertex"]["data"]
+        points = np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
+        return points, np.asarray(data["quality"], dtype=np.float64)
+    except (KeyError, ValueError, TypeError, OSError) as exc:
+        raise InputError(f"not a distances.ply of reconstruct compare (no signed distances: {exc})", ply) from None
+
+
+def _distances_on(vertices: np.ndarray, ply: Path, spacing: float) -> np.ndarray:
+    """Signed distances of `ply` carried to the nearest display vertex seen from the camera;
+    NaN where no distance vertex lies within a few grid spacings."""
+    from scipy.spatial import cKDTree
+
+    points, values = _read_distances(ply)
+    tree = cKDTree(points[:, :2])
+    # The comparison's mesh may be finer, coarser or decimated: its own spacing bounds the
+    # search too.
+    sample = points[:: max(1, len(points) // 2000), :2]
+    own = float(np.median(tree.query(sample, k=2)[0][:, 1])) if len(points) > 1 else spacing
+    gap, index = tree.query(vertices[:, :2], distance_upper_bound=2.0 * max(spacing, own))
+    found = np.isfinite(gap)
+    out = np.full(len(vertices), np.nan)
+    out[found] = values[index[found]]
+    return out
+
+
+def _comparison(folder: Path, vertices: np.ndarray, spacing: float) -> tuple[np.ndarray | None, float | None]:
+    ply = folder / "distances.ply"
+    if not ply.is_file():
+        return None, None
+    d = _distances_on(vertices, ply, spacing)
+    limit = None
+    report = folder / "comparison.json"
+    if report.is_file():
+        try:
+            limit = float(json.loads(report.read_text())["colour_range_mm"][1])
+        except (KeyError, IndexError, TypeError, ValueError):
+            limit = None
+    if limit is None or not limit > 0:
+        from reconstruct.compare_report import default_limit
+
+        limit = default_limit(d)
+    return d, limit
+
+
+def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_texture: int) -> PreviewScene:
+    import tifffile
+
+    height_file = folder / "height.tif"
+    if not height_file.is_file():
+        raise InputError("not an output folder of reconstruct run (no height.tif)", folder)
+    report: dict = {}
+    if (folder / "report.json").is_file():
+        try:
+            report = json.loads((folder / "report.json").read_text())
+        except ValueError as exc:
+            raise InputError(f"corrupt report.json ({exc})", folder / "report.json") from None
+    try:
+        height = np.asarray(tifffile.imread(height_file), dtype=np.float32)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the height map ({exc})", height_file) from None
+    if height.ndim != 2:
+        raise InputError(f"the height map must be one 2-D plane, not {height.shape}", height_file)
+    unit = report.get("height_unit", "pixel")
+    pixel_size = (report.get("parameters") or {}).get("pixel_size") if unit == "mm" else None
+    s = float(pixel_size) if pixel_size else 1.0
+
+    step = _grid_step(height.shape, max_vertices)
+    mesh = grid_mesh(height, step=step, pixel_size=pixel_size)
+    if len(mesh.faces) == 0:
+        raise InputError("the height map has no object (all NaN)", height_file)
+    tex = _texture_shape(height.shape, max_texture)
+
+    coefficients = rgb = None
+    if (folder / "coefficients.ptm").is_file():
+        coef, colour = _lrgb(folder / "coefficients.ptm")
+        if coef.shape[:2] != height.shape:
+            raise InputError(f"coefficients.ptm is {coef.shape[:2]}, height.tif {height.shape}", folder)
+        coefficients, rgb = _resize(coef, tex).astype(np.float32), _resize(colour, tex)
+        del coef, colour
+    normals = None
+    if (folder / "normals.npy").is_file():
+        full = np.load(folder / "normals.npy", mmap_mode="r")
+        if full.shape != height.shape + (3,):
+            raise InputError(f"normals.npy is {full.shape}, expected {height.shape + (3,)}", folder)
+        normals = _unit_normals(_resize(np.nan_to_num(np.asarray(full, np.float32)), tex))
+    albedo = None
+    for name in ("albedo.png", "mesh_texture.png"):
+        if (folder / name).is_file():
+            albedo = _resize(_read_rgb(folder / name), tex)
+            break
+    if albedo is None and rgb is not None:
+        albedo = rgb
+
+    d, limit = _comparison(comparison or folder, mesh.vertices, step * s)
+    return PreviewScene(
+        name=folder.resolve().name,
+        vertices=mesh.vertices,
+        faces=mesh.faces,
+        unit=unit,
+        uv=mesh.uv,
+        coefficients=coefficients,
+        rgb=rgb,
+        normals=normals,
+        albedo=albedo,
+        height=height,
+        pixel_size=s,
+        vertex_distance=d,
+        distance_limit=limit,
+    )
+
+
+def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
+    """A ``.ptm`` file as a flat plane (pixel units) textured by its relit PTM: a PTM holds
+    no heights, and integrating its normals is what ``reconstruct run file.ptm`` does."""
+    from ptmcore.normals import ptm_maximum
+
+    coef, colour = _lrgb(path)
+    shape = coef.shape[:2]
+    tex = _texture_shape(shape, max_texture)
+    coefficients, rgb = _resize(coef, tex).astype(np.float32), _resize(colour, tex)
+    del coef, colour
+    lu, lv, _ = ptm_maximum(coefficients)
+    nz = np.sqrt(np.clip(1.0 - lu * lu - lv * lv, 0.0, 1.0))
+    mesh = grid_mesh(np.zeros(shape, np.float32), step=_grid_step(shape, max_vertices))
+    return PreviewScene(
+        name=path.stem,
+        vertices=mesh.vertices,
+        faces=mesh.faces,
+        unit="pixel",
+        uv=mesh.uv,
+        coefficients=coefficients,
+        rgb=rgb,
+        normals=_unit_normals(np.stack([lu, lv, nz], axis=-1)),
+        albedo=rgb,
+    )
+
+
+def _mesh_unit(path: Path) -> str:
+    """The unit a PLY states in a ``comment unit`` line (ours do), else ``"unknown"``."""
+    if path.suffix.lower() != ".ply":
+        return "unknown"
+    with open(path, "rb") as f:
+        head = f.read(4096).split(b"end_header")[0]
+    for line in head.decode("latin-1").splitlines():
+        parts = line.split()
+        if parts[:2] == ["comment", "unit"] and len(parts) > 2:
+            return parts[2]
+    return "unknown"
+
+
+def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:
+    """A mesh file with its colours (vertex colours, or its texture sampled at the vertices)
+    and normals (the file's, else from the faces), relit per vertex."""
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # noqa: BLE001 - trimesh raises many types for unreadable files
+        raise InputError(f"cannot read the mesh ({exc})", path) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("no triangles in this file", path)
+    colors = mesh.visual.to_color().vertex_colors[:, :3] if mesh.visual.defined else None
+    vertices = np.asarray(mesh.vertices, dtype=np.float32)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    normals = np.asarray(mesh.vertex_normals, dtype=np.float32)
+    if len(vertices) > max_vertices:
+        from reconstruct.mesh import GridMesh
+        from reconstruct.meshops import decimate
+
+        full = GridMesh(vertices, faces, np.zeros((len(vertices), 2), np.float32),
+                        colors if colors is not None else np.full((len(vertices), 3), 255, np.uint8), normals)
+        small, _ = decimate(full, target_faces=2 * max_vertices)
+        vertices, faces, normals = small.vertices, small.faces, small.normals
+        colors = small.colors if colors is not None else None
+    if colors is None:
+        colors = np.full((len(vertices), 3), 200, np.uint8)
+    return PreviewScene(
+        name=path.stem,
+        vertices=vertices,
+        faces=faces,
+        unit=_mesh_unit(path),
+        normals=_unit_normals(normals),
+        albedo=np.ascontiguousarray(colors, dtype=np.uint8),
+    )
+
+
+def load_scene(
+    source: str | os.PathLike,
+    *,
+    comparison: str | os.PathLike | None = None,
+    max_vertices: int = MAX_VERTICES,
+    max_texture: int = MAX_TEXTURE,
+) -> PreviewScene:
+    """Load what ``reconstruct preview`` shows.
+
+    Parameters
+    ----------
+    source : path
+        An output folder of ``reconstruct run`` (its height map as the mesh, its PTM or
+        normals and albedo for the colours, its ``distances.ply`` when it was compared), a
+        mesh file (PLY, OBJ, STL, GLB, OFF) or a ``.ptm`` file (a flat plane carrying the
+        relit PTM).
+    comparison : path, optional
+        Folder of ``reconstruct compare`` whose ``distances.ply`` belongs to this output
+        folder (default: the folder itself).
+    max_vertices : int
+        Display mesh size limit (the mesh is subsampled or decimated to it).
+    max_texture : int
+        Longest side of the colour images (the PTM is area-averaged to it).
+
+    Raises
+    ------
+    InputError
+        If the source does not exist or is not one of these.
+    """
+    path = Path(source)
+    if not path.exists():
+        raise InputError("not found", path)
+    if comparison is not None and not (Path(comparison) / "distances.ply").is_file():
+        raise InputError("no distances.ply in this folder (made by reconstruct compare)", comparison)
+    if path.is_dir():
+        return _load_folder(path, None if comparison is None else Path(comparison), max_vertices, max_texture)
+    if comparison is not None:
+        raise InputError("--comparison goes with an output folder of reconstruct run", path)
+    suffix = path.suffix.lower()
+    if suffix == ".ptm":
+        return _load_ptm(path, max_vertices, max_texture)
+    if suffix in MESH_SUFFIXES:
+        return _load_mesh(path, max_vertices)
+    raise InputError(
+        "cannot preview this file: give an output folder, a mesh (" + ", ".join(MESH_SUFFIXES) + ") or a .ptm", path
+    )
