@@ -21,6 +21,8 @@ from PIL import Image, ImageDraw, ImageFont
 
 from ptmcore.atomic import atomic_write
 
+from . import rendering
+
 __all__ = [
     "DEFAULT_SIGN_CONVENTION",
     "NAN_COLOR",
@@ -599,18 +601,9 @@ def write_overlay(
     carrier.point_data["distance"] = dist
     point_size = 3.0 if len(points) < 200_000 else 2.0
 
-    pv.OFF_SCREEN = True
     plotter = None
     try:
-        plotter = pv.Plotter(
-            off_screen=True, shape=(1, 2), window_size=(int(size[0]), int(size[1])), border=False
-        )
-        # Asking for OpenGL support creates the context: it fails here, not in a segfault
-        # later, when there is neither a display nor EGL nor OSMesa.
-        if not plotter.ren_win.SupportsOpenGL():
-            raise RuntimeError(
-                "off-screen rendering is not available (no OpenGL context: no EGL or OSMesa)"
-            )
+        plotter = rendering.plotter(size, shape=(1, 2), border=False)
         plotter.set_background("white")
 
         plotter.subplot(0, 0)

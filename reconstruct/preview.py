@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
+from reconstruct import rendering
 from reconstruct.preview_scene import (
     MODES,
     PreviewScene,
@@ -112,13 +113,8 @@ class PreviewWindow:
         self._screenshots = 0
         self.mode = mode or scene.modes[0]
 
-        plotter = pv.Plotter(off_screen=off_screen, window_size=(int(size[0]), int(size[1])))
+        plotter = rendering.plotter(size, off_screen=off_screen)
         self.plotter = plotter
-        # Asking for OpenGL support creates the context: without a display, EGL or OSMesa it
-        # fails here with a message rather than crashing in the first render.
-        if not plotter.ren_win.SupportsOpenGL():
-            plotter.close()
-            raise RuntimeError("no OpenGL context (no display, EGL or OSMesa): cannot render")
         plotter.set_background(_BACKGROUND)
         plotter.enable_parallel_projection()
 

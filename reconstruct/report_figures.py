@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import rendering
+
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
 
@@ -299,12 +301,7 @@ def mesh_render(
             surface = pv.PolyData(np.asarray(vertices, np.float32), cells)
         else:
             surface = pv.read(str(mesh))
-        pv.OFF_SCREEN = True
-        plotter = pv.Plotter(off_screen=True, window_size=(int(size[0]), int(size[1])))
-        # Asking for OpenGL support creates the context: it fails here, not in a crash later,
-        # when there is neither a display nor EGL nor OSMesa.
-        if not plotter.ren_win.SupportsOpenGL():
-            raise RuntimeError("off-screen rendering is not available (no OpenGL context: no EGL or OSMesa)")
+        plotter = rendering.plotter(size)
         plotter.set_background("white")
         plotter.add_mesh(surface, color=(0.78, 0.72, 0.64), smooth_shading=True, specular=0.15,
                          scalars=None, rgb=False)

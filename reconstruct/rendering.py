@@ -1,0 +1,56 @@
+"""A pyvista plotter whose OpenGL context is known to work, on screen or off.
+
+On a machine without a display VTK first tries X, prints a warning, then falls back to EGL
+or OSMesa (Mesa's software rasteriser). The warning is expected there and alarms users, so
+VTK's warnings are held back while the context is created; real errors still show. Where
+no context can be had at all, :func:`plotter` raises ``RuntimeError`` at once instead of
+crashing in the first render. ``VTK_DEFAULT_OPENGL_WINDOW`` is left alone (an empty value
+crashes VTK; a wrong class segfaults where its library is missing).
+"""
+
+from __future__ import annotations
+
+__all__ = ["plotter"]
+
+
+def plotter(size: tuple[int, int], *, off_screen: bool = True, **kwargs):
+    """A ``pyvista.Plotter`` of ``size`` (width, height) pixels with a working OpenGL context.
+
+    Parameters
+    ----------
+    size : (int, int)
+        Window or image size in pixels.
+    off_screen : bool
+        Render to memory (screenshots) rather than to a window.
+    **kwargs
+        Passed on to ``pyvista.Plotter`` (``shape``, ``border``, ...).
+
+    Returns
+    -------
+    pyvista.Plotter
+
+    Raises
+    ------
+    RuntimeError
+        When pyvista is missing or no OpenGL context can be created (no display, EGL or
+        OSMesa); the message says which.
+    """
+    try:
+        import pyvista as pv
+        from vtkmodules.vtkCommonCore import vtkLogger
+    except ImportError as exc:
+        raise RuntimeError(f"rendering needs pyvista ({exc})") from exc
+
+    previous = vtkLogger.GetCurrentVerbosityCutoff()
+    vtkLogger.SetStderrVerbosity(vtkLogger.VERBOSITY_ERROR)
+    try:
+        result = pv.Plotter(off_screen=off_screen, window_size=(int(size[0]), int(size[1])), **kwargs)
+        # Asking for OpenGL support creates the context.
+        supported = result.ren_win.SupportsOpenGL()
+    finally:
+        vtkLogger.SetStderrVerbosity(vtkLogger.ConvertToVerbosity(previous))
+    if not supported:
+        result.close()
+        raise RuntimeError("no OpenGL context (no display, EGL or OSMesa): cannot render; "
+                           "install Mesa's libegl1 and libgl1-mesa-dri, or libosmesa6")
+    return result
