@@ -131,6 +131,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="a sphere's centre (column, row) and radius in pixels; repeat for several")
     cal.add_argument("--diagnostic", type=Path, metavar="PNG",
                      help="also draw the spheres and highlights on the first photograph, and a polar plot beside it")
+    cam = cal.add_argument_group(
+        "camera", "the view model of the reflection (default: orthographic, right for long lenses); "
+        "with a short lens give one of these")
+    cam.add_argument("--focal-mm", type=_positive_float, metavar="F",
+                     help="lens focal length in mm (with --sensor-width-mm)")
+    cam.add_argument("--sensor-width-mm", type=_positive_float, metavar="W",
+                     help="width of the sensor area the photographs cover, in mm (with --focal-mm)")
+    cam.add_argument("--intrinsics", metavar="FX,FY,CX,CY", help="pinhole camera in pixels")
+    cam.add_argument("--exif", action="store_true",
+                     help="read the focal length and sensor size from the first photograph's EXIF")
 
     cmp_ = sub.add_parser(
         "compare",
@@ -187,6 +197,24 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
     demo.add_argument("--normals", choices=("ps", "ptm", "ptm-debiased"), default="ps", help="normal method (default: ps)")
     demo.add_argument("--integrator", choices=INTEGRATOR_CHOICES, default="auto", help="integrator (default: auto)")
+
+    prev = sub.add_parser(
+        "preview",
+        help="look at a result in a 3D window: relight it live, switch views, measure distances and profiles",
+        description="Open a window on an output folder of `reconstruct run` (or a mesh file, or a .ptm shown "
+        "as a flat relit plane): the textured mesh in millimetres, sliders that move the light, views of "
+        "the relit texture, albedo, normals, height and distance to a scan, and point picking for distances "
+        "and height profiles. With --screenshot it renders off-screen to a PNG and exits.",
+    )
+    prev.add_argument("source", type=Path, help="output folder, mesh file (PLY, OBJ, STL, GLB, OFF) or .ptm file")
+    prev.add_argument("--mode", choices=("relit", "albedo", "normals", "height", "distance"),
+                      help="first view (default: relit when the source can be relit)")
+    prev.add_argument("--light", metavar="AZ,EL", help="light azimuth and elevation in degrees (default 135,40)")
+    prev.add_argument("--azimuth", type=float, metavar="DEG", help="light azimuth: 0 = from the right, 90 = from the top")
+    prev.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object, 0 to 90")
+    prev.add_argument("--comparison", type=Path, metavar="DIR", help="folder of `reconstruct compare` for the distance view")
+    prev.add_argument("--screenshot", type=Path, metavar="PNG", help="render off-screen to this file and exit")
+    prev.add_argument("--size", default="1280x900", help="window or image size WxH (default 1280x900)")
     return parser
 
 
@@ -238,15 +266,17 @@ def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from ptmcore.images import read_image
-    from reconstruct.calibrate import calibrate, write_calibration_lp, write_diagnostic
+    from reconstruct.calibrate import calibrate, calibration_camera, write_calibration_lp, write_diagnostic
     from reconstruct.lightcheck import write_polar_plot
     from reconstruct.pipeline import capture_images
 
     paths = capture_images(args.capture)
-    result = calibrate(paths, spheres=_parse_spheres(args.sphere))
+    camera = calibration_camera(paths[0], intrinsics=args.intrinsics, focal_mm=args.focal_mm,
+                                sensor_width_mm=args.sensor_width_mm, exif=args.exif)
+    result = calibrate(paths, spheres=_parse_spheres(args.sphere), intrinsics=camera)
     count = write_calibration_lp(args.output, result, [p.name for p in paths])
     print(f"{args.output}: {count} of {len(paths)} photographs with a light direction, from "
-          f"{len(result.spheres)} sphere(s)")
+          f"{len(result.spheres)} sphere(s), {result.view_model} view")
     for name in result.flagged:
         print(f"  warning: {name}: no usable highlight; left out")
     if args.diagnostic is not None:
@@ -338,6 +368,10 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
     p.add_argument("--ground-truth", type=Path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
+    p.add_argument("--light-positions", default="auto", metavar="FILE|auto|none",
+                   help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "
+                        "light direction; auto (default): light_positions.csv beside the .lp, or lights triangulated "
+                        "from two or more spheres when they are near; none: distant lights")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
 
@@ -390,6 +424,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         intrinsics=args.intrinsics, distance=args.distance,
         ground_truth=args.ground_truth, ptm_format=args.ptm_format, solver=args.solver,
         loo=args.loo, intensities=args.intensities, fit=args.fit, hsh=args.hsh,
+        light_positions=args.light_positions if args.light_positions in ("auto", "none") else Path(args.light_positions),
     )
     if args.scan is not None and args.pixel_size is None:
         raise InputError("--scan needs --pixel-size: a scan is compared in millimetres")
@@ -515,6 +550,53 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_preview(args: argparse.Namespace) -> int:
+    from reconstruct.preview import (
+        DEFAULT_AZIMUTH,
+        DEFAULT_ELEVATION,
+        build_plotter,
+        has_display,
+        render_screenshot,
+    )
+    from reconstruct.preview_scene import load_scene
+
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+        if width < 64 or height < 64:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"--size must be WxH with both at least 64, got {args.size!r}") from None
+    azimuth, elevation = DEFAULT_AZIMUTH, DEFAULT_ELEVATION
+    if args.light is not None:
+        if args.azimuth is not None or args.elevation is not None:
+            raise InputError("give either --light AZ,EL or --azimuth/--elevation")
+        try:
+            azimuth, elevation = (float(v) for v in args.light.split(","))
+        except ValueError:
+            raise InputError(f"--light must be two numbers AZ,EL in degrees, got {args.light!r}") from None
+    azimuth = azimuth if args.azimuth is None else args.azimuth
+    elevation = elevation if args.elevation is None else args.elevation
+    if not 0 < elevation <= 90:
+        raise InputError(f"the light elevation must be in (0, 90] degrees, got {elevation:g}")
+    if args.screenshot is None and not has_display():
+        raise InputError("no display to open a window on (DISPLAY is not set): render to a file with --screenshot FILE")
+    scene = load_scene(args.source, comparison=args.comparison)
+    if args.mode is not None and args.mode not in scene.modes:
+        raise InputError(f"no {args.mode} view for this source (it has {', '.join(scene.modes)})", args.source)
+    options = {"mode": args.mode, "azimuth": azimuth, "elevation": elevation, "size": (width, height)}
+    if args.screenshot is not None:
+        print(f"Wrote {render_screenshot(scene, args.screenshot, **options)}")
+        return 0
+    try:
+        window = build_plotter(scene, **options)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    except RuntimeError as exc:
+        raise InputError(f"{exc}; use --screenshot FILE to render off-screen") from None
+    window.plotter.show(title=f"reconstruct preview: {scene.name}")
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``reconstruct`` command; returns the exit status."""
     parser = build_parser()
@@ -524,7 +606,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     try:
         commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
-                    "calibrate": _cmd_calibrate,
+                    "calibrate": _cmd_calibrate, "preview": _cmd_preview,
                     "lights": _cmd_lights, "demo": _cmd_demo}
         return commands[args.command](args)
     except InputError as exc:

@@ -1,9 +1,10 @@
 """Synthetic "highlight RTI" captures: a dull scene with black glossy spheres beside it.
 
 Each photograph is lit by one distant light; the light direction can be read back from the
-mirror highlight on each sphere. The camera is orthographic and the frame is the project's:
-x right, y up, z towards the camera; pixel (row, col) has its centre at image coordinates
-(x_img, y_img) = (col, row), and sphere centres are given in those coordinates.
+mirror highlight on each sphere. The camera is orthographic by default, or a pinhole camera
+(``focal_px``) for short lenses; the frame is the project's: x right, y up, z towards the
+camera; pixel (row, col) has its centre at image coordinates (x_img, y_img) = (col, row), and
+sphere centres are given in those coordinates.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import numpy as np
 
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
+from reconstruct.perspective import Intrinsics
 
 from .encoding import write_jpeg8
 from .lights import dome_lights
@@ -47,6 +49,15 @@ class SphereCaptureInfo:
         ``folder/truth.lp`` with the true directions of all photographs.
     shape : tuple of int
         (H, W) of the photographs.
+    camera : Intrinsics or None
+        The pinhole camera of a perspective capture; None for an orthographic one.
+    outlines : tuple of (x0, y0, a, b, phi)
+        Each sphere's true outline as an ellipse: centre (column, row), semi-axes in pixels
+        and the major axis's angle in radians (a circle (cx, cy, r, r, 0) when
+        orthographic).
+    centres_3d : np.ndarray or None
+        (S, 3) sphere centres in the camera frame in units of the sphere radius (perspective
+        captures only).
     """
 
     folder: Path
@@ -56,6 +67,9 @@ class SphereCaptureInfo:
     hidden: tuple[int, ...]
     truth_lp: Path
     shape: tuple[int, int]
+    camera: Intrinsics | None = None
+    outlines: tuple[tuple[float, float, float, float, float], ...] = ()
+    centres_3d: np.ndarray | None = None
 
 
 def _write_png8(path: Path, radiance: np.ndarray) -> None:
@@ -68,6 +82,27 @@ def _write_png8(path: Path, radiance: np.ndarray) -> None:
     pixels = np.round(linear_to_srgb(radiance) * 255.0).astype(np.uint8)
     with atomic_write(path, "wb") as f:
         Image.fromarray(pixels).save(f, format="PNG")
+
+
+def _pinhole_outline(centre: np.ndarray, focal_px: float, principal: tuple[float, float]
+                     ) -> tuple[float, float, float, float, float]:
+    """Ellipse (x0, y0, a, b, phi) that a pinhole camera (square pixels) sees of a unit sphere.
+
+    With θ the angle of the centre off the optical axis and α the half-angle of the tangent
+    cone (sin α = 1/|C|), the major axis lies on the radial image line with its ends at
+    f·tan(θ ± α) from the principal point, and the semi-minor axis is
+    f·sin α / √(cos²θ − sin²α).
+    """
+    dist = float(np.linalg.norm(centre))
+    theta = float(np.arccos(-centre[2] / dist))
+    alpha = float(np.arcsin(1.0 / dist))
+    near, far = focal_px * np.tan(theta - alpha), focal_px * np.tan(theta + alpha)
+    b = focal_px * np.sin(alpha) / np.sqrt(np.cos(theta) ** 2 - np.sin(alpha) ** 2)
+    # Image direction of the centre: x right = +column, y up = −row.
+    phi = float(np.arctan2(-centre[1], centre[0])) if theta > 0 else 0.0
+    mid = 0.5 * (near + far)
+    return (principal[0] + mid * np.cos(phi), principal[1] + mid * np.sin(phi),
+            0.5 * (far - near), float(b), phi)
 
 
 def _check_spheres(spheres, shape: tuple[int, int]) -> tuple[tuple[float, float, float], ...]:
@@ -102,6 +137,9 @@ def render_sphere_capture(
     specular: float = 3.0,
     sphere_albedo: float = 0.02,
     noise: float = 0.003,
+    focal_px: float | None = None,
+    background_tint: tuple[float, float, float] = (0.55, 0.47, 0.38),
+    background_texture: float = 0.15,
 ) -> SphereCaptureInfo:
     """Render and write a highlight-RTI capture with black glossy spheres.
 
@@ -111,6 +149,15 @@ def render_sphere_capture(
     the highlight sits where the sphere normal bisects light and view. Pixels are averaged
     over a 3×3 supersampling grid so sphere limbs are anti-aliased like a real lens would.
     Shadows cast by the spheres are not rendered.
+
+    With ``focal_px`` the camera is a pinhole at the origin looking along −z, principal
+    point at the image centre ((W − 1)/2, (H − 1)/2). Sphere (cx, cy, r) then has its centre
+    on the ray through pixel (cx, cy), at the depth where its radius looks r pixels long
+    (depth = focal_px · radius / r; the image does not depend on the absolute scale).
+    Each sub-sample's ray is intersected with the spheres, so they appear as the ellipses a
+    lens gives, and the Phong lobe uses the direction from the hit point to the camera as
+    the view, so highlights are where a real lens puts them. The background is shaded as
+    in the orthographic case (distant lights, its own normals).
 
     Parameters
     ----------
@@ -132,6 +179,13 @@ def render_sphere_capture(
     shininess, specular, sphere_albedo, noise : float
         Phong exponent and peak, diffuse albedo of the spheres, sensor noise (std, full
         scale 1).
+    focal_px : float, optional
+        Focal length in pixels of a pinhole camera; None (default) for an orthographic
+        view.
+    background_tint : (float, float, float)
+        Mean linear RGB albedo of the background plane.
+    background_texture : float
+        Relative amplitude of the background's albedo mottling (0 for a plain albedo).
 
     Returns
     -------
@@ -150,6 +204,21 @@ def render_sphere_capture(
     if encoding not in ("png", "jpeg"):
         raise InputError(f"unknown encoding {encoding!r}; choose png or jpeg")
     sph = _check_spheres(spheres, (h, w))
+    camera, centres, outlines = None, None, tuple((cx, cy, r, r, 0.0) for cx, cy, r in sph)
+    if focal_px is not None:
+        if not (np.isfinite(focal_px) and focal_px > 0):
+            raise InputError(f"focal_px must be a positive number of pixels, got {focal_px!r}")
+        camera = Intrinsics(float(focal_px), float(focal_px), (w - 1) / 2.0, (h - 1) / 2.0)
+        centres = np.array([[(cx - camera.cx) / r, -(cy - camera.cy) / r, -focal_px / r]
+                            for cx, cy, r in sph])
+        outlines = tuple(_pinhole_outline(c, float(focal_px), (camera.cx, camera.cy))
+                         for c in centres)
+        for (cx, cy, r), (x0, y0, a, b, phi) in zip(sph, outlines):
+            ex = np.hypot(a * np.cos(phi), b * np.sin(phi))
+            ey = np.hypot(a * np.sin(phi), b * np.cos(phi))
+            if x0 - ex < 1 or y0 - ey < 1 or x0 + ex > w - 2 or y0 + ey > h - 2:
+                raise InputError(f"sphere {(cx, cy, r)!r} seen through a {focal_px}-pixel "
+                                 f"lens does not fit inside a {h}×{w} image")
     hidden = tuple(sorted({int(k) for k in hidden}))
     if any(k < 0 or k >= n_lights for k in hidden):
         raise InputError(f"hidden photographs must be in 0..{n_lights - 1}, got {hidden}")
@@ -167,8 +236,13 @@ def render_sphere_capture(
     # (it has no sharp edges), then upsampled onto the supersampling grid by repetition.
     relief = 2.0 * smooth_noise((h, w), 12, rng)
     bg_normals = normals_from_height(relief, 1.0).astype(np.float64)
-    tint = np.array([0.55, 0.47, 0.38])
-    bg_albedo = tint * np.clip(1.0 + 0.15 * smooth_noise((h, w), 30, rng), 0.5, 1.5)[..., None]
+    tint = np.asarray(background_tint, dtype=np.float64)
+    if tint.shape != (3,) or not (np.isfinite(tint).all() and (tint >= 0).all()):
+        raise InputError(f"background_tint must be three albedos ≥ 0, got {background_tint!r}")
+    if not (np.isfinite(background_texture) and background_texture >= 0):
+        raise InputError(f"background_texture must be ≥ 0, got {background_texture!r}")
+    mottle = np.clip(1.0 + background_texture * smooth_noise((h, w), 30, rng), 0.5, 1.5)
+    bg_albedo = tint * mottle[..., None]
 
     ss = _SUPERSAMPLE
     sub = (np.arange(ss) + 0.5) / ss - 0.5
@@ -177,14 +251,34 @@ def render_sphere_capture(
     X, Y = np.meshgrid(cols, rows)  # (H·ss, W·ss) image coordinates of the sub-samples
     sphere_id = np.full(X.shape, -1, dtype=np.int32)
     sn = np.zeros(X.shape + (3,))
-    for i, (cx, cy, r) in enumerate(sph):
-        u, v = (X - cx) / r, (cy - Y) / r  # y up: rows go down
-        rho2 = u * u + v * v
-        inside = rho2 < 1.0
-        sphere_id[inside] = i
-        sn[inside] = np.stack([u[inside], v[inside], np.sqrt(1.0 - rho2[inside])], axis=-1)
+    if camera is None:
+        for i, (cx, cy, r) in enumerate(sph):
+            u, v = (X - cx) / r, (cy - Y) / r  # y up: rows go down
+            rho2 = u * u + v * v
+            inside = rho2 < 1.0
+            sphere_id[inside] = i
+            sn[inside] = np.stack([u[inside], v[inside], np.sqrt(1.0 - rho2[inside])], axis=-1)
+        view = None
+    else:
+        rays = np.stack([(X - camera.cx) / camera.fx, -(Y - camera.cy) / camera.fy,
+                         -np.ones_like(X)], axis=-1)
+        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+        depth = np.full(X.shape, np.inf)
+        for i, c in enumerate(centres):
+            # Ray t·d meets |p − C| = 1 (radius units) at t = d·C − √((d·C)² − |C|² + 1).
+            dc = rays @ c
+            disc = dc * dc - (c @ c - 1.0)
+            hit = disc > 0
+            t = np.where(hit, dc - np.sqrt(np.clip(disc, 0, None)), np.inf)
+            nearer = hit & (t < depth)
+            depth[nearer] = t[nearer]
+            sphere_id[nearer] = i
+            sn[nearer] = t[nearer, None] * rays[nearer] - c
+        view = -rays[sphere_id >= 0]  # (M, 3) from the surface to the camera
     on_sphere = sphere_id >= 0
     n_sph = sn[on_sphere]  # (M, 3)
+    if view is not None:
+        n_sph /= np.linalg.norm(n_sph, axis=1, keepdims=True)
 
     bg_up_normals = np.repeat(np.repeat(bg_normals, ss, 0), ss, 1)
     bg_up_albedo = np.repeat(np.repeat(bg_albedo, ss, 0), ss, 1)
@@ -196,8 +290,12 @@ def render_sphere_capture(
         ndotl = n_sph @ light
         sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
         if k not in hidden:
-            # Phong: r·v with v = +z is the z component of the mirror direction 2(n·l)n − l.
-            rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
+            # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
+            if view is None:
+                rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
+            else:
+                rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light,
+                                0, None)
             sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
         img[on_sphere] = sphere_rad[:, None]
         img = img.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
@@ -213,4 +311,5 @@ def render_sphere_capture(
     write_lp(truth_lp, [p.name for p in paths], lights)
     np.save(out / "truth.npy", lights)
     return SphereCaptureInfo(folder=out, image_paths=tuple(paths), directions=lights,
-                             spheres=sph, hidden=hidden, truth_lp=truth_lp, shape=(h, w))
+                             spheres=sph, hidden=hidden, truth_lp=truth_lp, shape=(h, w),
+                             camera=camera, outlines=outlines, centres_3d=centres)

@@ -3,7 +3,10 @@
 A hand-held flash lights the object from a different direction in each photograph; one or
 more black glossy spheres beside the object show a small mirror highlight where the sphere
 normal bisects the light and the viewing direction. With an orthographic camera (a distant
-lens, view v = (0, 0, 1)) the light follows from the highlight position alone.
+lens, view v = (0, 0, 1)) the light follows from the highlight position alone; with a pinhole
+camera (:class:`reconstruct.perspective.Intrinsics`, e.g. from EXIF) the view is each
+highlight's own ray and the sphere's position comes from its outline
+(:func:`sphere_centre_3d`).
 
 Coordinates: image positions are (x_img, y_img) = (column, row) with pixel centres at integers;
 spheres are (cx, cy, r) in those units. Directions use the project frame: x right, y up,
@@ -24,10 +27,11 @@ import numpy as np
 from scipy import ndimage
 
 from ptmcore.atomic import atomic_write
-from ptmcore.errors import InputError
 from ptmcore.bands import band_rows, run_bands
+from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, load_stack
 from ptmcore.lp import write_lp
+from reconstruct.perspective import Intrinsics
 
 Sphere = tuple[float, float, float]
 
@@ -58,6 +62,8 @@ class Calibration:
         File names of the photographs, in order.
     flagged : list of str
         Names of the photographs whose direction could not be read (NaN rows).
+    intrinsics : Intrinsics or None
+        The pinhole camera used for the reflection; None for the orthographic view.
     """
 
     directions: np.ndarray
@@ -69,6 +75,15 @@ class Calibration:
     spheres: list[Sphere]
     names: list[str] = field(default_factory=list)
     flagged: list[str] = field(default_factory=list)
+    intrinsics: Intrinsics | None = None
+
+    @property
+    def view_model(self) -> str:
+        """``"orthographic"`` or ``"perspective (fx=…, fy=…, cx=…, cy=… px)"``."""
+        k = self.intrinsics
+        if k is None:
+            return "orthographic"
+        return f"perspective (fx={k.fx:.1f}, fy={k.fy:.1f}, cx={k.cx:.1f}, cy={k.cy:.1f} px)"
 
     @property
     def usable(self) -> np.ndarray:
@@ -241,8 +256,7 @@ def detect_spheres(
     InputError
         If no sphere (or fewer than ``expected``) is found.
     """
-    from skimage.filters import threshold_otsu
-    from skimage.measure import label, regionprops
+    from skimage.measure import label
 
     median = np.asarray(median, dtype=np.float32)
     maximum = np.asarray(maximum, dtype=np.float32)
@@ -255,12 +269,57 @@ def detect_spheres(
     if np.ptp(median) <= 0:
         raise InputError("no spheres found: the photographs have no contrast")
 
-    dark = median < threshold_otsu(median)
-    dark = ndimage.binary_opening(dark, iterations=2)
-    dark = ndimage.binary_fill_holes(dark)
-    labels = label(dark)
     found: list[tuple[float, Sphere]] = []
-    bg_level = float(np.median(median[~dark])) if (~dark).any() else float(median.max())
+    for level in _dark_levels(median):
+        dark = median < level
+        dark = ndimage.binary_opening(dark, iterations=2)
+        dark = ndimage.binary_fill_holes(dark)
+        bg_level = float(np.median(median[~dark])) if (~dark).any() else float(median.max())
+        for score, sphere in _round_dark_discs(median, maximum, label(dark), bg_level,
+                                               rmin, rmax):
+            # The same sphere is found at several levels; its refined outline is the same.
+            if all(np.hypot(sphere[0] - s[0], sphere[1] - s[1]) > 0.5 * min(sphere[2], s[2])
+                   for _, s in found):
+                found.append((score, sphere))
+    if not found:
+        raise InputError("no spheres found: no dark round disc with a moving highlight "
+                         "(pass the spheres explicitly if they are there)")
+    found.sort(key=lambda item: -item[0])
+    if expected is not None:
+        if len(found) < expected:
+            raise InputError(f"found {len(found)} sphere(s) but {expected} were expected")
+        found = found[:expected]
+    return sorted((s for _, s in found), key=lambda s: (s[0], s[1]))
+
+
+def _dark_levels(median: np.ndarray, count: int = 6) -> np.ndarray:
+    """Thresholds at which to look for dark discs in the median image.
+
+    One global threshold fails when the background has patches nearly as dark as the
+    spheres (a textured or shadowed object): at Otsu's level they touch a sphere and its
+    region is no longer round. Black spheres are darker than almost anything else by a
+    ratio, so thresholds are also taken on a geometric scale, from twice the darkest levels
+    up to the larger of Otsu's thresholds on the linear and on the logarithmic values;
+    a sphere is round at some of them.
+    """
+    from skimage.filters import threshold_otsu
+
+    positive = median[median > 0]
+    floor = float(np.percentile(positive, 0.1)) if positive.size else 1e-6
+    linear = float(threshold_otsu(median))
+    log = float(np.exp(threshold_otsu(np.log(np.maximum(median, max(floor, 1e-6))))))
+    top = max(linear, log)
+    low = min(max(2.0 * floor, 1e-6), top)
+    return np.unique(np.concatenate([[linear], np.geomspace(low, top, count)]))
+
+
+def _round_dark_discs(median: np.ndarray, maximum: np.ndarray, labels: np.ndarray,
+                      bg_level: float, rmin: float, rmax: float
+                      ) -> list[tuple[float, Sphere]]:
+    """(score, refined sphere) of the labelled regions that look like glossy spheres."""
+    from skimage.measure import regionprops
+
+    found = []
     for region in regionprops(labels):
         r0 = np.sqrt(region.area / np.pi)
         if not rmin * 0.8 <= r0 <= rmax * 1.2:
@@ -276,23 +335,20 @@ def detect_spheres(
         rr, cc = region.coords[:, 0], region.coords[:, 1]
         inside_d = np.hypot(cc - cx0, rr - cy0) < 0.9 * r0
         inner_med = float(np.median(median[rr[inside_d], cc[inside_d]]))
-        trail = float(np.percentile(maximum[rr[inside_d], cc[inside_d]], 99.5))
-        # A glossy sphere's highlight trail is far brighter than its dark body.
+        max_inside = maximum[rr[inside_d], cc[inside_d]]
+        trail = float(np.percentile(max_inside, 99.5))
+        # A glossy sphere's highlight trail is far brighter than its dark body, and it is a
+        # trail: most of the disc stays dark in every photograph. A dark patch of a matte
+        # surface, shaded in the median, is broadly bright under some light instead.
         if trail < max(4.0 * inner_med, 0.1 * bg_level, 0.05):
+            continue
+        if trail < 4.0 * float(np.percentile(max_inside, 25)):
             continue
         cx, cy, r = refine_circle(median, (cx0, cy0, r0))
         if not (rmin <= r <= rmax and abs(r - r0) < 0.2 * r0):
             continue
         found.append((trail / max(inner_med, 1e-4), (cx, cy, r)))
-    if not found:
-        raise InputError("no spheres found: no dark round disc with a moving highlight "
-                         "(pass the spheres explicitly if they are there)")
-    found.sort(key=lambda item: -item[0])
-    if expected is not None:
-        if len(found) < expected:
-            raise InputError(f"found {len(found)} sphere(s) but {expected} were expected")
-        found = found[:expected]
-    return sorted((s for _, s in found), key=lambda s: (s[0], s[1]))
+    return found
 
 
 # --------------------------------------------------------------------------- highlights
@@ -378,18 +434,181 @@ def find_highlight(
     return hx, hy, conf
 
 
-def light_from_highlight(hx: float, hy: float, sphere: Sphere) -> np.ndarray:
-    """Light direction from a highlight on a mirror sphere, orthographic view.
+def _pixel_rays(x_img: np.ndarray, y_img: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """(..., 3) unit rays from the camera centre through image points (column, row)."""
+    k = intrinsics
+    x = np.asarray(x_img, dtype=np.float64)
+    y = np.asarray(y_img, dtype=np.float64)
+    rays = np.stack(np.broadcast_arrays((x - k.cx) / k.fx, -(y - k.cy) / k.fy,
+                                        -np.ones_like(x)), axis=-1)
+    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
 
-    The sphere normal at the highlight is s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) (rows go
-    down, y goes up); the light is the mirror image of the view v = (0, 0, 1) about it:
-    l = 2(s·v)s − v.
+
+def _pixel_to_ray_matrix(intrinsics: Intrinsics) -> np.ndarray:
+    """3×3 M with M·(col, row, 1) = ((col − cx)/fx, −(row − cy)/fy, −1), a ray (not unit)."""
+    k = intrinsics
+    return np.array([[1.0 / k.fx, 0.0, -k.cx / k.fx],
+                     [0.0, -1.0 / k.fy, k.cy / k.fy],
+                     [0.0, 0.0, -1.0]])
+
+
+def sphere_outline(centre: np.ndarray, intrinsics: Intrinsics) -> tuple[float, float, float, float, float]:
+    """The ellipse that a pinhole camera sees of a unit sphere centred at ``centre``.
+
+    The rays tangent to the sphere form a cone of axis â = C/|C| and half-angle α with
+    sin α = 1/|C|; a ray d is on it when (d·â)² = cos²α |d|². With d = M·p for the pixel
+    p = (col, row, 1) this is the conic pᵀ Mᵀ(â âᵀ − cos²α I) M p = 0.
+
+    Parameters
+    ----------
+    centre : np.ndarray
+        (3,) sphere centre in the camera frame, in units of the radius (|centre| > 1,
+        in front of the camera).
+    intrinsics : Intrinsics
+        The camera.
+
+    Returns
+    -------
+    (x0, y0, a, b, phi)
+        Ellipse centre (column, row), semi-major and semi-minor axes in pixels, and the
+        major axis's angle in radians from the +column axis towards +row.
+    """
+    centre = np.asarray(centre, dtype=np.float64)
+    dist = float(np.linalg.norm(centre))
+    axis = centre / dist
+    cos2 = 1.0 - 1.0 / dist**2
+    M = _pixel_to_ray_matrix(intrinsics)
+    A = M.T @ (np.outer(axis, axis) - cos2 * np.eye(3)) @ M
+    c = np.linalg.solve(A[:2, :2], -A[:2, 2])
+    k = float(np.append(c, 1.0) @ A @ np.append(c, 1.0))
+    lam, vec = np.linalg.eigh(A[:2, :2])
+    semi = np.sqrt(-k / lam)
+    major = int(np.argmax(semi))
+    phi = float(np.arctan2(vec[1, major], vec[0, major]))
+    return float(c[0]), float(c[1]), float(semi.max()), float(semi.min()), phi
+
+
+def ellipse_mean_radius(a: float, b: float, n: int = 360) -> float:
+    """Mean distance from an ellipse's centre to its outline over equally spaced angles.
+
+    This is the radius a geometric circle fit gives for outline points sampled on rays at
+    equal angles from the centre, as :func:`refine_circle` samples them.
+    """
+    phi = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    return float(np.mean(a * b / np.hypot(b * np.cos(phi), a * np.sin(phi))))
+
+
+def sphere_centre_3d(sphere: Sphere, intrinsics: Intrinsics) -> np.ndarray:
+    """Centre of a unit-radius sphere whose fitted outline circle is ``sphere``, pinhole camera.
+
+    The outline of a sphere is the image of the cone of rays tangent to it. In the plane
+    that holds the optical axis and the sphere's centre, the cone's two extreme rays pass
+    through the outline points on the image line from the principal point through the
+    outline's centre; the cone's axis (the direction of the sphere's centre) bisects them
+    and their half-angle α gives the distance D = 1/sin α for a radius of 1 (everything is
+    scale-free).
+
+    Approximation and its correction: the outline is detected as a circle, but in
+    perspective it is an ellipse elongated away from the principal point (by about
+    1/cos θ for a sphere θ off the optical axis: 6 % at 20°). The circle fit returns the
+    ellipse's centre and, between the two semi-axes, its mean radius, so the two points
+    above sit inside the true extremes: D comes out a few percent too large, which tilts
+    the normals of highlights away from the disc's centre, by a degree or more for spheres
+    off-axis under a normal or wide lens. The rays through those points therefore only give
+    the starting point; the centre is then adjusted (a 3-unknown least-squares solve) until
+    the exact projected ellipse (:func:`sphere_outline`) has the measured circle's centre
+    and mean radius. What remains is the difference between a circle fit of a sampled,
+    anti-aliased ellipse and that ideal, a small fraction of a pixel.
+
+    Parameters
+    ----------
+    sphere : (cx, cy, r)
+        The fitted outline circle in pixels (cx = column, cy = row).
+    intrinsics : Intrinsics
+        The camera.
 
     Returns
     -------
     np.ndarray
-        (3,) float64 unit vector towards the light.
+        (3,) float64 centre in the camera frame (x right, y up, z towards the camera; the
+        camera looks along −z), in units of the sphere's radius.
     """
+    from scipy.optimize import least_squares
+
+    cx, cy, r = (float(v) for v in sphere)
+    d = np.array([cx - intrinsics.cx, cy - intrinsics.cy])
+    norm = float(np.hypot(*d))
+    # On the optical axis every diameter is such a line; any one will do.
+    d = d / norm if norm > 1e-9 else np.array([1.0, 0.0])
+    ends = np.array([cx, cy])[None, :] + np.array([[-r], [r]]) * d[None, :]
+    r0, r1 = _pixel_rays(ends[:, 0], ends[:, 1], intrinsics)
+    axis = r0 + r1
+    axis /= np.linalg.norm(axis)
+    half = 0.5 * np.arccos(np.clip(r0 @ r1, -1.0, 1.0))
+    start = axis / np.sin(half)
+
+    def residual(c: np.ndarray) -> np.ndarray:
+        x0, y0, a, b, _ = sphere_outline(c, intrinsics)
+        return np.array([x0 - cx, y0 - cy, ellipse_mean_radius(a, b) - r])
+
+    # Unknowns scaled by the starting distance so that each is of order 1.
+    scale = float(np.linalg.norm(start))
+    fit = least_squares(lambda p: residual(p * scale), start / scale, x_scale="jac",
+                        xtol=1e-12, ftol=1e-12, gtol=1e-12)
+    centre = fit.x * scale
+    return centre if np.linalg.norm(centre) > 1.0 and centre[2] < 0 else start
+
+
+def _perspective_lights(hx: np.ndarray, hy: np.ndarray, sphere: Sphere,
+                        intrinsics: Intrinsics) -> np.ndarray:
+    """(..., 3) light directions from highlights on one sphere, pinhole camera."""
+    centre = sphere_centre_3d(sphere, intrinsics)
+    rays = _pixel_rays(hx, hy, intrinsics)
+    # Nearest intersection of the ray t·d with |p − C| = 1: t = d·C − √((d·C)² − |C|² + 1).
+    dc = rays @ centre
+    disc = dc * dc - (centre @ centre - 1.0)
+    # A highlight measured just outside the outline misses the sphere: take the ray's point
+    # closest to the centre, on the limb, as the orthographic model clamps to the limb.
+    t = dc - np.sqrt(np.clip(disc, 0.0, None))
+    normal = t[..., None] * rays - centre
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    view = -rays
+    light = 2.0 * np.sum(normal * view, axis=-1, keepdims=True) * normal - view
+    return light / np.linalg.norm(light, axis=-1, keepdims=True)
+
+
+def light_from_highlight(hx: float, hy: float, sphere: Sphere,
+                         intrinsics: Intrinsics | None = None) -> np.ndarray:
+    """Light direction from a highlight on a mirror sphere.
+
+    Orthographic view (the default): the sphere normal at the highlight is
+    s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) (rows go down, y goes up); the light is the
+    mirror image of the view v = (0, 0, 1) about it: l = 2(s·v)s − v.
+
+    Pinhole camera (``intrinsics`` given): the sphere's centre direction and distance come
+    from its outline (:func:`sphere_centre_3d`, radius 1); the ray through the highlight
+    pixel meets the sphere at a point with normal n; the view v is the reversed ray
+    (towards the camera), and l = 2(n·v)n − v. ``hx`` and ``hy`` may then be arrays of
+    highlights on the same sphere.
+
+    Parameters
+    ----------
+    hx, hy : float (or arrays with ``intrinsics``)
+        Highlight position (column, row) in pixels.
+    sphere : (cx, cy, r)
+        The sphere's outline in pixels.
+    intrinsics : Intrinsics, optional
+        Pinhole camera in pixels (:class:`reconstruct.perspective.Intrinsics`); None for an
+        orthographic view.
+
+    Returns
+    -------
+    np.ndarray
+        (3,) (or (..., 3) for arrays) float64 unit vector towards the light, in the project
+        frame.
+    """
+    if intrinsics is not None:
+        return _perspective_lights(hx, hy, sphere, intrinsics)
     cx, cy, r = sphere
     sx, sy = (hx - cx) / r, (cy - hy) / r
     rho2 = sx * sx + sy * sy
@@ -405,6 +624,79 @@ def light_from_highlight(hx: float, hy: float, sphere: Sphere) -> np.ndarray:
 # --------------------------------------------------------------------------- calibration
 
 
+def calibration_camera(
+    photograph: str | os.PathLike,
+    *,
+    intrinsics: str | Intrinsics | None = None,
+    focal_mm: float | None = None,
+    sensor_width_mm: float | None = None,
+    exif: bool = False,
+) -> Intrinsics | None:
+    """The camera model for :func:`calibrate` from whichever description the user gave.
+
+    At most one of: ``intrinsics`` (an :class:`Intrinsics` or ``"fx,fy,cx,cy"`` in
+    pixels), ``focal_mm`` with ``sensor_width_mm`` (square pixels, principal point at the
+    image centre; :meth:`Intrinsics.from_focal`), or ``exif`` (read from ``photograph``'s
+    EXIF by :func:`reconstruct.perspective.intrinsics_from_exif`). None of them: None, the
+    orthographic view.
+
+    Parameters
+    ----------
+    photograph : str or PathLike
+        One photograph of the capture: its size (and EXIF) are read.
+    intrinsics, focal_mm, sensor_width_mm, exif
+        See above.
+
+    Returns
+    -------
+    Intrinsics or None
+
+    Raises
+    ------
+    InputError
+        Two descriptions at once, a focal length without a sensor width (or the reverse),
+        non-positive or non-numeric values, or ``exif`` on a photograph without the tags.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    from reconstruct.perspective import intrinsics_from_exif, parse_intrinsics
+
+    lens = focal_mm is not None or sensor_width_mm is not None
+    if sum([intrinsics is not None, lens, bool(exif)]) > 1:
+        raise InputError("give the camera one way only: intrinsics, focal length with sensor "
+                         "width, or EXIF")
+    if isinstance(intrinsics, str):
+        try:
+            return parse_intrinsics(intrinsics)
+        except ValueError as exc:
+            raise InputError(f"--intrinsics: {exc}") from None
+    if intrinsics is not None:
+        return intrinsics
+    if exif:
+        camera = intrinsics_from_exif(photograph)
+        if camera is None:
+            raise InputError("the EXIF has no focal length with sensor resolution or 35 mm "
+                             "equivalent; give the focal length and sensor width instead",
+                             photograph)
+        return camera
+    if not lens:
+        return None
+    if focal_mm is None or sensor_width_mm is None:
+        raise InputError("a focal length needs the sensor width too (and the reverse)")
+    try:
+        with Image.open(photograph) as img:
+            width, height = img.size
+    except FileNotFoundError:
+        raise InputError("photograph not found", photograph) from None
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(f"cannot read the photograph: {exc}", photograph) from None
+    try:
+        return Intrinsics.from_focal(float(focal_mm), float(sensor_width_mm), width, height)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"bad focal length or sensor width: {exc}") from None
+
+
+
 def calibrate_stack(
     stack: ImageStack,
     *,
@@ -413,6 +705,7 @@ def calibrate_stack(
     names: list[str] | None = None,
     min_confidence: float = 0.2,
     disagreement_tol_deg: float = 5.0,
+    intrinsics: Intrinsics | None = None,
 ) -> Calibration:
     """Calibrate from a decoded capture (:func:`ptmcore.load_stack`); see :func:`calibrate`."""
     n = len(stack)
@@ -446,8 +739,13 @@ def calibrate_stack(
                 continue
             hx, hy, c = float(found[0]) + x0, float(found[1]) + y0, found[2]
             hl[i, k] = hx, hy
-            sdirs[i, k] = light_from_highlight(hx, hy, sph)
+            if intrinsics is None:
+                sdirs[i, k] = light_from_highlight(hx, hy, sph)
             sconf[i, k] = c
+        seen = np.isfinite(hl[i, :, 0])
+        if intrinsics is not None and seen.any():
+            sdirs[i, seen] = light_from_highlight(hl[i, seen, 0], hl[i, seen, 1], sph,
+                                                  intrinsics)
 
     # Combine spheres per photograph: confidence-weighted mean of unit vectors.
     wts = np.where(np.isfinite(sdirs).all(-1), sconf, 0.0)  # (M, N)
@@ -470,7 +768,8 @@ def calibrate_stack(
     flagged = [names[k] for k in np.flatnonzero(bad)]
     return Calibration(directions=combined, confidence=conf, sphere_directions=sdirs,
                        sphere_confidence=sconf, highlights=hl, disagreement_deg=disagree,
-                       spheres=[tuple(s) for s in spheres], names=names, flagged=flagged)
+                       spheres=[tuple(s) for s in spheres], names=names, flagged=flagged,
+                       intrinsics=intrinsics)
 
 
 def calibrate(
@@ -480,6 +779,7 @@ def calibrate(
     expected: int | None = None,
     min_confidence: float = 0.2,
     disagreement_tol_deg: float = 5.0,
+    intrinsics: Intrinsics | None = None,
 ) -> Calibration:
     """Light directions of a highlight-RTI capture from its glossy spheres.
 
@@ -495,6 +795,11 @@ def calibrate(
         Photographs whose combined confidence is lower are flagged (NaN direction).
     disagreement_tol_deg : float
         Angle between spheres' directions at which the confidence drops to 0.
+    intrinsics : Intrinsics, optional
+        Pinhole camera (see :func:`reconstruct.perspective.intrinsics_from_exif` and
+        :meth:`~reconstruct.perspective.Intrinsics.from_focal`): the reflection then uses
+        each highlight's own view ray (:func:`light_from_highlight`). None: orthographic
+        view, right for long lenses.
 
     Returns
     -------
@@ -509,7 +814,7 @@ def calibrate(
     stack = load_stack(paths, min_photographs=1)
     return calibrate_stack(stack, spheres=spheres, expected=expected,
                            names=[p.name for p in paths], min_confidence=min_confidence,
-                           disagreement_tol_deg=disagreement_tol_deg)
+                           disagreement_tol_deg=disagreement_tol_deg, intrinsics=intrinsics)
 
 
 def write_calibration_lp(path: str | os.PathLike, calibration: Calibration,
@@ -545,7 +850,8 @@ def write_diagnostic(path: str | os.PathLike, image: np.ndarray, calibration: Ca
     """A PNG of photograph ``k`` with the sphere outlines and the highlights found.
 
     Outlines are green; a found highlight is a red cross; a sphere without a usable
-    highlight in this photograph gets a yellow outline instead.
+    highlight in this photograph gets a yellow outline instead. The view model used
+    (:attr:`Calibration.view_model`) is written in the top-left corner.
     """
     from PIL import Image, ImageDraw
 
@@ -561,6 +867,7 @@ def write_diagnostic(path: str | os.PathLike, image: np.ndarray, calibration: Ca
         rgb = np.repeat(rgb[..., None], 3, axis=2)
     pil = Image.fromarray(np.ascontiguousarray(rgb[..., :3]))
     draw = ImageDraw.Draw(pil)
+    draw.text((3, 2), f"{calibration.view_model} view", fill=(255, 255, 255))
     for i, (cx, cy, r) in enumerate(calibration.spheres):
         hx, hy = calibration.highlights[i, k]
         colour = (0, 255, 0) if np.isfinite(hx) else (255, 255, 0)

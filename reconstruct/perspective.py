@@ -29,6 +29,7 @@ from reconstruct.integrate import masked_poisson, poisson_dct
 __all__ = [
     "Intrinsics",
     "integrate_perspective",
+    "intrinsics_from_exif",
     "parse_intrinsics",
     "perspective_gradients",
 ]
@@ -107,6 +108,93 @@ class Intrinsics:
             )
         f = float(focal_mm) * float(image_width_px) / float(sensor_width_mm)
         return cls(f, f, (image_width_px - 1) / 2.0, (image_height_px - 1) / 2.0)
+
+
+#: EXIF tags (in the Exif sub-IFD, 0x8769) used by :func:`intrinsics_from_exif`.
+_EXIF_IFD = 0x8769
+_FOCAL_LENGTH = 0x920A
+_PIXEL_X_DIMENSION = 0xA002
+_FOCAL_PLANE_X_RES = 0xA20E
+_FOCAL_PLANE_Y_RES = 0xA20F
+_FOCAL_PLANE_UNIT = 0xA210
+_FOCAL_35MM = 0xA405
+#: FocalPlaneResolutionUnit → millimetres per unit (2 inch, 3 cm, 4 mm, 5 µm).
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}
+#: Diagonal of a 36 × 24 mm frame, the reference of 35 mm-equivalent focal lengths.
+_FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
+
+
+def _positive_tag(ifd, tag: int) -> float | None:
+    """A tag's value as a positive finite float, or None (missing, zero, garbage)."""
+    value = ifd.get(tag)
+    try:
+        value = float(value)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def intrinsics_from_exif(path) -> Intrinsics | None:
+    """Pinhole intrinsics from a photograph's EXIF focal length and sensor size.
+
+    The principal point is taken at the image centre. The focal length in pixels comes
+    from, in this order of preference:
+
+    1. FocalLength (mm) and FocalPlaneXResolution / FocalPlaneResolutionUnit (pixels per
+       unit length on the sensor): fx = FocalLength · pixels per mm (fy likewise from
+       FocalPlaneYResolution when present, else fx). When the photograph is narrower or
+       wider than the EXIF PixelXDimension (resized after the camera wrote the tags), the
+       pixel density is scaled by the ratio.
+    2. FocalLengthIn35mmFilm: the focal length that gives the same field of view on a
+       36 × 24 mm frame, compared along the diagonal (the usual crop-factor convention):
+       fx = fy = f35 · image diagonal in pixels / 43.27 mm. For a 3:2 image this is
+       f35 / 36 mm · image width.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        A photograph (JPEG or TIFF with EXIF).
+
+    Returns
+    -------
+    Intrinsics or None
+        None when the EXIF lacks the tags (or they are zero or unreadable).
+
+    Raises
+    ------
+    InputError
+        If the file cannot be opened as an image.
+    """
+    from PIL import Image, UnidentifiedImageError
+
+    from ptmcore.errors import InputError
+
+    try:
+        with Image.open(path) as img:
+            width, height = img.size
+            exif = img.getexif()
+    except FileNotFoundError:
+        raise InputError("photograph not found", path) from None
+    except (OSError, UnidentifiedImageError) as exc:
+        raise InputError(f"cannot read the photograph's EXIF: {exc}", path) from None
+    sub = exif.get_ifd(_EXIF_IFD)
+    cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
+    focal = _positive_tag(sub, _FOCAL_LENGTH)
+    x_res = _positive_tag(sub, _FOCAL_PLANE_X_RES)
+    try:
+        unit = _UNIT_MM.get(int(sub.get(_FOCAL_PLANE_UNIT, 2)))  # EXIF's default: the inch
+    except (TypeError, ValueError):
+        unit = None
+    if focal is not None and x_res is not None and unit is not None:
+        y_res = _positive_tag(sub, _FOCAL_PLANE_Y_RES) or x_res
+        native_width = _positive_tag(sub, _PIXEL_X_DIMENSION)
+        resized = width / native_width if native_width else 1.0
+        return Intrinsics(focal * x_res / unit * resized, focal * y_res / unit * resized, cx, cy)
+    f35 = _positive_tag(sub, _FOCAL_35MM)
+    if f35 is not None:
+        f = f35 * math.hypot(width, height) / _FULL_FRAME_DIAGONAL_MM
+        return Intrinsics(f, f, cx, cy)
+    return None
 
 
 def parse_intrinsics(text: str) -> Intrinsics:
