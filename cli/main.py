@@ -266,23 +266,45 @@ def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from ptmcore.images import read_image
-    from reconstruct.calibrate import calibrate, calibration_camera, write_calibration_lp, write_diagnostic
+    from ptmcore.nearlight import typical_distance
+    from reconstruct.calibrate import (
+        calibrate,
+        calibration_camera,
+        write_calibration_lp,
+        write_diagnostic,
+    )
     from reconstruct.lightcheck import write_polar_plot
     from reconstruct.pipeline import capture_images
+    from reconstruct.triangulate import near_lights, write_near_light_files
 
     paths = capture_images(args.capture)
     camera = calibration_camera(paths[0], intrinsics=args.intrinsics, focal_mm=args.focal_mm,
                                 sensor_width_mm=args.sensor_width_mm, exif=args.exif)
     result = calibrate(paths, spheres=_parse_spheres(args.sphere), intrinsics=camera)
-    count = write_calibration_lp(args.output, result, [p.name for p in paths])
-    print(f"{args.output}: {count} of {len(paths)} photographs with a light direction, from "
-          f"{len(result.spheres)} sphere(s), {result.view_model} view")
-    for name in result.flagged:
-        print(f"  warning: {name}: no usable highlight; left out")
+    first = read_image(paths[0])
+    near = near_lights(result, first.shape[:2])
+    if near is None:
+        count = write_calibration_lp(args.output, result, [p.name for p in paths])
+        directions = result.directions[result.usable]
+        print(f"{args.output}: {count} of {len(paths)} photographs with a light direction, from "
+              f"{len(result.spheres)} sphere(s), {result.view_model} view")
+        for name in result.flagged:
+            print(f"  warning: {name}: no usable highlight; left out")
+    else:
+        positions_file = args.output.with_name("light_positions.csv")
+        names = [p.name for p, ok in zip(paths, near.usable) if ok]
+        directions = write_near_light_files(args.output, positions_file, near, first.shape[:2])
+        print(f"{args.output}, {positions_file.name}: near lights triangulated from {len(result.spheres)} "
+              f"spheres for {len(names)} of {len(paths)} photographs (median distance "
+              f"{typical_distance(near.positions[near.usable], first.shape[:2]):.0f} px); `run` gives "
+              "every pixel its own light direction")
+        for name, status in zip(near.names, near.status):
+            if status != "ok":
+                print(f"  warning: {name}: no light position ({status}); left out")
     if args.diagnostic is not None:
-        write_diagnostic(args.diagnostic, read_image(paths[0]), result, 0)
+        write_diagnostic(args.diagnostic, first, result, 0)
         polar = args.diagnostic.with_name(args.diagnostic.stem + "_lights.png")
-        write_polar_plot(polar, result.directions[result.usable], title=args.output.name)
+        write_polar_plot(polar, directions, title=args.output.name)
         print(f"  diagnostics: {args.diagnostic}, {polar}")
     return 0
 
@@ -468,7 +490,13 @@ def _parse_vector(text: str) -> list[float]:
 
 def _cmd_relight(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
-    from reconstruct.relighting import load_source, render, sweep_lights, write_gif, write_image
+    from reconstruct.relighting import (
+        load_source,
+        render,
+        sweep_lights,
+        write_gif,
+        write_image,
+    )
 
     params = {"kd": args.kd, "ks": args.ks, "exponent": args.exponent, "gain": args.gain}
     if args.sweep is None:

@@ -262,11 +262,12 @@ def _calibrate_from_spheres(
     show them to be near (then every triangulated photograph is kept, even where the spheres'
     distant directions disagree, as they must for a near light).
     """
-    from .calibrate import calibrate_stack
-    from .triangulate import OK, lights_are_near, triangulate
+    from .calibrate import calibrate_stack, calibration_camera
+    from .triangulate import OK, near_lights
 
+    camera = calibration_camera(stack.paths[0], intrinsics=opt.intrinsics)
     try:
-        result = calibrate_stack(stack, names=[p.name for p in stack.paths])
+        result = calibrate_stack(stack, names=[p.name for p in stack.paths], intrinsics=camera)
     except InputError as exc:
         raise InputError(
             f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
@@ -278,24 +279,22 @@ def _calibrate_from_spheres(
         # A margin of a few pixels keeps the spheres' dark rims out too.
         keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
 
-    near = None
-    if len(result.spheres) >= 2 and str(opt.light_positions) == "auto":
-        tri = triangulate(result)
-        if lights_are_near(tri, stack.shape):
-            usable = tri.usable
-            for name, status in zip(result.names, tri.status):
-                if status != OK:
-                    warnings.append(f"{name}: no light position from the spheres ({status}); left out")
-            if usable.sum() < 3:
-                raise InputError("fewer than 3 photographs have a triangulated light position", capture)
-            stack = stack.select(usable)
-            near = NearLights(tri.positions[usable], f"triangulated from {len(result.spheres)} spheres")
-            directions = centre_directions(near.positions, stack.shape)
-            warnings.append(
-                f"no .lp file: near lights triangulated from {len(result.spheres)} spheres for "
-                f"{int(usable.sum())} of {len(usable)} photographs; each pixel has its own light direction"
-            )
-            return stack, LightSet(stack.paths, directions, None), keep, near
+    tri = near_lights(result, stack.shape) if str(opt.light_positions) == "auto" else None
+    if tri is not None:
+        usable = tri.usable
+        for name, status in zip(result.names, tri.status):
+            if status != OK:
+                warnings.append(f"{name}: no light position from the spheres ({status}); left out")
+        if usable.sum() < 3:
+            raise InputError("fewer than 3 photographs have a triangulated light position", capture)
+        stack = stack.select(usable)
+        near = NearLights(tri.positions[usable], f"triangulated from {len(result.spheres)} spheres")
+        directions = centre_directions(near.positions, stack.shape)
+        warnings.append(
+            f"no .lp file: near lights triangulated from {len(result.spheres)} spheres for "
+            f"{int(usable.sum())} of {len(usable)} photographs; each pixel has its own light direction"
+        )
+        return stack, LightSet(stack.paths, directions, None), keep, near
     for name in result.flagged:
         warnings.append(f"{name}: no usable highlight on the spheres; left out")
     usable = result.usable
@@ -303,8 +302,8 @@ def _calibrate_from_spheres(
         raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
     stack = stack.select(usable)
     warnings.append(f"no .lp file: light directions read from {len(result.spheres)} sphere(s) "
-                    f"for {int(usable.sum())} of {len(usable)} photographs")
-    return stack, LightSet(stack.paths, result.directions[usable], None), keep, near
+                    f"for {int(usable.sum())} of {len(usable)} photographs ({result.view_model} view)")
+    return stack, LightSet(stack.paths, result.directions[usable], None), keep, None
 
 
 def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) -> NearLights | None:

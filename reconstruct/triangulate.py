@@ -19,11 +19,14 @@ the calibration are (x_img, y_img) = (column, row), so C_i = (cx, −cy, h_i).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ptmcore.errors import InputError
+from ptmcore.lp import write_lp
+from ptmcore.nearlight import centre_directions, write_light_positions
 
 from .calibrate import Calibration
 
@@ -210,5 +213,56 @@ def lights_are_near(
     return dist < max_diagonals * float(np.hypot(h, w)) and residual < max_relative_residual * dist
 
 
-__all__ = ["BEHIND", "OK", "PARALLEL", "TOO_FEW", "Triangulation", "lights_are_near",
-           "sphere_rays", "triangulate"]
+def near_lights(calibration: Calibration, shape: tuple[int, int]) -> Triangulation | None:
+    """The triangulated lights of a calibration when they are near, else None.
+
+    None also when fewer than two spheres were used, or when the calibration used a
+    perspective camera (the rays here assume the orthographic view).
+
+    Parameters
+    ----------
+    calibration : Calibration
+    shape : (H, W)
+        Image size in pixels.
+    """
+    if len(calibration.spheres) < 2 or calibration.intrinsics is not None:
+        return None
+    tri = triangulate(calibration)
+    return tri if lights_are_near(tri, shape) else None
+
+
+def write_near_light_files(lp_path: str | os.PathLike, positions_path: str | os.PathLike,
+                           triangulation: Triangulation, shape: tuple[int, int]) -> np.ndarray:
+    """Write the ``.lp`` and the light-position file of the triangulated photographs.
+
+    The ``.lp`` holds, for tools that take one direction per photograph, the direction from
+    the image centre; the positions give ``reconstruct run`` every pixel's own direction.
+    Photographs without a position are left out of both.
+
+    Returns
+    -------
+    ndarray, shape (M, 3)
+        The directions written to the ``.lp``.
+    """
+    ok = triangulation.usable
+    if not ok.any():
+        raise InputError("no photograph has a triangulated light position", lp_path)
+    names = [n for n, u in zip(triangulation.names, ok) if u]
+    directions = centre_directions(triangulation.positions[ok], shape)
+    write_lp(lp_path, names, directions)
+    write_light_positions(positions_path, names, triangulation.positions[ok])
+    return directions
+
+
+__all__ = [
+    "BEHIND",
+    "OK",
+    "PARALLEL",
+    "TOO_FEW",
+    "Triangulation",
+    "lights_are_near",
+    "near_lights",
+    "sphere_rays",
+    "triangulate",
+    "write_near_light_files",
+]

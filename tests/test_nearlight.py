@@ -291,3 +291,26 @@ def test_run_with_lp_uses_the_positions_beside_it(capture, tmp_path, capsys):
     code, _, err = run_cli(["run", cap, "-o", tmp_path / "bad"], capsys)
     assert code == 2 and "light_positions.csv" in err and "no light position" in err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_calibrate_writes_near_light_files_that_run_uses(capture, tmp_path, capsys):
+    import json
+
+    from helpers import run_cli
+
+    info = capture[0]
+    cap = _spheres_only(info, tmp_path / "cap")
+    code, out, err = run_cli(["calibrate", cap, "-o", cap / "lights.lp", "--diagnostic", tmp_path / "cal.png"], capsys)
+    assert code == 0, err
+    assert "near lights" in out and (cap / "light_positions.csv").is_file()
+    names, pos = read_light_positions(cap / "light_positions.csv")
+    lp_names = [line.split()[0] for line in (cap / "lights.lp").read_text().splitlines()[1:]]
+    assert names == lp_names == [p.name for p in info.image_paths]
+    assert np.median(np.linalg.norm(pos - info.positions, axis=1)) < 0.02 * 260
+    assert (tmp_path / "cal.png").is_file() and (tmp_path / "cal_lights.png").is_file()
+
+    code, _, err = run_cli(["run", cap, "-o", tmp_path / "out"], capsys)
+    assert code == 0, err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["light_model"]["type"] == "near"
+    assert report["light_model"]["source"].endswith("light_positions.csv")
