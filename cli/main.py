@@ -476,6 +476,8 @@ def _print_summary(report: dict, out: Path) -> None:
         print(line)
     for w in report["warnings"]:
         print(f"  warning: {w}")
+    if (out / "report.html").is_file():
+        print(f"  report: {out / 'report.html'}; look at it in 3D: reconstruct preview {out}")
 
 
 def _parse_vector(text: str) -> list[float]:
