@@ -37,7 +37,12 @@ from .bands import band_rows, run_bands
 from .errors import InputError, read_input_file
 from .fit import PTM
 from .images import ImageStack
-from .normals import PhotometricStereo
+from .normals import (
+    PhotometricStereo,
+    empty_result,
+    shadow_refined_solve,
+    store_normals,
+)
 
 #: Header of a light-position file.
 POSITION_HEADER = ("name", "x", "y", "z")
@@ -288,10 +293,7 @@ def near_photometric_stereo(
     d0 = typical_distance(p, (h, w)) if reference_distance is None else float(reference_distance)
     if heights is not None and np.shape(heights) != (h, w):
         raise ValueError(f"heights must have shape {(h, w)}, got {np.shape(heights)}")
-    normals = np.empty((h, w, 3), dtype=np.float32)
-    albedo = np.empty((h, w), dtype=np.float32)
-    samples = np.empty((h, w), dtype=np.uint16)
-    valid = np.empty((h, w), dtype=bool)
+    result = empty_result((h, w))
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
@@ -302,29 +304,15 @@ def near_photometric_stereo(
         del dirs, falloff, values
         usable = ~saturated.reshape(n, -1)
         wts = (v > np.maximum(dark_fraction * np.where(usable, v, 0).max(axis=0), 1e-4)) & usable
-        g, ok, count = _solve_normal_equations(l, v, wts.astype(np.float32))
-        for _ in range(iterations):
-            rho = np.linalg.norm(g, axis=0)
-            unit = (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)
-            shading = np.einsum("npc,cp->np", l, unit)
-            wts = (shading > min_shading) & usable
-            wts &= v >= shading * (cast_shadow_ratio * rho).astype(np.float32)
-            g_new, ok_new, count_new = _solve_normal_equations(l, v, wts.astype(np.float32))
-            # Keep the previous estimate where the refined selection left too little.
-            g = np.where(ok_new, g_new, g)
-            count = np.where(ok_new, count_new, count)
-            ok |= ok_new
-        rho = np.linalg.norm(g, axis=0)
-        good = ok & (rho > 0) & np.isfinite(rho)
-        nrm = np.where(good, g / np.where(good, rho, 1.0), np.array([[0.0], [0.0], [1.0]]))
-        normals[r0:r1] = nrm.T.reshape(r1 - r0, w, 3)
-        albedo[r0:r1] = np.where(good, rho, 0.0).reshape(r1 - r0, w)
-        samples[r0:r1] = np.round(count).reshape(r1 - r0, w)
-        valid[r0:r1] = good.reshape(r1 - r0, w)
+        g, ok, count = shadow_refined_solve(
+            lambda weights: _solve_normal_equations(l, v, weights),
+            lambda unit: np.einsum("npc,cp->np", l, unit),
+            v, wts, usable, iterations=iterations, min_shading=min_shading, cast_shadow_ratio=cast_shadow_ratio)
+        store_normals(result, slice(r0, r1), g, ok, count)
 
     # Per sample: values, light vector, falloff, weights and einsum temporaries, in float32.
     run_bands(h, band_rows(n, w, 4 * 14), work, threads=threads, progress=progress)
-    return PhotometricStereo(normals, albedo, samples, valid)
+    return result
 
 
 # --------------------------------------------------------------------------- PTM

@@ -164,6 +164,62 @@ def _weighted_normal_solve(
     return g, well_posed, count
 
 
+def shadow_refined_solve(
+    solve: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    shading: Callable[[np.ndarray], np.ndarray],
+    values: np.ndarray,
+    weights: np.ndarray,
+    usable: np.ndarray | None,
+    *,
+    iterations: int,
+    min_shading: float,
+    cast_shadow_ratio: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A Lambertian solve, then passes that leave out the samples its estimate calls shadowed.
+
+    ``solve(weights)`` returns (g (3, P), well posed (P,), samples used (P,)) for (N, P)
+    float32 weights; ``shading(unit)`` gives the (N, P) shading n·l of unit normals (3, P).
+    Each pass keeps the samples predicted lit (``n·l > min_shading``), not clipped (``usable``)
+    and not much darker than predicted (``cast_shadow_ratio`` × ρ n·l: a cast shadow).
+    """
+    g, ok, count = solve(weights.astype(np.float32))
+    for _ in range(iterations):
+        rho = np.linalg.norm(g, axis=0)
+        unit = (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)
+        shade = shading(unit)
+        wts = shade > min_shading
+        if usable is not None:
+            wts &= usable
+        shade *= (cast_shadow_ratio * rho).astype(np.float32)  # now the darkest plausible value
+        wts &= values >= shade
+        g_new, ok_new, count_new = solve(wts.astype(np.float32))
+        # Keep the previous estimate where the refined selection left too little.
+        g = np.where(ok_new, g_new, g)
+        count = np.where(ok_new, count_new, count)
+        ok |= ok_new
+    return g, ok, count
+
+
+def store_normals(result: PhotometricStereo, rows: slice, g: np.ndarray, ok: np.ndarray,
+                  count: np.ndarray) -> None:
+    """Write a band's solution g = ρ n (3, P) into ``result``; (0, 0, 1) where undetermined."""
+    h, w = result.albedo[rows].shape
+    rho = np.linalg.norm(g, axis=0)
+    good = ok & (rho > 0) & np.isfinite(rho)
+    nrm = np.where(good, g / np.where(good, rho, 1.0), np.array([[0.0], [0.0], [1.0]]))
+    result.normals[rows] = nrm.T.reshape(h, w, 3)
+    result.albedo[rows] = np.where(good, rho, 0.0).reshape(h, w)
+    result.samples[rows] = np.round(count).reshape(h, w)
+    result.valid[rows] = good.reshape(h, w)
+
+
+def empty_result(shape: tuple[int, int]) -> PhotometricStereo:
+    """Uninitialised arrays of a photometric-stereo result, filled band by band."""
+    h, w = shape
+    return PhotometricStereo(np.empty((h, w, 3), np.float32), np.empty((h, w), np.float32),
+                             np.empty((h, w), np.uint16), np.empty((h, w), bool))
+
+
 def photometric_stereo(
     stack: ImageStack,
     directions: np.ndarray,
@@ -207,10 +263,7 @@ def photometric_stereo(
     dirs = as_directions(directions, n, np.float32)
     x, y, z = dirs.T
     outer = np.stack([x * x, y * y, z * z, x * y, x * z, y * z], axis=1)  # (N, 6)
-    normals = np.empty((h, w, 3), dtype=np.float32)
-    albedo = np.empty((h, w), dtype=np.float32)
-    samples = np.empty((h, w), dtype=np.uint16)
-    valid = np.empty((h, w), dtype=bool)
+    result = empty_result((h, w))
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
@@ -222,31 +275,13 @@ def photometric_stereo(
         wts = v > np.maximum(dark_fraction * v.max(axis=0), 1e-4)
         if usable is not None:
             wts &= usable
-        g, ok, count = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
-        for _ in range(iterations):
-            rho = np.linalg.norm(g, axis=0)
-            unit = (g / np.where(rho > 0, rho, 1.0)).astype(np.float32)
-            shading = dirs @ unit  # (N, P)
-            wts = shading > min_shading
-            if usable is not None:
-                wts &= usable
-            shading *= (cast_shadow_ratio * rho).astype(np.float32)  # now the darkest plausible value
-            wts &= v >= shading
-            g_new, ok_new, count_new = _weighted_normal_solve(dirs, outer, v, wts.astype(np.float32))
-            # Keep the previous estimate where the refined selection left too little.
-            g = np.where(ok_new, g_new, g)
-            count = np.where(ok_new, count_new, count)
-            ok |= ok_new
-        rho = np.linalg.norm(g, axis=0)
-        good = ok & (rho > 0) & np.isfinite(rho)
-        nrm = np.where(good, g / np.where(good, rho, 1.0), np.array([[0.0], [0.0], [1.0]]))
-        normals[r0:r1] = nrm.T.reshape(r1 - r0, w, 3)
-        albedo[r0:r1] = np.where(good, rho, 0.0).reshape(r1 - r0, w)
-        samples[r0:r1] = np.round(count).reshape(r1 - r0, w)
-        valid[r0:r1] = good.reshape(r1 - r0, w)
+        g, ok, count = shadow_refined_solve(
+            lambda weights: _weighted_normal_solve(dirs, outer, v, weights), lambda unit: dirs @ unit,
+            v, wts, usable, iterations=iterations, min_shading=min_shading, cast_shadow_ratio=cast_shadow_ratio)
+        store_normals(result, slice(r0, r1), g, ok, count)
 
     run_bands(h, band_rows(n, w, 4 * 4), work, threads=threads, progress=progress)
-    return PhotometricStereo(normals, albedo, samples, valid)
+    return result
 
 
 def lambertian_albedo(

@@ -601,9 +601,7 @@ def write_overlay(
     carrier.point_data["distance"] = dist
     point_size = 3.0 if len(points) < 200_000 else 2.0
 
-    plotter = None
-    try:
-        plotter = rendering.plotter(size, shape=(1, 2), border=False)
+    def draw(plotter) -> None:
         plotter.set_background("white")
 
         plotter.subplot(0, 0)
@@ -646,16 +644,8 @@ def write_overlay(
         plotter.link_views()
         plotter.view_xy()
         plotter.reset_camera()
-        image = plotter.screenshot(return_img=True)
-    except RuntimeError:
-        raise
-    except Exception as exc:  # VTK reports context failures with assorted exception types
-        raise RuntimeError(f"off-screen rendering is not available ({exc})") from exc
-    finally:
-        if plotter is not None:
-            plotter.close()
-    if image is None or image.size == 0 or np.ptp(image) == 0:
-        raise RuntimeError("off-screen rendering is not available (the render is empty)")
+
+    image = rendering.render_image(draw, size, shape=(1, 2), border=False)
 
     buffer = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(image[..., :3])).save(buffer, format="PNG")

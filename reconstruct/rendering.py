@@ -10,7 +10,9 @@ crashes VTK; a wrong class segfaults where its library is missing).
 
 from __future__ import annotations
 
-__all__ = ["plotter"]
+import numpy as np
+
+__all__ = ["plotter", "render_image"]
 
 
 def plotter(size: tuple[int, int], *, off_screen: bool = True, **kwargs):
@@ -54,3 +56,29 @@ def plotter(size: tuple[int, int], *, off_screen: bool = True, **kwargs):
         raise RuntimeError("no OpenGL context (no display, EGL or OSMesa): cannot render; "
                            "install Mesa's libegl1 and libgl1-mesa-dri, or libosmesa6")
     return result
+
+
+def render_image(draw, size: tuple[int, int], **kwargs) -> np.ndarray:
+    """Render off-screen: ``draw(plotter)`` fills a fresh plotter; returns (H, W, 3) uint8.
+
+    Raises
+    ------
+    RuntimeError
+        No OpenGL context, a failure inside VTK (it reports them with assorted exception
+        types), or an empty image.
+    """
+    result = None
+    try:
+        result = plotter(size, **kwargs)
+        draw(result)
+        image = result.screenshot(return_img=True)
+    except RuntimeError:
+        raise
+    except Exception as exc:
+        raise RuntimeError(f"off-screen rendering failed ({exc})") from exc
+    finally:
+        if result is not None:
+            result.close()
+    if image is None or image.size == 0 or np.ptp(image) == 0:
+        raise RuntimeError("off-screen rendering is not available (the render is empty)")
+    return np.ascontiguousarray(image[..., :3])

@@ -293,7 +293,6 @@ def mesh_render(
     except ImportError as exc:
         raise RuntimeError(f"off-screen rendering needs pyvista ({exc})") from exc
 
-    plotter = None
     try:
         if isinstance(mesh, tuple):
             vertices, faces = mesh
@@ -301,7 +300,10 @@ def mesh_render(
             surface = pv.PolyData(np.asarray(vertices, np.float32), cells)
         else:
             surface = pv.read(str(mesh))
-        plotter = rendering.plotter(size)
+    except Exception as exc:  # pyvista's readers raise assorted types
+        raise RuntimeError(f"cannot read the mesh ({exc})") from exc
+
+    def draw(plotter) -> None:
         plotter.set_background("white")
         plotter.add_mesh(surface, color=(0.78, 0.72, 0.64), smooth_shading=True, specular=0.15,
                          scalars=None, rgb=False)
@@ -311,14 +313,5 @@ def mesh_render(
         plotter.camera_position = [tuple(center + view), tuple(center), (0.0, 0.0, 1.0)]
         plotter.reset_camera()
         plotter.camera.zoom(1.2)
-        image = plotter.screenshot(return_img=True)
-    except RuntimeError:
-        raise
-    except Exception as exc:  # VTK reports context and reader failures with assorted types
-        raise RuntimeError(f"off-screen rendering failed ({exc})") from exc
-    finally:
-        if plotter is not None:
-            plotter.close()
-    if image is None or image.size == 0 or np.ptp(image) == 0:
-        raise RuntimeError("off-screen rendering is not available (the render is empty)")
-    return np.ascontiguousarray(image[..., :3])
+
+    return rendering.render_image(draw, size)
