@@ -32,7 +32,7 @@ from ptmcore.nearlight import write_light_positions
 
 from .encoding import to_uint8_srgb, write_mask_png, write_npy, write_tiff16
 from .lights import dome_lights
-from .spheres import _check_spheres
+from .spheres import check_spheres
 from .surface import REFERENCE_FOV_MM, centred_grid, normals_from_height, smooth_noise
 from .wedges import random_inscription, rasterize_wedges
 
@@ -194,7 +194,7 @@ def render_nearlight_capture(
     s = REFERENCE_FOV_MM / max(h, w) if pixel_size is None else float(pixel_size)
     if not (np.isfinite(s) and s > 0):
         raise InputError(f"pixel_size must be a positive number of mm, got {pixel_size!r}")
-    sph = _check_spheres(default_spheres((h, w)) if spheres is None else spheres, (h, w))
+    sph = check_spheres(default_spheres((h, w)) if spheres is None else spheres, (h, w))
 
     out = Path(out_dir)
     gt_dir = out / "ground_truth"

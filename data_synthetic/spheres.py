@@ -105,7 +105,7 @@ def _pinhole_outline(centre: np.ndarray, focal_px: float, principal: tuple[float
             0.5 * (far - near), float(b), phi)
 
 
-def _check_spheres(spheres, shape: tuple[int, int]) -> tuple[tuple[float, float, float], ...]:
+def check_spheres(spheres, shape: tuple[int, int]) -> tuple[tuple[float, float, float], ...]:
     """Validate the sphere list against the image size."""
     h, w = shape
     out = []
@@ -203,7 +203,7 @@ def render_sphere_capture(
         raise InputError(f"need at least 3 lights, got {n_lights}")
     if encoding not in ("png", "jpeg"):
         raise InputError(f"unknown encoding {encoding!r}; choose png or jpeg")
-    sph = _check_spheres(spheres, (h, w))
+    sph = check_spheres(spheres, (h, w))
     camera, centres, outlines = None, None, tuple((cx, cy, r, r, 0.0) for cx, cy, r in sph)
     if focal_px is not None:
         if not (np.isfinite(focal_px) and focal_px > 0):

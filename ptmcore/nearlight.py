@@ -167,6 +167,16 @@ def _check_positions(positions: np.ndarray, count: int | None = None) -> np.ndar
     return p
 
 
+def _checked_lights(stack: ImageStack, positions: np.ndarray, reference_distance: float | None,
+                    heights: np.ndarray | None) -> tuple[np.ndarray, float]:
+    """Validated positions of a stack's lights and the reference distance (default typical)."""
+    p = _check_positions(positions, len(stack))
+    if heights is not None and np.shape(heights) != stack.shape:
+        raise ValueError(f"heights must have shape {stack.shape}, got {np.shape(heights)}")
+    d0 = typical_distance(p, stack.shape) if reference_distance is None else float(reference_distance)
+    return p, d0
+
+
 def light_field(
     positions: np.ndarray,
     rows: slice,
@@ -289,10 +299,7 @@ def near_photometric_stereo(
     """
     n = len(stack)
     h, w = stack.shape
-    p = _check_positions(positions, n)
-    d0 = typical_distance(p, (h, w)) if reference_distance is None else float(reference_distance)
-    if heights is not None and np.shape(heights) != (h, w):
-        raise ValueError(f"heights must have shape {(h, w)}, got {np.shape(heights)}")
+    p, d0 = _checked_lights(stack, positions, reference_distance, heights)
     result = empty_result((h, w))
 
     def work(r0: int, r1: int) -> None:
@@ -354,10 +361,7 @@ def fit_ptm_near(
     """
     n = len(stack)
     h, w = stack.shape
-    p = _check_positions(positions, n)
-    d0 = typical_distance(p, (h, w)) if reference_distance is None else float(reference_distance)
-    if heights is not None and np.shape(heights) != (h, w):
-        raise ValueError(f"heights must have shape {(h, w)}, got {np.shape(heights)}")
+    p, d0 = _checked_lights(stack, positions, reference_distance, heights)
     coef = np.empty((h, w, 6), dtype=np.float32)
     ridge = 1e-9 * np.eye(6)
 
