@@ -29,6 +29,15 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/decoders.py
 	$(BIN)/python benchmarks/ptm_io.py
 	$(BIN)/python benchmarks/speed.py
+	$(BIN)/python benchmarks/normals_table.py
+	$(BIN)/python benchmarks/relight_loo.py
+	$(BIN)/python benchmarks/integration.py
+	$(BIN)/python benchmarks/decimation.py
+	$(BIN)/python benchmarks/compare_speed.py
+	$(BIN)/python benchmarks/nearlight.py
+	$(BIN)/python benchmarks/calibration.py
+	$(BIN)/python benchmarks/preview_relight.py
+	$(BIN)/python benchmarks/report_html.py
 
 clean:
 	rm -rf $(VENV) demo_output .pytest_cache
