@@ -30,7 +30,7 @@ import numpy as np
 from .fit import light_matrix
 from .normals import ptm_maximum
 
-__all__ = ["diffuse_gain", "light_direction", "relight", "specular_enhancement"]
+__all__ = ["diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
 
 #: RTIViewer's default diffuse gain (``DiffuseGain`` constructor; the slider spans 1–10).
 DEFAULT_GAIN = 2.0
@@ -183,6 +183,19 @@ def relight(coefficients: np.ndarray, rgb: np.ndarray, light: np.ndarray) -> np.
         lum = coef[r0:r1].astype(np.float32, copy=False) @ row
         out[r0:r1] = _shade(rgb[r0:r1], lum, None, None)
     return out
+
+
+def display_srgb(image: np.ndarray) -> np.ndarray:
+    """Encode an 8-bit rendering of a linear-light PTM as sRGB for display.
+
+    A PTM fitted to linear photographs (16-bit captures) holds linear light scaled to 0-255;
+    shown as it is (as RTIViewer shows it) it looks dark and contrasty. This applies the sRGB
+    transfer function byte by byte, through a 256-entry table.
+    """
+    from .images import linear_to_srgb
+
+    table = np.round(linear_to_srgb(np.arange(256, dtype=np.float32) / 255.0) * 255.0).astype(np.uint8)
+    return table[np.asarray(image, dtype=np.uint8)]
 
 
 def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN) -> np.ndarray:

@@ -612,10 +612,16 @@ def _rank_summary(rank) -> dict:
     })
 
 
-def _ptm_summary(quantisation: dict) -> dict:
-    """What report.json says of coefficients.ptm: format, size and its 8-bit quantisation error."""
+def _ptm_summary(quantisation: dict, bit_depth: int) -> dict:
+    """What report.json says of coefficients.ptm: format, size, encoding and its 8-bit quantisation error.
+
+    The PTM is fitted to the photographs as they are encoded: sRGB for 8-bit photographs,
+    linear light (scaled to 0-255) for 16-bit ones, which viewers then show dark; the preview
+    and report.html encode a linear PTM's renderings as sRGB for display.
+    """
     keep = ("format", "width", "height", "scale", "bias", "bytes", "max_error", "rms_error", "clipped")
     summary = {k: quantisation[k] for k in keep if k in quantisation}
+    summary["encoding"] = "sRGB" if bit_depth <= 8 else "linear"
     if "hsh" in quantisation:
         summary["hsh_rti"] = {k: v for k, v in quantisation["hsh"].items() if k != "path"}
     summary["error_unit"] = "coefficient units (luminance 0-255)"
@@ -854,7 +860,7 @@ def run_capture(
         report = _report(
             inputs, opt, mesh, stage, warnings, albedo_scale=albedo_scale,
             lights=_rank_summary(rank), light_model=_light_model(near, (h, w), opt),
-            intensities=json_safe(intensity), ptm=_ptm_summary(quantisation),
+            intensities=json_safe(intensity), ptm=_ptm_summary(quantisation, bit_depth),
             leave_one_out=loo, accuracy=accuracy,
         )
         if near is not None:

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.relight import light_direction, relight
+from ptmcore.relight import display_srgb, light_direction, relight
 from reconstruct.mesh import grid_mesh
 
 __all__ = [
@@ -97,6 +97,9 @@ class PreviewScene:
         ``(V,)`` signed distance to a scan (mm, NaN where unknown) at the display vertices.
     distance_limit : float or None
         Colour range ±limit of the distances (mm), as the comparison drew them.
+    linear_ptm : bool
+        The PTM holds linear light (fitted to 16-bit photographs, as report.json says): its
+        renderings are encoded as sRGB for display.
     """
 
     name: str
@@ -112,6 +115,7 @@ class PreviewScene:
     pixel_size: float = 1.0
     vertex_distance: np.ndarray | None = None
     distance_limit: float | None = None
+    linear_ptm: bool = False
 
     @property
     def modes(self) -> tuple[str, ...]:
@@ -167,7 +171,8 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     """
     light = light_direction(light=light)
     if scene.coefficients is not None:
-        return relight(scene.coefficients, scene.rgb, light)
+        image = relight(scene.coefficients, scene.rgb, light)
+        return display_srgb(image) if scene.linear_ptm else image
     if scene.normals is None or scene.albedo is None:
         raise ValueError(f"{scene.name} has neither PTM coefficients nor normals and colours to relight")
     return _lambert(scene.normals, scene.albedo, light)
@@ -429,6 +434,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         pixel_size=s,
         vertex_distance=d,
         distance_limit=limit,
+        linear_ptm=(report.get("ptm") or {}).get("encoding") == "linear",
     )
 
 

@@ -122,16 +122,23 @@ def light_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     return light_direction(azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
 
 
-def relit_from_ptm(path: str | os.PathLike, max_side: int = 480) -> list[tuple[str, np.ndarray]]:
-    """RTIViewer's default rendering of a subsample of a ``.ptm`` file under :data:`RELIGHT_LIGHTS`."""
+def relit_from_ptm(path: str | os.PathLike, max_side: int = 480, *, linear: bool = False
+                   ) -> list[tuple[str, np.ndarray]]:
+    """RTIViewer's default rendering of a subsample of a ``.ptm`` file under :data:`RELIGHT_LIGHTS`.
+
+    ``linear``: the PTM holds linear light (fitted to 16-bit photographs); its renderings are
+    then encoded as sRGB for display (:func:`ptmcore.relight.display_srgb`).
+    """
     from ptmcore.ptmfile import read_ptm
+    from ptmcore.relight import display_srgb
 
     ptm = read_ptm(path)
     s = stride_for(ptm.coefficients.shape, max_side)
     small = replace(ptm, coefficients=np.ascontiguousarray(ptm.coefficients[::s, ::s]),
                     rgb=None if ptm.rgb is None else np.ascontiguousarray(ptm.rgb[::s, ::s]))
     del ptm
-    return [(label, small.render(light_vector(az, el))) for label, az, el in RELIGHT_LIGHTS]
+    encode = display_srgb if linear else np.asarray
+    return [(label, encode(small.render(light_vector(az, el)))) for label, az, el in RELIGHT_LIGHTS]
 
 
 def relit_lambertian(

@@ -169,8 +169,10 @@ def _relit(files: _Folder, report: dict | None) -> str:
         ptm = Path(source)  # a run from a .ptm file: relight the file itself
     normals = files.find("normals.npy")
     if ptm is not None and ptm.stat().st_size <= figures.MAX_PTM_BYTES:
-        images = figures.relit_from_ptm(ptm)
-        how = f"RTIViewer's default rendering of {ptm.name}"
+        linear = ((report or {}).get("ptm") or {}).get("encoding") == "linear"
+        images = figures.relit_from_ptm(ptm, linear=linear)
+        how = f"RTIViewer's default rendering of {ptm.name}" + (
+            " (a PTM of linear light, from 16-bit photographs: shown sRGB-encoded)" if linear else "")
     elif normals is not None:
         from ptmcore.images import read_image
 

@@ -273,3 +273,17 @@ def test_specular_rejects_bad_parameters(kwargs):
     rgb = np.zeros(coef.shape[:2] + (3,), np.uint8)
     with pytest.raises(ValueError):
         specular_enhancement(coef, rgb, (0, 0, 1), **kwargs)
+
+
+def test_display_srgb_is_the_srgb_transfer_function():
+    from ptmcore.images import linear_to_srgb
+    from ptmcore.relight import display_srgb
+
+    levels = np.arange(256, dtype=np.uint8)
+    out = display_srgb(levels.reshape(16, 16))
+    assert out.dtype == np.uint8 and out.shape == (16, 16)
+    expected = np.round(linear_to_srgb(levels / 255.0) * 255).astype(int)
+    np.testing.assert_array_equal(out.ravel(), expected)
+    # Monotonic, black and white kept, mid-grey brightened as sRGB does (0.5 → 188).
+    assert (np.diff(out.ravel().astype(int)) >= 0).all()
+    assert out.ravel()[0] == 0 and out.ravel()[255] == 255 and out.ravel()[128] == 188

@@ -125,6 +125,8 @@ def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     # The page's own time is recorded in report.json, which is rewritten after it.
     assert "report" in report["stages"]
     assert "accuracy" in report and "height_rmse_mm" in text
+    # 16-bit photographs: the PTM holds linear light, and its renderings say they are encoded.
+    assert report["ptm"]["encoding"] == "linear" and "shown sRGB-encoded" in text
 
 
 def test_compare_into_another_folder_and_escaping(scanned, tmp_path):
