@@ -38,7 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
-from reconstruct.calibrate import calibrate, ellipse_mean_radius
+from reconstruct.calibrate import calibrate
+from reconstruct.sphere_reflection import ellipse_mean_radius
 
 SHAPES = ((300, 400), (360, 480), (400, 560), (480, 640))
 SILENT_DEG = 2.0

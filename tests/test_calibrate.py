@@ -4,23 +4,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import stack_from_luminance
 from PIL import Image
 
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
-from helpers import stack_from_luminance
 from reconstruct.calibrate import (
     calibrate,
     calibrate_stack,
     detect_spheres,
     find_highlight,
     fit_circle,
-    light_from_highlight,
     write_calibration_lp,
     write_diagnostic,
 )
+from reconstruct.sphere_reflection import light_from_highlight
 
 HIDDEN = (3, 10)
 

@@ -10,16 +10,14 @@ from PIL import Image
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.lp import read_lp
-from reconstruct.calibrate import (
-    calibrate,
-    calibration_camera,
+from reconstruct.calibrate import calibrate, calibration_camera, fit_circle
+from reconstruct.perspective import Intrinsics, intrinsics_from_exif
+from reconstruct.sphere_reflection import (
     ellipse_mean_radius,
-    fit_circle,
     light_from_highlight,
     sphere_centre_3d,
     sphere_outline,
 )
-from reconstruct.perspective import Intrinsics, intrinsics_from_exif
 
 CAMERA = Intrinsics(450.0, 450.0, 199.5, 149.5)
 
