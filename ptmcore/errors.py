@@ -41,3 +41,9 @@ def read_input_file(path: str | os.PathLike, what: str) -> bytes:
         raise InputError(f"is a folder, not a {what}", path) from None
     except OSError as exc:
         raise InputError(f"cannot read {what} ({exc.strerror or exc})", path) from None
+
+
+def read_input_text(path: str | os.PathLike, what: str) -> str:
+    """The text of a user's file (UTF-8, a byte-order mark dropped, undecodable bytes
+    replaced), or an :class:`InputError` that says why not; see :func:`read_input_file`."""
+    return read_input_file(path, what).decode("utf-8-sig", errors="replace")

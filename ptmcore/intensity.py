@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, read_input_text
 from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack
 from .lp import as_directions
 
@@ -71,14 +71,7 @@ def read_numeric_rows(
         field that is not a finite number, or the lines disagree on the count.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
-    except FileNotFoundError:
-        raise InputError(f"{what} not found", path) from None
-    except IsADirectoryError:
-        raise InputError(f"{what} is a folder, not a file", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read {what} ({exc.strerror})", path) from None
+    text = read_input_text(path, what)
     rows: list[list[float]] = []
     numbers: list[int] = []
     expected = " or ".join(str(w) for w in widths)

@@ -23,7 +23,7 @@ from pathlib import Path, PureWindowsPath
 import numpy as np
 
 from .atomic import atomic_write
-from .errors import InputError
+from .errors import InputError, read_input_text
 
 #: Lights lower than this above the horizon (z ≤ sin 0.5°) are rejected: they light nothing
 #: of a flat object and make the fit ill-conditioned.
@@ -83,12 +83,7 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         not parse, a vector is zero, not finite, or at or below the horizon.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
-    except FileNotFoundError:
-        raise InputError("light file not found", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read light file ({exc.strerror})", path) from None
+    text = read_input_text(path, "light file")
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
     lines = [(no, ln) for no, ln in lines if ln and not ln.startswith("#")]
     if not lines:

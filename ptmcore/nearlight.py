@@ -34,7 +34,7 @@ import numpy as np
 
 from .atomic import atomic_write
 from .bands import band_rows, run_bands
-from .errors import InputError, read_input_file
+from .errors import InputError, read_input_text
 from .fit import PTM
 from .images import ImageStack
 from .normals import (
@@ -97,11 +97,7 @@ def read_light_positions(path: str | os.PathLike) -> tuple[list[str], np.ndarray
         Missing or unreadable file, wrong header, a line without four fields, a value that
         is not a finite number, a light below the base plane, or no lines at all.
     """
-    data = read_input_file(path, "light-position file")
-    try:
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        raise InputError("light-position file is not UTF-8 text", path) from None
+    text = read_input_text(path, "light-position file")
     rows = [r for r in csv.reader(io.StringIO(text)) if any(field.strip() for field in r)]
     if not rows or tuple(f.strip().lower() for f in rows[0]) != POSITION_HEADER:
         raise InputError("light-position file must start with the header 'name,x,y,z'", path)

@@ -30,7 +30,7 @@ from pathlib import Path, PureWindowsPath
 
 import numpy as np
 
-from .errors import InputError
+from .errors import InputError, read_input_text
 from .images import ImageStack, load_stack, read_image
 from .intensity import check_positive, read_numeric_rows
 from .lp import MIN_ELEVATION_DEG, LightSet
@@ -112,10 +112,7 @@ def _read_filenames(folder: Path, count: int) -> list[Path]:
         raise InputError(
             f"file list not found (and the images are not 001.png … {count:03d}.png)", path
         )
-    try:
-        text = path.read_text(encoding="utf-8-sig", errors="replace")
-    except OSError as exc:
-        raise InputError(f"cannot read file list ({exc.strerror})", path) from None
+    text = read_input_text(path, "file list")
     paths = []
     for line in text.splitlines():
         name = line.strip()

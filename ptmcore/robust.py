@@ -53,7 +53,7 @@ from .bands import band_rows, run_bands
 from .fit import PTM, fit_matrix, light_matrix
 from .images import ImageStack
 from .lp import as_directions
-from .normals import PhotometricStereo
+from .normals import PhotometricStereo, empty_result, store_normals
 from .solvers import rank_tolerance
 
 #: Robust methods: Tukey-biweight IRLS, or trimming (weights 0 or 1) at the same bounds.
@@ -546,24 +546,17 @@ def robust_photometric_stereo(
     n = len(stack)
     h, w = stack.shape
     lights = _Lights.of(as_directions(directions, n))
-    normals = np.empty((h, w, 3), dtype=np.float32)
-    albedo = np.empty((h, w), dtype=np.float32)
-    samples = np.empty((h, w), dtype=np.uint16)
-    valid = np.empty((h, w), dtype=bool)
+    result = empty_result((h, w))
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
         v = values.reshape(n, -1)
         usable = ~saturated.reshape(n, -1)
         unit, rho, ok, weights = _robust_lambertian(lights, opt, v, usable)
-        good = ok & (rho > 0) & np.isfinite(rho)
-        normals[r0:r1] = np.where(good, unit, _UP).T.reshape(r1 - r0, w, 3)
-        albedo[r0:r1] = np.where(good, rho, 0.0).reshape(r1 - r0, w)
-        samples[r0:r1] = np.round(weights.sum(axis=0)).reshape(r1 - r0, w)
-        valid[r0:r1] = good.reshape(r1 - r0, w)
+        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
 
     run_bands(h, band_rows(n, w, 4, _BAND_BYTES), work, threads=threads, progress=progress)
-    return PhotometricStereo(normals, albedo, samples, valid)
+    return result
 
 
 # --------------------------------------------------------------------------------------------
