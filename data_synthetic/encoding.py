@@ -8,9 +8,8 @@ import numpy as np
 import tifffile
 from PIL import Image
 
-from ptmcore.images import linear_to_srgb
-
 from ptmcore.atomic import atomic_write
+from ptmcore.images import linear_to_srgb
 
 
 def to_uint16_linear(radiance: np.ndarray) -> np.ndarray:
@@ -75,6 +74,21 @@ def write_jpeg8(path: str | os.PathLike, radiance: np.ndarray, quality: int = 95
     image = Image.fromarray(to_uint8_srgb(radiance))
     with atomic_write(path) as fh:
         image.save(fh, format="JPEG", quality=quality, subsampling=0)
+
+
+def write_png8(path: str | os.PathLike, radiance: np.ndarray) -> None:
+    """Write linear radiance as an 8-bit sRGB PNG, atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination file.
+    radiance : np.ndarray
+        (H, W, 3) linear radiance; clipped to [0, 1] before the sRGB curve.
+    """
+    image = Image.fromarray(to_uint8_srgb(radiance))
+    with atomic_write(path) as fh:
+        image.save(fh, format="PNG")
 
 
 def write_mask_png(path: str | os.PathLike, mask: np.ndarray) -> None:

@@ -28,9 +28,10 @@ from scipy import ndimage
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
-from ptmcore.nearlight import write_light_positions
+from ptmcore.nearlight import image_centre, write_light_positions
+from reconstruct.sphere_reflection import sphere_normal_at
 
-from .encoding import to_uint8_srgb, write_mask_png, write_npy, write_tiff16
+from .encoding import write_mask_png, write_npy, write_png8, write_tiff16
 from .lights import dome_lights
 from .spheres import check_spheres
 from .surface import REFERENCE_FOV_MM, centred_grid, normals_from_height, smooth_noise
@@ -108,13 +109,6 @@ def _relief(shape: tuple[int, int], pixel_size: float, rng: np.random.Generator)
     depth = rasterize_wedges(wedges, x, y, pixel_size) / pixel_size
     depth = ndimage.gaussian_filter(depth, max(0.75, 0.08 * scale / pixel_size))
     return ground + depth.max() - depth
-
-
-def _write_png8(path: Path, radiance: np.ndarray) -> None:
-    from PIL import Image
-
-    with atomic_write(path, "wb") as f:
-        Image.fromarray(to_uint8_srgb(radiance)).save(f, format="PNG")
 
 
 def _shade(normals: np.ndarray, points: np.ndarray, light: np.ndarray, d0: float
@@ -207,7 +201,7 @@ def render_nearlight_capture(
     height = _relief((h, w), s, rng)
     normals = normals_from_height(height, 1.0).astype(np.float64)
     albedo = _TINT * np.clip(1.0 + 0.15 * smooth_noise((h, w), 30, rng), 0.5, 1.5)[..., None]
-    centre = np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
+    centre = image_centre((h, w))
     directions = dome_lights(n_lights, seed=seed)
     dists = rng.uniform(lo, hi, n_lights) * w
     positions = centre + dists[:, None] * directions
@@ -226,10 +220,9 @@ def render_nearlight_capture(
         c0, c1 = int(np.floor(cx - r)) - 1, int(np.ceil(cx + r)) + 2
         ys = (np.arange(r0, r1)[:, None] + sub).ravel()
         xs = (np.arange(c0, c1)[:, None] + sub).ravel()
-        u, v = np.meshgrid((xs - cx) / r, (cy - ys) / r)  # v: y up, rows go down
-        rho2 = u * u + v * v
-        inside = rho2 < 1.0
-        n_s = np.stack([u[inside], v[inside], np.sqrt(1.0 - rho2[inside])], axis=-1)
+        normals_s = sphere_normal_at(xs[None, :], ys[:, None], (cx, cy, r))
+        inside = normals_s[..., 2] > 0  # off the disc the normal is clamped to the limb
+        n_s = normals_s[inside]
         x_s = np.array([cx, -cy, r]) + r * n_s
         patches.append((r0, r1, c0, c1, inside, n_s, x_s))
 
@@ -251,7 +244,7 @@ def render_nearlight_capture(
         img += noise_rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
         if encoding == "png":
-            _write_png8(path, img)
+            write_png8(path, img)
         else:
             write_tiff16(path, img)
         paths.append(path)
@@ -264,8 +257,9 @@ def render_nearlight_capture(
 
     # The object is the relief; sphere discs (and their anti-aliased limbs) are not.
     mask = np.ones((h, w), dtype=bool)
+    yy, xx = np.ogrid[0:h, 0:w]
     for cx, cy, r in sph:
-        mask &= np.hypot(cols - cx, rows - cy) > r + 2.0
+        mask &= np.hypot(xx - cx, yy - cy) > r + 2.0
     write_npy(gt_dir / "normals.npy", normals.astype(np.float32))
     write_npy(gt_dir / "height.npy", (height * s).astype(np.float32))
     write_npy(gt_dir / "albedo.npy", albedo.astype(np.float32))

@@ -18,8 +18,9 @@ import numpy as np
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
 from reconstruct.perspective import Intrinsics
+from reconstruct.sphere_reflection import ray_sphere_distance, sphere_normal_at
 
-from .encoding import write_jpeg8
+from .encoding import write_jpeg8, write_npy, write_png8
 from .lights import dome_lights
 from .surface import normals_from_height, smooth_noise
 
@@ -55,9 +56,6 @@ class SphereCaptureInfo:
         Each sphere's true outline as an ellipse: centre (column, row), semi-axes in pixels
         and the major axis's angle in radians (a circle (cx, cy, r, r, 0) when
         orthographic).
-    centres_3d : np.ndarray or None
-        (S, 3) sphere centres in the camera frame in units of the sphere radius (perspective
-        captures only).
     """
 
     folder: Path
@@ -69,24 +67,14 @@ class SphereCaptureInfo:
     shape: tuple[int, int]
     camera: Intrinsics | None = None
     outlines: tuple[tuple[float, float, float, float, float], ...] = ()
-    centres_3d: np.ndarray | None = None
-
-
-def _write_png8(path: Path, radiance: np.ndarray) -> None:
-    """Write linear radiance as an 8-bit sRGB PNG, atomically."""
-    from PIL import Image
-
-    from ptmcore.atomic import atomic_write
-    from ptmcore.images import linear_to_srgb
-
-    pixels = np.round(linear_to_srgb(radiance) * 255.0).astype(np.uint8)
-    with atomic_write(path, "wb") as f:
-        Image.fromarray(pixels).save(f, format="PNG")
 
 
 def _pinhole_outline(centre: np.ndarray, focal_px: float, principal: tuple[float, float]
                      ) -> tuple[float, float, float, float, float]:
     """Ellipse (x0, y0, a, b, phi) that a pinhole camera (square pixels) sees of a unit sphere.
+
+    A closed form independent of :func:`reconstruct.sphere_reflection.sphere_outline` (which
+    takes the conic of the tangent cone), kept as ground truth: the tests compare the two.
 
     With θ the angle of the centre off the optical axis and α the half-angle of the tangent
     cone (sin α = 1/|C|), the major axis lies on the radial image line with its ends at
@@ -103,6 +91,54 @@ def _pinhole_outline(centre: np.ndarray, focal_px: float, principal: tuple[float
     mid = 0.5 * (near + far)
     return (principal[0] + mid * np.cos(phi), principal[1] + mid * np.sin(phi),
             0.5 * (far - near), float(b), phi)
+
+
+def _outline_boxes(outlines) -> list[tuple[float, float, float, float]]:
+    """(x_min, y_min, x_max, y_max) in image coordinates of each outline ellipse."""
+    boxes = []
+    for x0, y0, a, b, phi in outlines:
+        ex = np.hypot(a * np.cos(phi), b * np.sin(phi))
+        ey = np.hypot(a * np.sin(phi), b * np.cos(phi))
+        boxes.append((x0 - ex, y0 - ey, x0 + ex, y0 + ey))
+    return boxes
+
+
+def _sphere_patch(box, spheres, camera: Intrinsics | None, centres: np.ndarray | None,
+                  shape: tuple[int, int]):
+    """The supersampled pixels of one sphere's box: which sub-samples see a sphere, and there
+    the unit normal and the direction to the camera (None when orthographic).
+
+    Returns (r0, r1, c0, c1, on_sphere, normals, view). Every sphere is tested, so a box that
+    overlaps another sphere shows it too; the nearest sphere wins.
+    """
+    h, w = shape
+    r0, r1 = max(int(np.floor(box[1])) - 1, 0), min(int(np.ceil(box[3])) + 2, h)
+    c0, c1 = max(int(np.floor(box[0])) - 1, 0), min(int(np.ceil(box[2])) + 2, w)
+    ss = _SUPERSAMPLE
+    sub = (np.arange(ss) + 0.5) / ss - 0.5
+    cols = (np.arange(c0, c1)[:, None] + sub[None, :]).ravel()
+    rows = (np.arange(r0, r1)[:, None] + sub[None, :]).ravel()
+    X, Y = np.meshgrid(cols, rows)  # image coordinates of the sub-samples
+    on_sphere = np.zeros(X.shape, dtype=bool)
+    sn = np.zeros(X.shape + (3,))
+    if camera is None:
+        for sphere in spheres:
+            normals = sphere_normal_at(X, Y, sphere)
+            inside = normals[..., 2] > 0  # off the disc the normal is clamped to the limb
+            on_sphere |= inside
+            sn[inside] = normals[inside]
+        return r0, r1, c0, c1, on_sphere, sn[on_sphere], None
+    rays = camera.rays(X, Y)
+    depth = np.full(X.shape, np.inf)
+    for c in centres:
+        t, hit = ray_sphere_distance(rays, c)
+        nearer = hit & (t < depth)
+        depth[nearer] = t[nearer]
+        on_sphere |= nearer
+        sn[nearer] = t[nearer, None] * rays[nearer] - c
+    n_sph = sn[on_sphere]
+    n_sph /= np.linalg.norm(n_sph, axis=1, keepdims=True)
+    return r0, r1, c0, c1, on_sphere, n_sph, -rays[on_sphere]
 
 
 def check_spheres(spheres, shape: tuple[int, int]) -> tuple[tuple[float, float, float], ...]:
@@ -213,10 +249,8 @@ def render_sphere_capture(
                             for cx, cy, r in sph])
         outlines = tuple(_pinhole_outline(c, float(focal_px), (camera.cx, camera.cy))
                          for c in centres)
-        for (cx, cy, r), (x0, y0, a, b, phi) in zip(sph, outlines):
-            ex = np.hypot(a * np.cos(phi), b * np.sin(phi))
-            ey = np.hypot(a * np.sin(phi), b * np.cos(phi))
-            if x0 - ex < 1 or y0 - ey < 1 or x0 + ex > w - 2 or y0 + ey > h - 2:
+        for (cx, cy, r), box in zip(sph, _outline_boxes(outlines)):
+            if box[0] < 1 or box[1] < 1 or box[2] > w - 2 or box[3] > h - 2:
                 raise InputError(f"sphere {(cx, cy, r)!r} seen through a {focal_px}-pixel "
                                  f"lens does not fit inside a {h}×{w} image")
     hidden = tuple(sorted({int(k) for k in hidden}))
@@ -232,8 +266,8 @@ def render_sphere_capture(
     rng = np.random.default_rng(seed)
     lights = dome_lights(n_lights, seed=seed)
 
-    # Background: a gently rolling plane with a mottled albedo, rendered at pixel resolution
-    # (it has no sharp edges), then upsampled onto the supersampling grid by repetition.
+    # Background: a gently rolling plane with a mottled albedo, shaded at pixel resolution
+    # (it has no sharp edges); only the spheres' boxes are supersampled.
     relief = 2.0 * smooth_noise((h, w), 12, rng)
     bg_normals = normals_from_height(relief, 1.0).astype(np.float64)
     tint = np.asarray(background_tint, dtype=np.float64)
@@ -244,72 +278,42 @@ def render_sphere_capture(
     mottle = np.clip(1.0 + background_texture * smooth_noise((h, w), 30, rng), 0.5, 1.5)
     bg_albedo = tint * mottle[..., None]
 
-    ss = _SUPERSAMPLE
-    sub = (np.arange(ss) + 0.5) / ss - 0.5
-    cols = (np.arange(w)[:, None] + sub[None, :]).ravel()
-    rows = (np.arange(h)[:, None] + sub[None, :]).ravel()
-    X, Y = np.meshgrid(cols, rows)  # (H·ss, W·ss) image coordinates of the sub-samples
-    sphere_id = np.full(X.shape, -1, dtype=np.int32)
-    sn = np.zeros(X.shape + (3,))
-    if camera is None:
-        for i, (cx, cy, r) in enumerate(sph):
-            u, v = (X - cx) / r, (cy - Y) / r  # y up: rows go down
-            rho2 = u * u + v * v
-            inside = rho2 < 1.0
-            sphere_id[inside] = i
-            sn[inside] = np.stack([u[inside], v[inside], np.sqrt(1.0 - rho2[inside])], axis=-1)
-        view = None
-    else:
-        rays = np.stack([(X - camera.cx) / camera.fx, -(Y - camera.cy) / camera.fy,
-                         -np.ones_like(X)], axis=-1)
-        rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-        depth = np.full(X.shape, np.inf)
-        for i, c in enumerate(centres):
-            # Ray t·d meets |p − C| = 1 (radius units) at t = d·C − √((d·C)² − |C|² + 1).
-            dc = rays @ c
-            disc = dc * dc - (c @ c - 1.0)
-            hit = disc > 0
-            t = np.where(hit, dc - np.sqrt(np.clip(disc, 0, None)), np.inf)
-            nearer = hit & (t < depth)
-            depth[nearer] = t[nearer]
-            sphere_id[nearer] = i
-            sn[nearer] = t[nearer, None] * rays[nearer] - c
-        view = -rays[sphere_id >= 0]  # (M, 3) from the surface to the camera
-    on_sphere = sphere_id >= 0
-    n_sph = sn[on_sphere]  # (M, 3)
-    if view is not None:
-        n_sph /= np.linalg.norm(n_sph, axis=1, keepdims=True)
-
-    bg_up_normals = np.repeat(np.repeat(bg_normals, ss, 0), ss, 1)
-    bg_up_albedo = np.repeat(np.repeat(bg_albedo, ss, 0), ss, 1)
+    patches = [_sphere_patch(box, sph, camera, centres, (h, w))
+               for box in _outline_boxes(outlines)]
 
     paths = []
     ext = ".png" if encoding == "png" else ".jpg"
+    ss = _SUPERSAMPLE
     for k, light in enumerate(lights):
-        img = bg_up_albedo * np.clip(bg_up_normals @ light, 0, None)[..., None]
-        ndotl = n_sph @ light
-        sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
-        if k not in hidden:
-            # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
-            if view is None:
-                rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
-            else:
-                rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light,
-                                0, None)
-            sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
-        img[on_sphere] = sphere_rad[:, None]
-        img = img.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))
+        background = bg_albedo * np.clip(bg_normals @ light, 0, None)[..., None]
+        img = background.copy()
+        for r0, r1, c0, c1, on_sphere, n_sph, view in patches:
+            ndotl = n_sph @ light
+            sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
+            if k not in hidden:
+                # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
+                if view is None:
+                    rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
+                else:
+                    rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light,
+                                    0, None)
+                sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
+            # Sub-samples off the spheres see the background (boxes may overlap: each box
+            # starts again from the background and covers every sphere within it).
+            fine = np.repeat(np.repeat(background[r0:r1, c0:c1], ss, 0), ss, 1)
+            fine[on_sphere] = sphere_rad[:, None]
+            img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
         img += rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
         if encoding == "png":
-            _write_png8(path, img.astype(np.float32))
+            write_png8(path, img.astype(np.float32))
         else:
             write_jpeg8(path, img.astype(np.float32), quality=95)
         paths.append(path)
 
     truth_lp = out / "truth.lp"
     write_lp(truth_lp, [p.name for p in paths], lights)
-    np.save(out / "truth.npy", lights)
+    write_npy(out / "truth.npy", lights)
     return SphereCaptureInfo(folder=out, image_paths=tuple(paths), directions=lights,
                              spheres=sph, hidden=hidden, truth_lp=truth_lp, shape=(h, w),
-                             camera=camera, outlines=outlines, centres_3d=centres)
+                             camera=camera, outlines=outlines)

@@ -148,9 +148,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     else:
         img = _decode_pillow(path)
     if img.ndim == 3:
-        if img.shape[2] == 1:
-            img = img[..., 0]
-        elif img.shape[2] == 2:  # grey + alpha
+        if img.shape[2] == 1 or img.shape[2] == 2:
             img = img[..., 0]
         else:
             img = img[..., :3]
@@ -212,17 +210,20 @@ class ImageStack:
         return ImageStack(self.luminance[keep], self.chroma, [p for p, k in zip(self.paths, keep) if k],
                           self.bit_depth, self.linearized, self.saturated[keep])
 
-    def band(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray]:
-        """Linear luminance of rows ``r0:r1`` of every photograph.
+    def band(self, r0: int, r1: int, c0: int | None = None, c1: int | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+        """Linear luminance of rows ``r0:r1`` (columns ``c0:c1``, default all) of every photograph.
+
+        Only that box is converted to float, so a small window of a large capture stays small.
 
         Returns
         -------
-        values : ndarray, shape (N, r1 - r0, W), float32
+        values : ndarray, shape (N, r1 - r0, c1 - c0), float32
             Luminance in [0, 1]; clipped samples read as 1.
-        saturated : ndarray, shape (N, r1 - r0, W), bool
+        saturated : ndarray, shape (N, r1 - r0, c1 - c0), bool
             Where a channel clipped.
         """
-        raw = self.luminance[:, r0:r1]
+        raw = self.luminance[:, r0:r1, c0:c1]
         saturated = raw == SATURATED
         values = raw.astype(np.float32)
         values *= np.float32(1.0 / _LUM_SCALE)

@@ -39,6 +39,7 @@ from .fit import PTM
 from .images import ImageStack
 from .normals import (
     PhotometricStereo,
+    albedo_fit,
     empty_result,
     shadow_refined_solve,
     store_normals,
@@ -124,15 +125,20 @@ def read_light_positions(path: str | os.PathLike) -> tuple[list[str], np.ndarray
 # --------------------------------------------------------------------------- light field
 
 
+def image_centre(shape: tuple[int, int]) -> np.ndarray:
+    """The image centre on the base plane, (x, y, z) = ((W − 1)/2, −(H − 1)/2, 0) pixels."""
+    h, w = shape
+    return np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
+
+
 def typical_distance(positions: np.ndarray, shape: tuple[int, int]) -> float:
     """Median distance (pixels) of the lights from the image centre on the base plane.
 
     A convenient ``reference_distance`` for :func:`light_field`: the falloff is then about 1
     at the centre, so albedos keep the scale of a distant-light fit.
     """
-    h, w = shape
-    centre = np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
-    return float(np.median(np.linalg.norm(np.asarray(positions, np.float64) - centre, axis=1)))
+    d = np.asarray(positions, np.float64) - image_centre(shape)
+    return float(np.median(np.linalg.norm(d, axis=1)))
 
 
 def centre_directions(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -145,9 +151,7 @@ def centre_directions(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarr
     -------
     ndarray, shape (N, 3), float64
     """
-    h, w = shape
-    centre = np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
-    d = np.asarray(positions, np.float64) - centre
+    d = np.asarray(positions, np.float64) - image_centre(shape)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
@@ -209,6 +213,14 @@ def light_field(
     r0, r1 = rows.start or 0, rows.stop
     if rows.step not in (None, 1) or r1 is None or r1 <= r0:
         raise ValueError(f"rows must be a slice(r0, r1) with r1 > r0, got {rows!r}")
+    if heights is not None and np.shape(heights) != (r1 - r0, width):
+        raise ValueError(f"heights must have shape {(r1 - r0, width)}, got {np.shape(heights)}")
+    return _light_field(p, r0, r1, width, reference_distance, heights)
+
+
+def _light_field(p: np.ndarray, r0: int, r1: int, width: int, reference_distance: float,
+                 heights: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`light_field` of checked positions (:func:`_checked_lights`), for one band."""
     h = r1 - r0
     # Differences in float64, relative to the band's first pixel, keep precision for large
     # coordinates; the results are stored as float32.
@@ -221,8 +233,6 @@ def light_field(
         directions[..., 2] = p[:, 2, None, None].astype(np.float32)
     else:
         z = np.asarray(heights, dtype=np.float32)
-        if z.shape != (h, width):
-            raise ValueError(f"heights must have shape {(h, width)}, got {z.shape}")
         directions[..., 2] = p[:, 2, None, None].astype(np.float32) - z
     dist2 = np.einsum("nhwc,nhwc->nhw", directions, directions)
     directions /= np.sqrt(dist2)[..., None]
@@ -300,8 +310,7 @@ def near_photometric_stereo(
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
-        dirs, falloff = light_field(p, slice(r0, r1), w, reference_distance=d0,
-                                    heights=None if heights is None else heights[r0:r1])
+        dirs, falloff = _light_field(p, r0, r1, w, d0, None if heights is None else heights[r0:r1])
         l = dirs.reshape(n, -1, 3)
         v = (values / falloff).reshape(n, -1)
         del dirs, falloff, values
@@ -316,6 +325,59 @@ def near_photometric_stereo(
     # Per sample: values, light vector, falloff, weights and einsum temporaries, in float32.
     run_bands(h, band_rows(n, w, 4 * 14), work, threads=threads, progress=progress)
     return result
+
+
+def near_lambertian_albedo(
+    stack: ImageStack,
+    positions: np.ndarray,
+    normals: np.ndarray,
+    *,
+    reference_distance: float | None = None,
+    heights: np.ndarray | None = None,
+    min_shading: float = 0.05,
+    threads: int | None = None,
+) -> np.ndarray:
+    """Luminance albedo ρ that best explains the stack given the normals, point lights.
+
+    :func:`ptmcore.normals.lambertian_albedo` with each pixel's own light directions: least
+    squares of ``I_i / f_i = ρ n·l_i(x)`` over the unsaturated samples with
+    ``n·l_i ≥ min_shading``; the same albedo scale as :func:`near_photometric_stereo`.
+
+    Parameters
+    ----------
+    stack : ImageStack
+    positions : ndarray, shape (N, 3)
+        Light positions in pixels, project frame.
+    normals : ndarray, shape (H, W, 3)
+        Unit normals (e.g. of :func:`fit_ptm_near`'s PTM).
+    reference_distance, heights
+        As in :func:`near_photometric_stereo`.
+    min_shading : float
+        Samples with a smaller n·l are left out (attached shadow, grazing light).
+    threads : int, optional
+
+    Returns
+    -------
+    ndarray, shape (H, W), float32
+    """
+    n = len(stack)
+    h, w = stack.shape
+    p, d0 = _checked_lights(stack, positions, reference_distance, heights)
+    if np.shape(normals) != (h, w, 3):
+        raise ValueError(f"normals must have shape {(h, w, 3)}, got {np.shape(normals)}")
+    out = np.empty((h, w), dtype=np.float32)
+
+    def work(r0: int, r1: int) -> None:
+        values, saturated = stack.band(r0, r1)
+        dirs, falloff = _light_field(p, r0, r1, w, d0, None if heights is None else heights[r0:r1])
+        shading = np.einsum("nhwc,hwc->nhw", dirs, normals[r0:r1].astype(np.float32, copy=False))
+        del dirs
+        out[r0:r1] = albedo_fit((values / falloff).reshape(n, -1), shading.reshape(n, -1),
+                                saturated.reshape(n, -1), min_shading).reshape(r1 - r0, w)
+
+    # Per sample: values, light vector, falloff, shading and temporaries, in float32.
+    run_bands(h, band_rows(n, w, 4 * 10), work, threads=threads)
+    return out
 
 
 # --------------------------------------------------------------------------- PTM
@@ -363,8 +425,7 @@ def fit_ptm_near(
 
     def work(r0: int, r1: int) -> None:
         values, _ = stack.band(r0, r1)
-        dirs, falloff = light_field(p, slice(r0, r1), w, reference_distance=d0,
-                                    heights=None if heights is None else heights[r0:r1])
+        dirs, falloff = _light_field(p, r0, r1, w, d0, None if heights is None else heights[r0:r1])
         lu, lv = dirs[..., 0].reshape(n, -1), dirs[..., 1].reshape(n, -1)
         y = (values / falloff).reshape(n, -1)
         del dirs, falloff, values
@@ -383,7 +444,9 @@ __all__ = [
     "POSITION_HEADER",
     "centre_directions",
     "fit_ptm_near",
+    "image_centre",
     "light_field",
+    "near_lambertian_albedo",
     "near_photometric_stereo",
     "read_light_positions",
     "typical_distance",

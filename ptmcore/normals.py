@@ -307,15 +307,25 @@ def lambertian_albedo(
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)
-        v = values.reshape(n, -1)
         shading = dirs @ normals[r0:r1].reshape(-1, 3).T  # (N, P)
-        shading[(shading < min_shading) | saturated.reshape(n, -1)] = 0.0
-        num = (shading * v).sum(axis=0)
-        den = (shading * shading).sum(axis=0)
-        out[r0:r1] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0).reshape(r1 - r0, w)
+        out[r0:r1] = albedo_fit(values.reshape(n, -1), shading, saturated.reshape(n, -1),
+                                min_shading).reshape(r1 - r0, w)
 
     run_bands(h, band_rows(n, w, 4 * 4), work, threads=threads)
     return out
+
+
+def albedo_fit(values: np.ndarray, shading: np.ndarray, saturated: np.ndarray,
+               min_shading: float) -> np.ndarray:
+    """Per-pixel least-squares ρ of ``values = ρ · shading`` over the usable samples.
+
+    ``values``, ``shading`` (n·l, overwritten) and ``saturated`` are (N, P); samples that
+    clipped or have ``shading < min_shading`` are left out. Pixels with none left get 0.
+    """
+    shading[(shading < min_shading) | saturated] = 0.0
+    num = (shading * values).sum(axis=0)
+    den = (shading * shading).sum(axis=0)
+    return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
 def angular_error(normals: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:

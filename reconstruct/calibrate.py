@@ -30,7 +30,7 @@ from scipy import ndimage
 from ptmcore.atomic import atomic_write
 from ptmcore.bands import band_rows, run_bands
 from ptmcore.errors import InputError
-from ptmcore.images import ImageStack, load_stack
+from ptmcore.images import ImageStack, linear_to_srgb, load_stack
 from ptmcore.lp import write_lp
 from reconstruct.perspective import Intrinsics
 from reconstruct.sphere_reflection import Sphere, light_from_highlight
@@ -63,6 +63,8 @@ class Calibration:
         Names of the photographs whose direction could not be read (NaN rows).
     intrinsics : Intrinsics or None
         The pinhole camera used for the reflection; None for the orthographic view.
+    shape : (H, W) or None
+        Size of the photographs in pixels.
     """
 
     directions: np.ndarray
@@ -75,6 +77,7 @@ class Calibration:
     names: list[str] = field(default_factory=list)
     flagged: list[str] = field(default_factory=list)
     intrinsics: Intrinsics | None = None
+    shape: tuple[int, int] | None = None
 
     @property
     def view_model(self) -> str:
@@ -212,8 +215,8 @@ def _sphere_crops(stack: ImageStack, sphere: Sphere) -> tuple[np.ndarray, int, i
     cx, cy, r = sphere
     x0, x1 = max(0, int(cx - r) - 2), min(w, int(np.ceil(cx + r)) + 3)
     y0, y1 = max(0, int(cy - r) - 2), min(h, int(np.ceil(cy + r)) + 3)
-    values, _ = stack.band(y0, y1)
-    return values[:, :, x0:x1], x0, y0
+    values, _ = stack.band(y0, y1, x0, x1)
+    return values, x0, y0
 
 
 def detect_spheres(
@@ -230,8 +233,9 @@ def detect_spheres(
     most photographs) whose per-pixel maximum shows a bright trail (the highlight moved over
     it). Candidates are the dark regions (Otsu threshold of the median, holes filled), kept
     when their size is in the radius range, they are round (area close to that of the
-    fitted circle) and their maximum is bright; each outline is then refined to sub-pixel
-    precision from the limb profile (:func:`refine_circle`).
+    fitted circle) and their maximum is bright; each new one (not already found at another
+    threshold) is then refined to sub-pixel precision from the limb profile
+    (:func:`refine_circle`).
 
     Parameters
     ----------
@@ -271,12 +275,14 @@ def detect_spheres(
         dark = ndimage.binary_opening(dark, iterations=2)
         dark = ndimage.binary_fill_holes(dark)
         bg_level = float(np.median(median[~dark])) if (~dark).any() else float(median.max())
-        for score, sphere in _round_dark_discs(median, maximum, label(dark), bg_level,
-                                               rmin, rmax):
-            # The same sphere is found at several levels; its refined outline is the same.
-            if all(np.hypot(sphere[0] - s[0], sphere[1] - s[1]) > 0.5 * min(sphere[2], s[2])
-                   for _, s in found):
-                found.append((score, sphere))
+        for score, rough in _round_dark_discs(median, maximum, label(dark), bg_level,
+                                              rmin, rmax):
+            # The same sphere is found at several levels: refine only the new ones.
+            if _seen(rough, found):
+                continue
+            cx, cy, r = refine_circle(median, rough)
+            if rmin <= r <= rmax and abs(r - rough[2]) < 0.2 * rough[2] and not _seen((cx, cy, r), found):
+                found.append((score, (cx, cy, r)))
     if not found:
         raise InputError("no spheres found: no dark round disc with a moving highlight "
                          "(pass the spheres explicitly if they are there)")
@@ -286,6 +292,12 @@ def detect_spheres(
             raise InputError(f"found {len(found)} sphere(s) but {expected} were expected")
         found = found[:expected]
     return sorted((s for _, s in found), key=lambda s: (s[0], s[1]))
+
+
+def _seen(sphere: Sphere, found: list[tuple[float, Sphere]]) -> bool:
+    """Whether ``sphere``'s centre lies within half a radius of one already found."""
+    return any(np.hypot(sphere[0] - s[0], sphere[1] - s[1]) <= 0.5 * min(sphere[2], s[2])
+               for _, s in found)
 
 
 def _dark_levels(median: np.ndarray, count: int = 6) -> np.ndarray:
@@ -312,7 +324,7 @@ def _dark_levels(median: np.ndarray, count: int = 6) -> np.ndarray:
 def _round_dark_discs(median: np.ndarray, maximum: np.ndarray, labels: np.ndarray,
                       bg_level: float, rmin: float, rmax: float
                       ) -> list[tuple[float, Sphere]]:
-    """(score, refined sphere) of the labelled regions that look like glossy spheres."""
+    """(score, rough (cx, cy, r)) of the labelled regions that look like glossy spheres."""
     from skimage.measure import regionprops
 
     found = []
@@ -340,10 +352,7 @@ def _round_dark_discs(median: np.ndarray, maximum: np.ndarray, labels: np.ndarra
             continue
         if trail < 4.0 * float(np.percentile(max_inside, 25)):
             continue
-        cx, cy, r = refine_circle(median, (cx0, cy0, r0))
-        if not (rmin <= r <= rmax and abs(r - r0) < 0.2 * r0):
-            continue
-        found.append((trail / max(inner_med, 1e-4), (cx, cy, r)))
+        found.append((trail / max(inner_med, 1e-4), (cx0, cy0, r0)))
     return found
 
 
@@ -360,9 +369,10 @@ def find_highlight(
     """Sub-pixel position of the specular highlight on one sphere.
 
     Inside the sphere (the anti-aliased limb excluded), pixels above a threshold halfway
-    between the disc's median and its brightest pixel form blobs; the blob holding the
-    brightest pixel gives the highlight as its intensity-weighted centroid (weights are the
-    excess over the threshold, so the estimate is insensitive to the dark body).
+    between the disc's median (its dark body) and its brightest pixel form blobs; the blob
+    holding the brightest pixel, grown by two pixels, gives the highlight as its
+    intensity-weighted centroid (weights are the excess over the body's median, so the
+    estimate is insensitive to the dark body).
 
     Parameters
     ----------
@@ -383,30 +393,53 @@ def find_highlight(
         there is no usable highlight.
     """
     img = np.asarray(image_gray, dtype=np.float32)
+    return _highlights(img[None], sphere, min_peak=min_peak,
+                       max_area_fraction=max_area_fraction)[0]
+
+
+def _highlights(images: np.ndarray, sphere: Sphere, *, min_peak: float = 0.15,
+                max_area_fraction: float = 0.02) -> list[tuple[float, float, float] | None]:
+    """:func:`find_highlight` on each of (N, H, W) float32 images of the same sphere.
+
+    The disc and the pixel grid are built once; the disc's peak and median are taken for
+    all images at once, and only images with a candidate highlight are labelled.
+    """
     cx, cy, r = sphere
-    h, w = img.shape
+    n, h, w = images.shape
     r0, r1 = max(int(np.floor(cy - r)), 0), min(int(np.ceil(cy + r)) + 1, h)
     c0, c1 = max(int(np.floor(cx - r)), 0), min(int(np.ceil(cx + r)) + 1, w)
     if r1 - r0 < 3 or c1 - c0 < 3:
-        return None
-    crop = img[r0:r1, c0:c1]
-    yy, xx = np.mgrid[r0:r1, c0:c1]
+        return [None] * n
+    crops = images[:, r0:r1, c0:c1]
+    yy, xx = np.ogrid[r0:r1, c0:c1]
     disc = np.hypot(xx - cx, yy - cy) < r - 1.5
-    if disc.sum() < 10:
-        return None
-    vals = crop[disc]
-    peak = float(vals.max())
-    body = float(np.median(vals))
-    if peak < min_peak or peak < 3.0 * body:
-        return None
+    disc_area = int(disc.sum())
+    if disc_area < 10:
+        return [None] * n
+    vals = crops[:, disc]
+    peaks = vals.max(axis=1).astype(np.float64)
+    bodies = np.median(vals, axis=1).astype(np.float64)
+    del vals
+    found: list[tuple[float, float, float] | None] = [None] * n
+    for k in np.flatnonzero((peaks >= min_peak) & (peaks >= 3.0 * bodies)):
+        found[k] = _highlight_in_disc(crops[k], disc, disc_area, xx, yy, float(peaks[k]),
+                                      float(bodies[k]), (cx, cy, r), max_area_fraction)
+    return found
+
+
+def _highlight_in_disc(crop: np.ndarray, disc: np.ndarray, disc_area: int, xx: np.ndarray,
+                       yy: np.ndarray, peak: float, body: float, sphere: Sphere,
+                       max_area_fraction: float) -> tuple[float, float, float] | None:
+    """The highlight of one image's crop, given its disc's peak and median (body)."""
+    cx, cy, r = sphere
     thresh = body + 0.5 * (peak - body)
     blobs, _ = ndimage.label((crop > thresh) & disc)
     iy, ix = np.unravel_index(np.argmax(np.where(disc, crop, -np.inf)), crop.shape)
     blob = blobs == blobs[iy, ix]
     area = int(blob.sum())
-    if area > max_area_fraction * disc.sum():
+    if area > max_area_fraction * disc_area:
         return None
-    # Grow the blob by one pixel so its anti-aliased rim weighs in symmetrically.
+    # Grow the blob by two pixels so its anti-aliased rim weighs in symmetrically.
     grown = ndimage.binary_dilation(blob, iterations=2) & disc
     wgt = np.clip(crop - body, 0, None) * grown
     total = float(wgt.sum())
@@ -418,10 +451,10 @@ def find_highlight(
     # highlights on the limb (light nearly behind the sphere: foreshortened, unreliable).
     contrast = (peak - body) / peak
     saturated = int((crop[blob] >= 0.98).sum())
-    size_pen = 1.0 - area / (max_area_fraction * disc.sum())
+    size_pen = 1.0 - area / (max_area_fraction * disc_area)
     # A flash highlight's core is often clipped; only a clipped area that is large for a
     # mirror highlight suggests a blown-out or non-specular blob.
-    sat_pen = 1.0 if saturated <= 0.25 * max_area_fraction * disc.sum() else 0.5
+    sat_pen = 1.0 if saturated <= 0.25 * max_area_fraction * disc_area else 0.5
     rho = np.hypot(hx - cx, hy - cy) / r
     limb_pen = float(np.clip((0.97 - rho) / 0.07, 0.0, 1.0))
     conf = float(np.clip(contrast * (0.5 + 0.5 * size_pen) * sat_pen * limb_pen, 0.0, 1.0))
@@ -435,6 +468,7 @@ def find_highlight(
 
 def calibration_camera(
     photograph: str | os.PathLike,
+    shape: tuple[int, int],
     *,
     intrinsics: str | Intrinsics | None = None,
     focal_mm: float | None = None,
@@ -452,7 +486,9 @@ def calibration_camera(
     Parameters
     ----------
     photograph : str or PathLike
-        One photograph of the capture: its size (and EXIF) are read.
+        One photograph of the capture, whose EXIF is read with ``exif``.
+    shape : (H, W)
+        Size of the photographs in pixels (e.g. ``ImageStack.shape``).
     intrinsics, focal_mm, sensor_width_mm, exif
         See above.
 
@@ -466,8 +502,6 @@ def calibration_camera(
         Two descriptions at once, a focal length without a sensor width (or the reverse),
         non-positive or non-numeric values, or ``exif`` on a photograph without the tags.
     """
-    from PIL import Image, UnidentifiedImageError
-
     from reconstruct.perspective import intrinsics_from_exif, parse_intrinsics
 
     lens = focal_mm is not None or sensor_width_mm is not None
@@ -492,18 +526,11 @@ def calibration_camera(
         return None
     if focal_mm is None or sensor_width_mm is None:
         raise InputError("a focal length needs the sensor width too (and the reverse)")
-    try:
-        with Image.open(photograph) as img:
-            width, height = img.size
-    except FileNotFoundError:
-        raise InputError("photograph not found", photograph) from None
-    except (OSError, UnidentifiedImageError) as exc:
-        raise InputError(f"cannot read the photograph: {exc}", photograph) from None
+    height, width = shape
     try:
         return Intrinsics.from_focal(float(focal_mm), float(sensor_width_mm), width, height)
     except (TypeError, ValueError) as exc:
         raise InputError(f"bad focal length or sensor width: {exc}") from None
-
 
 
 def calibrate_stack(
@@ -518,7 +545,7 @@ def calibrate_stack(
 ) -> Calibration:
     """Calibrate from a decoded capture (:func:`ptmcore.load_stack`); see :func:`calibrate`."""
     n = len(stack)
-    names = [f"#{k}" for k in range(n)] if names is None else list(names)
+    names = [p.name for p in stack.paths] if names is None else list(names)
     if spheres is None:
         if n < 3:
             raise InputError("need at least 3 photographs to detect the spheres; "
@@ -542,17 +569,12 @@ def calibrate_stack(
     for i, sph in enumerate(spheres):
         crops, x0, y0 = _sphere_crops(stack, sph)
         local = (sph[0] - x0, sph[1] - y0, sph[2])
-        for k in range(n):
-            found = find_highlight(crops[k], local)
-            if found is None:
-                continue
-            hx, hy, c = float(found[0]) + x0, float(found[1]) + y0, found[2]
-            hl[i, k] = hx, hy
-            if intrinsics is None:
-                sdirs[i, k] = light_from_highlight(hx, hy, sph)
-            sconf[i, k] = c
+        for k, found in enumerate(_highlights(crops, local)):
+            if found is not None:
+                hl[i, k] = found[0] + x0, found[1] + y0
+                sconf[i, k] = found[2]
         seen = np.isfinite(hl[i, :, 0])
-        if intrinsics is not None and seen.any():
+        if seen.any():
             sdirs[i, seen] = light_from_highlight(hl[i, seen, 0], hl[i, seen, 1], sph,
                                                   intrinsics)
 
@@ -578,7 +600,7 @@ def calibrate_stack(
     return Calibration(directions=combined, confidence=conf, sphere_directions=sdirs,
                        sphere_confidence=sconf, highlights=hl, disagreement_deg=disagree,
                        spheres=[tuple(s) for s in spheres], names=names, flagged=flagged,
-                       intrinsics=intrinsics)
+                       intrinsics=intrinsics, shape=stack.shape)
 
 
 def calibrate(
@@ -622,7 +644,7 @@ def calibrate(
     paths = [Path(p) for p in paths]
     stack = load_stack(paths, min_photographs=1)
     return calibrate_stack(stack, spheres=spheres, expected=expected,
-                           names=[p.name for p in paths], min_confidence=min_confidence,
+                           min_confidence=min_confidence,
                            disagreement_tol_deg=disagreement_tol_deg, intrinsics=intrinsics)
 
 
@@ -668,10 +690,12 @@ def write_diagnostic(path: str | os.PathLike, image: np.ndarray, calibration: Ca
     if img.dtype == np.uint8:
         rgb = img
     else:
+        # 16-bit and float photographs are linear (ptmcore.images.read_image): encode them
+        # as sRGB, as a viewer would show them, or they look far too dark.
         v = img.astype(np.float32)
         if img.dtype == np.uint16:
             v = v / 65535.0
-        rgb = (np.clip(v, 0, 1) * 255 + 0.5).astype(np.uint8)
+        rgb = (linear_to_srgb(v) * 255 + 0.5).astype(np.uint8)
     if rgb.ndim == 2:
         rgb = np.repeat(rgb[..., None], 3, axis=2)
     pil = Image.fromarray(np.ascontiguousarray(rgb[..., :3]))

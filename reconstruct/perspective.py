@@ -66,6 +66,26 @@ class Intrinsics:
                 f"focal lengths must be positive, not fx={self.fx}, fy={self.fy}"
             )
 
+    def rays(self, x_img, y_img) -> np.ndarray:
+        """Unit rays from the camera centre through image points.
+
+        Parameters
+        ----------
+        x_img, y_img : float or ndarray
+            Column and row in pixels (pixel centres at integers); broadcast together.
+
+        Returns
+        -------
+        numpy.ndarray
+            ``(..., 3)`` float64 unit vectors along ((col − cx)/fx, −(row − cy)/fy, −1) in
+            the project frame (the camera looks along −z).
+        """
+        x = np.asarray(x_img, dtype=np.float64)
+        y = np.asarray(y_img, dtype=np.float64)
+        rays = np.stack(np.broadcast_arrays((x - self.cx) / self.fx, -(y - self.cy) / self.fy,
+                                            -np.ones_like(x)), axis=-1)
+        return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
+
     @classmethod
     def from_focal(
         cls,

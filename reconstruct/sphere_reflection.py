@@ -19,16 +19,6 @@ from reconstruct.perspective import Intrinsics
 Sphere = tuple[float, float, float]
 
 
-def _pixel_rays(x_img: np.ndarray, y_img: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-    """(..., 3) unit rays from the camera centre through image points (column, row)."""
-    k = intrinsics
-    x = np.asarray(x_img, dtype=np.float64)
-    y = np.asarray(y_img, dtype=np.float64)
-    rays = np.stack(np.broadcast_arrays((x - k.cx) / k.fx, -(y - k.cy) / k.fy,
-                                        -np.ones_like(x)), axis=-1)
-    return rays / np.linalg.norm(rays, axis=-1, keepdims=True)
-
-
 def _pixel_to_ray_matrix(intrinsics: Intrinsics) -> np.ndarray:
     """3×3 M with M·(col, row, 1) = ((col − cx)/fx, −(row − cy)/fy, −1), a ray (not unit)."""
     k = intrinsics
@@ -126,7 +116,7 @@ def sphere_centre_3d(sphere: Sphere, intrinsics: Intrinsics) -> np.ndarray:
     # On the optical axis every diameter is such a line; any one will do.
     d = d / norm if norm > 1e-9 else np.array([1.0, 0.0])
     ends = np.array([cx, cy])[None, :] + np.array([[-r], [r]]) * d[None, :]
-    r0, r1 = _pixel_rays(ends[:, 0], ends[:, 1], intrinsics)
+    r0, r1 = intrinsics.rays(ends[:, 0], ends[:, 1])
     axis = r0 + r1
     axis /= np.linalg.norm(axis)
     half = 0.5 * np.arccos(np.clip(r0 @ r1, -1.0, 1.0))
@@ -144,42 +134,90 @@ def sphere_centre_3d(sphere: Sphere, intrinsics: Intrinsics) -> np.ndarray:
     return centre if np.linalg.norm(centre) > 1.0 and centre[2] < 0 else start
 
 
-def _perspective_lights(hx: np.ndarray, hy: np.ndarray, sphere: Sphere,
-                        intrinsics: Intrinsics) -> np.ndarray:
-    """(..., 3) light directions from highlights on one sphere, pinhole camera."""
-    centre = sphere_centre_3d(sphere, intrinsics)
-    rays = _pixel_rays(hx, hy, intrinsics)
-    # Nearest intersection of the ray t·d with |p − C| = 1: t = d·C − √((d·C)² − |C|² + 1).
+def sphere_normal_at(hx, hy, sphere) -> np.ndarray:
+    """Sphere normals seen at image points by an orthographic camera (view v = (0, 0, 1)).
+
+    s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)): rows go down, y goes up. A point just outside
+    the outline (a highlight measured on the anti-aliased limb) is taken onto the limb.
+
+    Parameters
+    ----------
+    hx, hy : float or ndarray
+        Image positions (column, row) in pixels; NaN gives NaN normals.
+    sphere : (cx, cy, r)
+        The outline in pixels; its values may be arrays broadcasting with ``hx``.
+
+    Returns
+    -------
+    ndarray, shape (..., 3), float64
+        Unit normals in the project frame.
+    """
+    cx, cy, r = (np.asarray(v, dtype=np.float64) for v in sphere)
+    sx = (np.asarray(hx, dtype=np.float64) - cx) / r
+    sy = (cy - np.asarray(hy, dtype=np.float64)) / r
+    rho2 = sx * sx + sy * sy
+    outside = rho2 > 1.0
+    scale = np.where(outside, 1.0 / np.sqrt(np.where(outside, rho2, 1.0)), 1.0)
+    rho2 = np.where(outside, 1.0, rho2)
+    return np.stack(np.broadcast_arrays(sx * scale, sy * scale, np.sqrt(1.0 - rho2)), axis=-1)
+
+
+def ray_sphere_distance(rays: np.ndarray, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays t·d from the camera centre first meet the sphere |p − C| = 1.
+
+    t = d·C − √((d·C)² − |C|² + 1) for unit rays d. A ray that misses gets the distance of
+    its point closest to the centre, on the limb as seen along that ray.
+
+    Parameters
+    ----------
+    rays : ndarray, shape (..., 3)
+        Unit rays (:meth:`reconstruct.perspective.Intrinsics.rays`).
+    centre : ndarray, shape (3,)
+        Sphere centre in units of its radius.
+
+    Returns
+    -------
+    t : ndarray, shape (...)
+        Distance along each ray.
+    hit : ndarray, shape (...), bool
+        Whether the ray meets the sphere.
+    """
     dc = rays @ centre
     disc = dc * dc - (centre @ centre - 1.0)
-    # A highlight measured just outside the outline misses the sphere: take the ray's point
-    # closest to the centre, on the limb, as the orthographic model clamps to the limb.
-    t = dc - np.sqrt(np.clip(disc, 0.0, None))
-    normal = t[..., None] * rays - centre
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    view = -rays
-    light = 2.0 * np.sum(normal * view, axis=-1, keepdims=True) * normal - view
+    return dc - np.sqrt(np.clip(disc, 0.0, None)), disc > 0
+
+
+def mirror(normal: np.ndarray, view: np.ndarray | None = None) -> np.ndarray:
+    """Unit direction l = 2(n·v)n − v that a mirror of normal n reflects the view v into.
+
+    ``view`` (..., 3) points towards the camera; None is the orthographic v = (0, 0, 1).
+    """
+    if view is None:
+        light = 2.0 * normal[..., 2:3] * normal - np.array([0.0, 0.0, 1.0])
+    else:
+        light = 2.0 * np.sum(normal * view, axis=-1, keepdims=True) * normal - view
     return light / np.linalg.norm(light, axis=-1, keepdims=True)
 
 
-def light_from_highlight(hx: float, hy: float, sphere: Sphere,
+def light_from_highlight(hx, hy, sphere: Sphere,
                          intrinsics: Intrinsics | None = None) -> np.ndarray:
-    """Light direction from a highlight on a mirror sphere.
+    """Light direction from highlights on a mirror sphere.
 
     Orthographic view (the default): the sphere normal at the highlight is
-    s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) (rows go down, y goes up); the light is the
-    mirror image of the view v = (0, 0, 1) about it: l = 2(s·v)s − v.
+    s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) (:func:`sphere_normal_at`; rows go down, y goes
+    up); the light is the mirror image of the view v = (0, 0, 1) about it: l = 2(s·v)s − v.
 
     Pinhole camera (``intrinsics`` given): the sphere's centre direction and distance come
     from its outline (:func:`sphere_centre_3d`, radius 1); the ray through the highlight
     pixel meets the sphere at a point with normal n; the view v is the reversed ray
-    (towards the camera), and l = 2(n·v)n − v. ``hx`` and ``hy`` may then be arrays of
-    highlights on the same sphere.
+    (towards the camera), and l = 2(n·v)n − v.
+
+    Either way a highlight measured just outside the outline is taken on the limb.
 
     Parameters
     ----------
-    hx, hy : float (or arrays with ``intrinsics``)
-        Highlight position (column, row) in pixels.
+    hx, hy : float or ndarray
+        Highlight positions (column, row) in pixels, all on the same sphere.
     sphere : (cx, cy, r)
         The sphere's outline in pixels.
     intrinsics : Intrinsics, optional
@@ -189,21 +227,25 @@ def light_from_highlight(hx: float, hy: float, sphere: Sphere,
     Returns
     -------
     np.ndarray
-        (3,) (or (..., 3) for arrays) float64 unit vector towards the light, in the project
-        frame.
+        (..., 3) float64 unit vectors towards the light, in the project frame ((3,) for
+        scalar positions).
     """
-    if intrinsics is not None:
-        return _perspective_lights(hx, hy, sphere, intrinsics)
-    cx, cy, r = sphere
-    sx, sy = (hx - cx) / r, (cy - hy) / r
-    rho2 = sx * sx + sy * sy
-    if rho2 > 1.0:
-        # A highlight measured just outside the outline is on the limb.
-        scale = 1.0 / np.sqrt(rho2)
-        sx, sy, rho2 = sx * scale, sy * scale, 1.0
-    s = np.array([sx, sy, np.sqrt(1.0 - rho2)])
-    light = 2.0 * s[2] * s - np.array([0.0, 0.0, 1.0])
-    return light / np.linalg.norm(light)
+    if intrinsics is None:
+        return mirror(sphere_normal_at(hx, hy, sphere))
+    centre = sphere_centre_3d(sphere, intrinsics)
+    rays = intrinsics.rays(hx, hy)
+    t, _ = ray_sphere_distance(rays, centre)
+    normal = t[..., None] * rays - centre
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return mirror(normal, -rays)
 
 
-__all__ = ["ellipse_mean_radius", "light_from_highlight", "sphere_centre_3d", "sphere_outline"]
+__all__ = [
+    "ellipse_mean_radius",
+    "light_from_highlight",
+    "mirror",
+    "ray_sphere_distance",
+    "sphere_centre_3d",
+    "sphere_normal_at",
+    "sphere_outline",
+]

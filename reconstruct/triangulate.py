@@ -25,10 +25,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ptmcore.errors import InputError
+from ptmcore.images import ImageStack
 from ptmcore.lp import write_lp
-from ptmcore.nearlight import centre_directions, write_light_positions
+from ptmcore.nearlight import centre_directions, typical_distance, write_light_positions
 
-from .calibrate import Calibration
+from .calibrate import Calibration, calibrate_stack
+from .perspective import Intrinsics
+from .sphere_reflection import Sphere, mirror, sphere_normal_at
 
 #: Status of a photograph whose light was triangulated.
 OK = "ok"
@@ -100,19 +103,9 @@ def sphere_rays(calibration: Calibration, heights: list[float] | np.ndarray | No
     if hc.shape != r.shape or not np.isfinite(hc).all():
         raise InputError(f"need one finite centre height per sphere ({len(r)}), got {heights!r}")
     hl = np.asarray(calibration.highlights, dtype=np.float64)  # (S, N, 2)
-    sx = (hl[..., 0] - cx[:, None]) / r[:, None]
-    sy = (cy[:, None] - hl[..., 1]) / r[:, None]
-    rho = np.hypot(sx, sy)
-    # A highlight measured just outside the outline is on the limb (as in calibrate).
-    scale = np.where(rho > 1.0, 1.0 / np.where(rho > 0, rho, 1.0), 1.0)
-    sx, sy = sx * scale, sy * scale
-    sz = np.sqrt(np.clip(1.0 - sx * sx - sy * sy, 0.0, 1.0))
-    s = np.stack([sx, sy, sz], axis=-1)
+    s = sphere_normal_at(hl[..., 0], hl[..., 1], (cx[:, None], cy[:, None], r[:, None]))
     centre = np.stack([cx, -cy, hc], axis=-1)[:, None, :]
-    points = centre + r[:, None, None] * s
-    rays = 2.0 * sz[..., None] * s - np.array([0.0, 0.0, 1.0])
-    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
-    return points, rays
+    return centre + r[:, None, None] * s, mirror(s)
 
 
 def triangulate(
@@ -207,13 +200,13 @@ def lights_are_near(
     if ok.sum() < max(2, min_fraction * len(ok)):
         return False
     h, w = shape
-    centre = np.array([(w - 1) / 2.0, -(h - 1) / 2.0, 0.0])
-    dist = float(np.median(np.linalg.norm(triangulation.positions[ok] - centre, axis=1)))
+    dist = typical_distance(triangulation.positions[ok], shape)
     residual = float(np.median(triangulation.residual[ok]))
     return dist < max_diagonals * float(np.hypot(h, w)) and residual < max_relative_residual * dist
 
 
-def near_lights(calibration: Calibration, shape: tuple[int, int]) -> Triangulation | None:
+def near_lights(calibration: Calibration, shape: tuple[int, int] | None = None
+                ) -> Triangulation | None:
     """The triangulated lights of a calibration when they are near, else None.
 
     None also when fewer than two spheres were used, or when the calibration used a
@@ -222,13 +215,92 @@ def near_lights(calibration: Calibration, shape: tuple[int, int]) -> Triangulati
     Parameters
     ----------
     calibration : Calibration
-    shape : (H, W)
-        Image size in pixels.
+    shape : (H, W), optional
+        Image size in pixels; default the calibration's.
     """
+    shape = calibration.shape if shape is None else shape
+    if shape is None:
+        raise ValueError("the image size is needed: the calibration does not hold it")
     if len(calibration.spheres) < 2 or calibration.intrinsics is not None:
         return None
     tri = triangulate(calibration)
     return tri if lights_are_near(tri, shape) else None
+
+
+@dataclass
+class SphereLights:
+    """The lights of a capture read from its spheres, and which photographs have one.
+
+    Attributes
+    ----------
+    calibration : Calibration
+        The highlights and distant directions (:func:`reconstruct.calibrate.calibrate_stack`).
+    triangulation : Triangulation or None
+        The near lights' positions when two or more spheres show them near, else None.
+    usable : ndarray, shape (N,), bool
+        Photographs with a light: a triangulated position for near lights, else a direction.
+    directions : ndarray, shape (M, 3)
+        The usable photographs' directions: for near lights, from the image centre
+        (:func:`ptmcore.nearlight.centre_directions`).
+    positions : ndarray, shape (M, 3) or None
+        The usable photographs' light positions (pixels), or None for distant lights.
+    left_out : list of str
+        One line per photograph without a light: ``"name: reason"``.
+    """
+
+    calibration: Calibration
+    triangulation: Triangulation | None
+    usable: np.ndarray
+    directions: np.ndarray
+    positions: np.ndarray | None
+    left_out: list[str]
+
+    @property
+    def names(self) -> list[str]:
+        """Names of the usable photographs."""
+        return [n for n, u in zip(self.calibration.names, self.usable) if u]
+
+
+def sphere_lights(
+    stack: ImageStack,
+    *,
+    spheres: list[Sphere] | None = None,
+    intrinsics: Intrinsics | None = None,
+    near: bool = True,
+) -> SphereLights:
+    """Calibrate a capture from its spheres and, when they show near lights, triangulate.
+
+    Parameters
+    ----------
+    stack : ImageStack
+        The decoded capture (:func:`ptmcore.images.load_stack`).
+    spheres : list of (cx, cy, r), optional
+        Known spheres; detected when omitted.
+    intrinsics : Intrinsics, optional
+        Pinhole camera for the reflection (near lights are then not triangulated).
+    near : bool
+        Whether to look for near lights (:func:`near_lights`) at all.
+
+    Returns
+    -------
+    SphereLights
+
+    Raises
+    ------
+    InputError
+        As :func:`reconstruct.calibrate.calibrate_stack`.
+    """
+    cal = calibrate_stack(stack, spheres=spheres, intrinsics=intrinsics)
+    tri = near_lights(cal) if near else None
+    if tri is None:
+        usable = cal.usable
+        return SphereLights(cal, None, usable, cal.directions[usable], None,
+                            [f"{name}: no usable highlight" for name in cal.flagged])
+    usable = tri.usable
+    positions = tri.positions[usable]
+    return SphereLights(cal, tri, usable, centre_directions(positions, stack.shape), positions,
+                        [f"{name}: no light position ({status})"
+                         for name, status in zip(tri.names, tri.status) if status != OK])
 
 
 def write_near_light_files(lp_path: str | os.PathLike, positions_path: str | os.PathLike,
@@ -259,9 +331,11 @@ __all__ = [
     "OK",
     "PARALLEL",
     "TOO_FEW",
+    "SphereLights",
     "Triangulation",
     "lights_are_near",
     "near_lights",
+    "sphere_lights",
     "sphere_rays",
     "triangulate",
     "write_near_light_files",

@@ -178,3 +178,60 @@ def test_bad_inputs_raise_input_error(tmp_path, capture):
         detect_spheres(np.zeros((4, 4)), np.zeros((5, 5)))
     with pytest.raises(InputError):
         render_sphere_capture(tmp_path / "x", spheres=[(5.0, 5.0, 80.0)])
+
+
+def test_band_of_columns_matches_the_full_band(capture):
+    from ptmcore.images import load_stack
+    from reconstruct.calibrate import _sphere_crops
+
+    stack = load_stack(capture.image_paths[:3])
+    values, saturated = stack.band(20, 60, 30, 90)
+    full, full_sat = stack.band(20, 60)
+    assert values.shape == (3, 40, 60)
+    np.testing.assert_array_equal(values, full[:, :, 30:90])
+    np.testing.assert_array_equal(saturated, full_sat[:, :, 30:90])
+    crops, x0, y0 = _sphere_crops(stack, capture.spheres[0])
+    cx, cy, r = capture.spheres[0]
+    assert crops.shape[2] < stack.shape[1] and x0 <= cx - r and x0 + crops.shape[2] >= cx + r
+
+
+def test_find_highlight_matches_the_batch_over_photographs(capture, calib):
+    from ptmcore.images import load_stack
+
+    stack = load_stack(capture.image_paths[:6])
+    values, _ = stack.band(0, stack.shape[0])
+    for k in range(6):
+        found = find_highlight(values[k], calib.spheres[0])
+        hx, hy = calib.highlights[0, k]
+        if found is None:
+            assert np.isnan(hx)
+        else:
+            # The batch works in a crop's coordinates: the same up to rounding.
+            np.testing.assert_allclose(found[:2], (hx, hy), rtol=0, atol=1e-4)
+            assert found[2] == pytest.approx(calib.sphere_confidence[0, k], rel=1e-6)
+
+
+def test_calibration_holds_names_and_shape(capture, calib):
+    from ptmcore.images import load_stack
+
+    assert calib.shape == capture.shape
+    stack = load_stack(capture.image_paths[:4])
+    cal = calibrate_stack(stack, spheres=list(calib.spheres))
+    assert cal.names == [p.name for p in capture.image_paths[:4]]
+    # Orthographic directions of a batch are those of one highlight at a time.
+    ok = np.isfinite(calib.highlights[0, :, 0])
+    hx, hy = calib.highlights[0, ok].T
+    batch = light_from_highlight(hx, hy, calib.spheres[0])
+    single = np.array([light_from_highlight(x, y, calib.spheres[0]) for x, y in zip(hx, hy)])
+    np.testing.assert_allclose(batch, single, atol=1e-15)
+    np.testing.assert_allclose(calib.sphere_directions[0, ok], batch, atol=1e-15)
+
+
+def test_diagnostic_of_a_16_bit_photograph_is_srgb_encoded(tmp_path, calib):
+    linear = np.full((40, 50, 3), round(0.2 * 65535), dtype=np.uint16)
+    png = tmp_path / "d16.png"
+    write_diagnostic(png, linear, calib, 0)
+    with Image.open(png) as im:
+        px = np.asarray(im.convert("RGB"))
+    # Linear 0.2 is sRGB 0.4845, 124 of 255 (not 51: the linear value shown as if encoded).
+    assert abs(int(px[30, 40, 0]) - 124) <= 1

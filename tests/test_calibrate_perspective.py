@@ -177,20 +177,21 @@ def test_intrinsics_from_exif(tmp_path):
 def test_calibration_camera_choices(tmp_path):
     _exif_jpeg(tmp_path / "a.jpg", {0x920A: 24.0, 0xA20E: 300 / 23.5 * 25.4, 0xA210: 2})
     photo = tmp_path / "a.jpg"
-    assert calibration_camera(photo) is None
-    lens = calibration_camera(photo, focal_mm=24, sensor_width_mm=23.5)
-    assert lens == pytest.approx(calibration_camera(photo, exif=True))
-    assert calibration_camera(photo, intrinsics="500,510,10,20") == Intrinsics(500, 510, 10, 20)
+    shape = (200, 300)  # (H, W) of the photograph
+    assert calibration_camera(photo, shape) is None
+    lens = calibration_camera(photo, shape, focal_mm=24, sensor_width_mm=23.5)
+    assert lens == pytest.approx(calibration_camera(photo, shape, exif=True))
+    assert calibration_camera(photo, shape, intrinsics="500,510,10,20") == Intrinsics(500, 510, 10, 20)
     for bad, match in [({"focal_mm": 24}, "sensor width"),
                        ({"focal_mm": -1, "sensor_width_mm": 23.5}, "focal"),
                        ({"intrinsics": "1,2,3"}, "--intrinsics"),
                        ({"intrinsics": "1,2,3,4", "exif": True}, "one way"),
                        ({"focal_mm": 24, "sensor_width_mm": 23.5, "exif": True}, "one way")]:
         with pytest.raises(InputError, match=match):
-            calibration_camera(photo, **bad)
+            calibration_camera(photo, shape, **bad)
     _exif_jpeg(tmp_path / "plain.jpg")
     with pytest.raises(InputError, match="EXIF"):
-        calibration_camera(tmp_path / "plain.jpg", exif=True)
+        calibration_camera(tmp_path / "plain.jpg", shape, exif=True)
 
 
 def test_cli_calibrate_camera_options(wide_capture, tmp_path, capsys):
@@ -269,3 +270,15 @@ def test_detection_on_varied_captures(tmp_path, index):
     assert sorted(cal.flagged) == sorted(info.image_paths[k].name for k in info.hidden)
     err = _angles_deg(cal.directions[cal.usable], info.directions[cal.usable])
     assert err.max() <= 2.0
+
+
+def test_closed_form_outline_of_the_renderer_matches_sphere_outline():
+    from data_synthetic.spheres import _pinhole_outline
+
+    camera = Intrinsics(420.0, 420.0, 199.5, 149.5)
+    for centre in ([0.0, 0.0, -9.0], [3.0, -2.0, -8.0], [-4.5, 3.5, -6.0], [5.0, 0.5, -7.5]):
+        got = _pinhole_outline(np.array(centre), camera.fx, (camera.cx, camera.cy))
+        want = sphere_outline(np.array(centre), camera)
+        np.testing.assert_allclose(got[:4], want[:4], rtol=1e-9, atol=1e-9)
+        if want[2] - want[3] > 1e-6:  # the angle of a circle's axis is arbitrary
+            assert np.isclose(np.cos(2 * (got[4] - want[4])), 1.0)

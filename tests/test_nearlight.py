@@ -314,3 +314,50 @@ def test_calibrate_writes_near_light_files_that_run_uses(capture, tmp_path, caps
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert report["light_model"]["type"] == "near"
     assert report["light_model"]["source"].endswith("light_positions.csv")
+
+
+def test_near_albedo_without_photometric_stereo(capture):
+    from ptmcore.nearlight import near_lambertian_albedo
+
+    info, stack, truth = capture
+    ps = near_photometric_stereo(stack, info.positions)
+    albedo = near_lambertian_albedo(stack, info.positions, ps.normals)
+    # Given PS's own normals it is PS's albedo (PS also drops the darkest samples).
+    m = truth.mask & ps.valid
+    np.testing.assert_allclose(albedo[m], ps.albedo[m], rtol=0.02)
+    with pytest.raises(ValueError, match="normals"):
+        near_lambertian_albedo(stack, info.positions, ps.normals[:-1])
+
+
+def test_sphere_lights_of_a_near_capture(capture):
+    from reconstruct.triangulate import near_lights, sphere_lights
+
+    info, stack, _ = capture
+    found = sphere_lights(stack)
+    cal = found.calibration
+    assert cal.shape == stack.shape
+    tri = near_lights(cal)
+    assert found.triangulation is not None and tri is not None
+    np.testing.assert_array_equal(found.usable, tri.usable)
+    np.testing.assert_allclose(found.positions, tri.positions[tri.usable])
+    assert found.names == [n for n, ok in zip(cal.names, tri.usable) if ok]
+    assert len(found.left_out) == int((~tri.usable).sum())
+    distant = sphere_lights(stack, near=False)
+    assert distant.triangulation is None and distant.positions is None
+    np.testing.assert_array_equal(distant.directions, cal.directions[cal.usable])
+
+
+def test_near_ptm_normals_get_an_albedo_without_photometric_stereo(capture):
+    from ptmcore.nearlight import near_lambertian_albedo
+    from ptmcore.normals import normals_from_ptm
+    from reconstruct.pipeline import NearLights, RunOptions, _estimate_normals
+
+    info, stack, truth = capture
+    calls = []
+    normals, albedo, undetermined = _estimate_normals(
+        stack, None, RunOptions(normals="ptm"), calls.append, NearLights(info.positions, "truth"))
+    want = normals_from_ptm(fit_ptm_near(stack, info.positions).coefficients)
+    np.testing.assert_allclose(normals, want, atol=1e-6)
+    np.testing.assert_allclose(albedo, near_lambertian_albedo(stack, info.positions, want), rtol=1e-5)
+    assert undetermined == 0 and calls  # the PTM fit reports its progress
+    assert angular_error(normals, truth.normals, truth.mask).mean() < 5.0
