@@ -24,14 +24,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from data_synthetic.surfaces import SCENES  # noqa: E402
-from reconstruct.mesh import grid_mesh  # noqa: E402
-from reconstruct.preview import build_plotter  # noqa: E402
-from reconstruct.preview_scene import (  # noqa: E402
+from data_synthetic.surfaces import SCENES
+from ptmcore.relight import light_direction
+from reconstruct.mesh import grid_mesh
+from reconstruct.preview import build_plotter
+from reconstruct.preview_scene import (
     MAX_VERTICES,
     PreviewScene,
     _grid_step,
-    light_from_angles,
     relit_texture,
 )
 
@@ -71,7 +71,7 @@ def main() -> None:
     window = build_plotter(scene, off_screen=True, size=(1280, 900))
     try:
         window.screenshot()  # first upload and shader compilation out of the timing
-        relit = _median_ms(lambda az: relit_texture(scene, light_from_angles(az, 35)), lights)
+        relit = _median_ms(lambda az: relit_texture(scene, light_direction(azimuth_deg=az, elevation_deg=35)), lights)
         callback = _median_ms(lambda az: window.on_light(az, 35), lights)
         rendered = _median_ms(lambda az: (window.on_light(az, 35), window.plotter.render()), lights)
     finally:

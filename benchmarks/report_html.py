@@ -4,8 +4,8 @@ An output folder is made as ``reconstruct run`` writes it (normals.npy, normals.
 height.tif, mesh.ply with the automatic mesh step, report.json) from a synthetic relief, with 8
 full-size JPEG photographs for the contact sheet; then :func:`reconstruct.report_html.write_report_html`
 runs in a fresh process, which reports its wall time and the peak RSS above what the imports
-take. Relighting uses the normals and albedo (a 24-megapixel ``coefficients.ptm`` is above
-``report_figures.MAX_PTM_BYTES``).
+take. The folder has no ``coefficients.ptm``: relighting uses the normals and albedo (a PTM
+would be relit from a subsample decoded by ``read_ptm(path, max_side=480)``).
 
 Run: ``.venv/bin/python benchmarks/report_html.py [--size 6000x4000]``
 Prints the numbers and writes ``benchmarks/results/report_html.json``.
@@ -27,9 +27,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from reconstruct import outputs  # noqa: E402
-from reconstruct.mesh import grid_mesh, write_ply  # noqa: E402
-from reconstruct.pipeline import auto_step  # noqa: E402
+from reconstruct import outputs
+from reconstruct.mesh import grid_mesh, write_ply
+from reconstruct.pipeline import auto_step
 
 _MEASURE = """
 import json, sys, time

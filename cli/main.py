@@ -209,9 +209,10 @@ def build_parser() -> argparse.ArgumentParser:
     prev.add_argument("source", type=Path, help="output folder, mesh file (PLY, OBJ, STL, GLB, OFF) or .ptm file")
     prev.add_argument("--mode", choices=("relit", "albedo", "normals", "height", "distance"),
                       help="first view (default: relit when the source can be relit)")
-    prev.add_argument("--light", metavar="AZ,EL", help="light azimuth and elevation in degrees (default 135,40)")
-    prev.add_argument("--azimuth", type=float, metavar="DEG", help="light azimuth: 0 = from the right, 90 = from the top")
-    prev.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object, 0 to 90")
+    prev.add_argument("--light", metavar="X,Y,Z", help="direction towards the light (x right, y up, z towards the camera)")
+    prev.add_argument("--azimuth", type=float, metavar="DEG",
+                      help="light azimuth: 0 = from the right, 90 = from the top (default 135)")
+    prev.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object, 0 to 90 (default 40)")
     prev.add_argument("--comparison", type=Path, metavar="DIR", help="folder of `reconstruct compare` for the distance view")
     prev.add_argument("--screenshot", type=Path, metavar="PNG", help="render off-screen to this file and exit")
     prev.add_argument("--size", default="1280x900", help="window or image size WxH (default 1280x900)")
@@ -265,46 +266,40 @@ def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] 
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from ptmcore.images import read_image
+    from ptmcore.images import load_stack, read_image
     from ptmcore.nearlight import typical_distance
     from reconstruct.calibrate import (
-        calibrate,
         calibration_camera,
         write_calibration_lp,
         write_diagnostic,
     )
     from reconstruct.lightcheck import write_polar_plot
     from reconstruct.pipeline import capture_images
-    from reconstruct.triangulate import near_lights, write_near_light_files
+    from reconstruct.triangulate import sphere_lights, write_near_light_files
 
     paths = capture_images(args.capture)
-    camera = calibration_camera(paths[0], intrinsics=args.intrinsics, focal_mm=args.focal_mm,
+    stack = load_stack(paths, min_photographs=1)
+    camera = calibration_camera(paths[0], stack.shape, intrinsics=args.intrinsics, focal_mm=args.focal_mm,
                                 sensor_width_mm=args.sensor_width_mm, exif=args.exif)
-    result = calibrate(paths, spheres=_parse_spheres(args.sphere), intrinsics=camera)
-    first = read_image(paths[0])
-    near = near_lights(result, first.shape[:2])
-    if near is None:
-        count = write_calibration_lp(args.output, result, [p.name for p in paths])
-        directions = result.directions[result.usable]
+    found = sphere_lights(stack, spheres=_parse_spheres(args.sphere), intrinsics=camera)
+    result = found.calibration
+    if found.triangulation is None:
+        count = write_calibration_lp(args.output, result)
         print(f"{args.output}: {count} of {len(paths)} photographs with a light direction, from "
               f"{len(result.spheres)} sphere(s), {result.view_model} view")
-        for name in result.flagged:
-            print(f"  warning: {name}: no usable highlight; left out")
     else:
         positions_file = args.output.with_name("light_positions.csv")
-        names = [p.name for p, ok in zip(paths, near.usable) if ok]
-        directions = write_near_light_files(args.output, positions_file, near, first.shape[:2])
+        write_near_light_files(args.output, positions_file, found.triangulation, stack.shape)
         print(f"{args.output}, {positions_file.name}: near lights triangulated from {len(result.spheres)} "
-              f"spheres for {len(names)} of {len(paths)} photographs (median distance "
-              f"{typical_distance(near.positions[near.usable], first.shape[:2]):.0f} px); `run` gives "
+              f"spheres for {len(found.names)} of {len(paths)} photographs (median distance "
+              f"{typical_distance(found.positions, stack.shape):.0f} px); `run` gives "
               "every pixel its own light direction")
-        for name, status in zip(near.names, near.status):
-            if status != "ok":
-                print(f"  warning: {name}: no light position ({status}); left out")
+    for line in found.left_out:
+        print(f"  warning: {line}; left out")
     if args.diagnostic is not None:
-        write_diagnostic(args.diagnostic, first, result, 0)
+        write_diagnostic(args.diagnostic, read_image(paths[0]), result, 0)
         polar = args.diagnostic.with_name(args.diagnostic.stem + "_lights.png")
-        write_polar_plot(polar, directions, title=args.output.name)
+        write_polar_plot(polar, found.directions, title=args.output.name)
         print(f"  diagnostics: {args.diagnostic}, {polar}")
     return 0
 
@@ -450,13 +445,23 @@ def _cmd_run(args: argparse.Namespace) -> int:
     )
     if args.scan is not None and args.pixel_size is None:
         raise InputError("--scan needs --pixel-size: a scan is compared in millimetres")
+    # With --scan, the comparison writes report.html, once, with the run's report and its own.
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
-        result = run(args.capture, args.output, options, progress=progress)
-    _print_summary(result.report, result.output)
+        result = run(args.capture, args.output, options, progress=progress, report_page=args.scan is None)
+    compared = None
     if args.scan is not None:
         from reconstruct.pipeline import CompareOptions, run_compare
+        from reconstruct.report_html import write_report_html
 
-        _compare_summary(run_compare(args.output, args.scan, args.output, CompareOptions(scan_units=args.scan_units)))
+        try:
+            compared = run_compare(args.output, args.scan, args.output, CompareOptions(scan_units=args.scan_units))
+        except InputError:
+            write_report_html(result.output, report=result.report)  # the run's page, without the scan
+            _print_summary(result.report, result.output)
+            raise
+    _print_summary(result.report, result.output)
+    if compared is not None:
+        _compare_summary(compared)
     return 0
 
 
@@ -581,6 +586,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_preview(args: argparse.Namespace) -> int:
+    import math
+
+    from ptmcore.relight import light_direction
     from reconstruct.preview import (
         DEFAULT_AZIMUTH,
         DEFAULT_ELEVATION,
@@ -596,23 +604,20 @@ def _cmd_preview(args: argparse.Namespace) -> int:
             raise ValueError
     except ValueError:
         raise InputError(f"--size must be WxH with both at least 64, got {args.size!r}") from None
-    azimuth, elevation = DEFAULT_AZIMUTH, DEFAULT_ELEVATION
+    # The angles are checked where they are used (a ValueError, made an InputError below).
+    azimuth = DEFAULT_AZIMUTH if args.azimuth is None else args.azimuth
+    elevation = DEFAULT_ELEVATION if args.elevation is None else args.elevation
     if args.light is not None:
         if args.azimuth is not None or args.elevation is not None:
-            raise InputError("give either --light AZ,EL or --azimuth/--elevation")
+            raise InputError("give either --light X,Y,Z or --azimuth/--elevation")
         try:
-            azimuth, elevation = (float(v) for v in args.light.split(","))
-        except ValueError:
-            raise InputError(f"--light must be two numbers AZ,EL in degrees, got {args.light!r}") from None
-    azimuth = azimuth if args.azimuth is None else args.azimuth
-    elevation = elevation if args.elevation is None else args.elevation
-    if not 0 < elevation <= 90:
-        raise InputError(f"the light elevation must be in (0, 90] degrees, got {elevation:g}")
+            x, y, z = light_direction(light=_parse_vector(args.light))
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        azimuth, elevation = math.degrees(math.atan2(y, x)) % 360, math.degrees(math.asin(z))
     if args.screenshot is None and not has_display():
         raise InputError("no display to open a window on (DISPLAY is not set): render to a file with --screenshot FILE")
     scene = load_scene(args.source, comparison=args.comparison)
-    if args.mode is not None and args.mode not in scene.modes:
-        raise InputError(f"no {args.mode} view for this source (it has {', '.join(scene.modes)})", args.source)
     options = {"mode": args.mode, "azimuth": azimuth, "elevation": elevation, "size": (width, height)}
     if args.screenshot is not None:
         print(f"Wrote {render_screenshot(scene, args.screenshot, **options)}")

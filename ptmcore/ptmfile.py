@@ -69,6 +69,7 @@ from __future__ import annotations
 import io
 import itertools
 import math
+import mmap
 import os
 import re
 from collections.abc import Callable, Iterator, Sequence
@@ -417,19 +418,44 @@ def _read_jpeg_planes(cur: _Cursor, fmt: str, width: int, height: int) -> tuple[
     return planes, quality
 
 
-def read_ptm(path: str | os.PathLike) -> PTMFile:
-    """Read a ``.ptm`` file.
+def _map_file(path: Path) -> bytes | mmap.mmap:
+    """The file mapped read-only (only the pages read are loaded), or its bytes when it cannot
+    be mapped; :func:`read_input_file` says why a file cannot be read (missing, a folder)."""
+    try:
+        with open(path, "rb") as f:
+            return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+    except (OSError, ValueError):  # ValueError: an empty file cannot be mapped
+        return read_input_file(path, "PTM file")
+
+
+def _every(raw: np.ndarray, stride: int) -> np.ndarray:
+    """A view of every ``stride``-th row and column of ``(H, W, ...)`` bytes stored bottom row
+    first, counted from the top row (``image[::stride, ::stride]`` of the top-first image), still
+    bottom row first."""
+    return raw if stride == 1 else raw[::-1][::stride, ::stride][::-1]
+
+
+def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile:
+    """Read a ``.ptm`` file, whole or a subsample of it.
 
     Parameters
     ----------
     path : str or PathLike
         A PTM of format ``PTM_FORMAT_LRGB`` (versions 1.0–1.2), ``PTM_FORMAT_RGB``,
         ``PTM_FORMAT_JPEG_LRGB`` or ``PTM_FORMAT_JPEG_RGB``.
+    max_side : int, optional
+        Decode only every k-th row and column (from the top-left pixel), k the smallest step
+        that brings the longer side to ``max_side`` or less: a preview of a large PTM. The
+        file is memory-mapped and the raw formats' bytes are strided before they are decoded,
+        so time and memory follow the subsample (a 24-megapixel PTM is not decoded whole).
+        The JPEG formats are decoded whole (a plane's pixels depend on one another), then
+        subsampled.
 
     Returns
     -------
     PTMFile
-        Decoded coefficients (and colours) with row 0 at the top.
+        Decoded coefficients (and colours) with row 0 at the top. ``width`` and ``height``
+        are the file's; a subsample's arrays are ``ceil(height / k) × ceil(width / k)``.
 
     Raises
     ------
@@ -440,11 +466,13 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
         file's length before anything is allocated.
     """
     path = Path(path)
-    data = read_input_file(path, "PTM file")
+    if max_side is not None and max_side < 1:
+        raise ValueError(f"max_side must be at least 1, not {max_side}")
+    data = _map_file(path)
     if not data:
         raise InputError("PTM file is empty", path)
     cur = _Cursor(data, path)
-    if data.startswith(b"#HSH"):
+    if data[:4] == b"#HSH":
         raise InputError("this is an HSH .rti file, not a PTM", path)
     version = cur.line("version")
     if not version.startswith("PTM_"):
@@ -472,14 +500,16 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
     bias = np.array([int(b) for b in bias_tokens], dtype=np.int64)
 
     npix = width * height
+    stride = 1 if max_side is None else max(1, math.ceil(max(width, height) / max_side))
     quality = None
     if fmt in _JPEG_PLANES:
         planes, quality = _read_jpeg_planes(cur, fmt, width, height)
+        planes = np.moveaxis(_every(np.moveaxis(planes, 0, -1), stride), -1, 0)
         if fmt == FORMAT_JPEG_LRGB:
             coefficients = _decode_block(np.moveaxis(planes[:6], 0, -1), scale, bias)
             rgb = np.ascontiguousarray(np.moveaxis(planes[6:9], 0, -1)[::-1])
         else:
-            coefficients = np.empty((height, width, 3, 6), dtype=np.float32)
+            coefficients = np.empty(planes.shape[1:] + (3, 6), dtype=np.float32)
             for c in range(3):
                 channel = np.moveaxis(planes[6 * c : 6 * c + 6], 0, -1)
                 _decode_block(channel, scale, bias, coefficients[:, :, c])
@@ -496,19 +526,20 @@ def read_ptm(path: str | os.PathLike) -> PTMFile:
             )
         if fmt == FORMAT_RGB:
             raw = np.frombuffer(data, np.uint8, need, start).reshape(3, height, width, 6)
-            coefficients = np.empty((height, width, 3, 6), dtype=np.float32)
+            channels = [_every(raw[c], stride) for c in range(3)]
+            coefficients = np.empty(channels[0].shape[:2] + (3, 6), dtype=np.float32)
             for c in range(3):
-                _decode_block(raw[c], scale, bias, coefficients[:, :, c])
+                _decode_block(channels[c], scale, bias, coefficients[:, :, c])
             rgb = None
         elif version in _INTERLEAVED_VERSIONS:
-            raw = np.frombuffer(data, np.uint8, need, start).reshape(height, width, 9)
+            raw = _every(np.frombuffer(data, np.uint8, need, start).reshape(height, width, 9), stride)
             coefficients = _decode_block(raw[..., :6], scale, bias)
             rgb = np.ascontiguousarray(raw[::-1, :, 6:])
         else:
-            coef_raw = np.frombuffer(data, np.uint8, 6 * npix, start)
-            rgb_raw = np.frombuffer(data, np.uint8, 3 * npix, start + 6 * npix)
-            coefficients = _decode_block(coef_raw.reshape(height, width, 6), scale, bias)
-            rgb = rgb_raw.reshape(height, width, 3)[::-1].copy()
+            coef_raw = np.frombuffer(data, np.uint8, 6 * npix, start).reshape(height, width, 6)
+            rgb_raw = np.frombuffer(data, np.uint8, 3 * npix, start + 6 * npix).reshape(height, width, 3)
+            coefficients = _decode_block(_every(coef_raw, stride), scale, bias)
+            rgb = np.ascontiguousarray(_every(rgb_raw, stride)[::-1])
     return PTMFile(fmt, version, width, height, scale, bias, coefficients, rgb, quality)
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "DEFAULT_SIGN_CONVENTION",
     "NAN_COLOR",
     "default_limit",
+    "distance_lookup_table",
     "diverging_colors",
     "write_distance_ply",
     "write_histogram",
@@ -505,8 +506,8 @@ def write_histogram(
 # --- overlay render ----------------------------------------------------------------------
 
 
-def _lookup_table(limit: float):
-    """A VTK lookup table of :func:`diverging_colors` over ±limit (matplotlib-free)."""
+def distance_lookup_table(limit: float):
+    """A VTK lookup table of :func:`diverging_colors` over ±limit, NaN grey (matplotlib-free)."""
     import pyvista as pv
 
     lut = pv.LookupTable()
@@ -592,9 +593,7 @@ def write_overlay(
     except ImportError as exc:  # pragma: no cover - pyvista is a dependency
         raise RuntimeError(f"off-screen rendering needs pyvista ({exc})") from exc
 
-    # Faces in VTK's flat "3 a b c" layout.
-    cells = np.column_stack([np.full(len(faces), 3, np.int64), faces]).ravel()
-    mesh = pv.PolyData(verts, cells)
+    mesh = pv.PolyData.from_regular_faces(verts, faces)
     cloud = pv.PolyData(points)
     carrier = mesh if on == "reconstruction" else cloud
     carrier = carrier.copy()
@@ -620,7 +619,7 @@ def write_overlay(
         plotter.add_mesh(
             carrier,
             scalars="distance",
-            cmap=_lookup_table(limit),
+            cmap=distance_lookup_table(limit),
             clim=(-limit, limit),
             nan_color=tuple(c / 255 for c in NAN_COLOR),
             point_size=point_size,

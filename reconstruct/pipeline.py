@@ -48,8 +48,8 @@ from ptmcore.images import LUMA_WEIGHTS, ImageStack, load_stack, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import (
-    centre_directions,
     fit_ptm_near,
+    near_lambertian_albedo,
     near_photometric_stereo,
     read_light_positions,
     typical_distance,
@@ -58,7 +58,12 @@ from ptmcore.nearlight import (
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm
-from ptmcore.robust import debiased_normals, hemisphere_coefficients, robust_photometric_stereo, robust_ptm
+from ptmcore.robust import (
+    debiased_normals,
+    hemisphere_coefficients,
+    robust_photometric_stereo,
+    robust_ptm,
+)
 from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from ptmcore.solvers import analyse_lights
 
@@ -262,48 +267,39 @@ def _calibrate_from_spheres(
     show them to be near (then every triangulated photograph is kept, even where the spheres'
     distant directions disagree, as they must for a near light).
     """
-    from .calibrate import calibrate_stack, calibration_camera
-    from .triangulate import OK, near_lights
+    from .calibrate import calibration_camera
+    from .triangulate import sphere_lights
 
-    camera = calibration_camera(stack.paths[0], intrinsics=opt.intrinsics)
+    camera = calibration_camera(stack.paths[0], stack.shape, intrinsics=opt.intrinsics)
     try:
-        result = calibrate_stack(stack, names=[p.name for p in stack.paths], intrinsics=camera)
+        found = sphere_lights(stack, intrinsics=camera, near=str(opt.light_positions) == "auto")
     except InputError as exc:
         raise InputError(
             f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
             capture,
         ) from None
-    rows, cols = np.mgrid[0 : stack.shape[0], 0 : stack.shape[1]]
+    result = found.calibration
+    rows, cols = np.ogrid[0 : stack.shape[0], 0 : stack.shape[1]]
     keep = np.ones(stack.shape, bool)
     for cx, cy, r in result.spheres:
         # A margin of a few pixels keeps the spheres' dark rims out too.
         keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
-
-    tri = near_lights(result, stack.shape) if str(opt.light_positions) == "auto" else None
-    if tri is not None:
-        usable = tri.usable
-        for name, status in zip(result.names, tri.status):
-            if status != OK:
-                warnings.append(f"{name}: no light position from the spheres ({status}); left out")
-        if usable.sum() < 3:
-            raise InputError("fewer than 3 photographs have a triangulated light position", capture)
-        stack = stack.select(usable)
-        near = NearLights(tri.positions[usable], f"triangulated from {len(result.spheres)} spheres")
-        directions = centre_directions(near.positions, stack.shape)
+    warnings.extend(f"{line}; left out" for line in found.left_out)
+    usable = found.usable
+    if usable.sum() < 3:
+        what = "a triangulated light position" if found.positions is not None else "a usable sphere highlight"
+        raise InputError(f"fewer than 3 photographs have {what}", capture)
+    stack = stack.select(usable)
+    if found.positions is not None:
+        near = NearLights(found.positions, f"triangulated from {len(result.spheres)} spheres")
         warnings.append(
             f"no .lp file: near lights triangulated from {len(result.spheres)} spheres for "
             f"{int(usable.sum())} of {len(usable)} photographs; each pixel has its own light direction"
         )
-        return stack, LightSet(stack.paths, directions, None), keep, near
-    for name in result.flagged:
-        warnings.append(f"{name}: no usable highlight on the spheres; left out")
-    usable = result.usable
-    if usable.sum() < 3:
-        raise InputError("fewer than 3 photographs have a usable sphere highlight", capture)
-    stack = stack.select(usable)
+        return stack, LightSet(stack.paths, found.directions, None), keep, near
     warnings.append(f"no .lp file: light directions read from {len(result.spheres)} sphere(s) "
                     f"for {int(usable.sum())} of {len(usable)} photographs ({result.view_model} view)")
-    return stack, LightSet(stack.paths, result.directions[usable], None), keep, None
+    return stack, LightSet(stack.paths, found.directions, None), keep, None
 
 
 def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) -> NearLights | None:
@@ -505,7 +501,7 @@ def _surface_and_files(
         with ThreadPoolExecutor(max_workers=opt.threads or os.cpu_count() or 1) as pool:
             for future in [pool.submit(job) for job in jobs.values()]:
                 future.result()
-    facts = {"vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)), "unit": unit, "step": step,
+    facts = {"vertices": len(mesh.vertices), "faces": len(mesh.faces), "unit": unit, "step": step,
              "integrator": method, "integrator_reason": why,
              "decimation": json_safe(decimation)}
     return height, facts, ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
@@ -539,10 +535,11 @@ def _estimate_normals(
         if opt.normals == "ptm-debiased":
             raise InputError("--normals ptm-debiased assumes distant lights; with near lights "
                              "use ps or ptm (or --light-positions none)")
-        ps = near_photometric_stereo(stack, near.positions, threads=opt.threads, progress=advance)
         if opt.normals == "ptm":
-            coefficients = fit_ptm_near(stack, near.positions, threads=opt.threads).coefficients
-            return normals_from_ptm(coefficients), ps.albedo, 0
+            coefficients = fit_ptm_near(stack, near.positions, threads=opt.threads, progress=advance).coefficients
+            normals = normals_from_ptm(coefficients)
+            return normals, near_lambertian_albedo(stack, near.positions, normals, threads=opt.threads), 0
+        ps = near_photometric_stereo(stack, near.positions, threads=opt.threads, progress=advance)
         return ps.normals, ps.albedo, int((~ps.valid).sum())
     if opt.normals == "ps":
         if opt.fit == "plain":
@@ -643,15 +640,14 @@ def json_safe(value):
     return value
 
 
-def _write_reports(staging: Path, report: dict, stage: _Stages, **html) -> list[str]:
-    """Write report.json, then report.html from the staging folder; return their names.
-
-    report.json is written first so the page shows the other stages' timings; it is then
-    rewritten with the page's own time.
-    """
-    outputs.write_json(staging / "report.json", report)
+def _write_reports(staging: Path, report: dict, stage: _Stages, page: bool = True, **html) -> list[str]:
+    """Write report.html (unless ``page`` is False) from the staging folder and the report,
+    then report.json with the page's own time; return their names."""
+    if not page:
+        outputs.write_json(staging / "report.json", report)
+        return ["report.json"]
     with stage("report"):
-        write_report_html(staging, **html)
+        write_report_html(staging, report=report, **html)
     outputs.write_json(staging / "report.json", report)
     return ["report.json", "report.html"]
 
@@ -672,14 +668,16 @@ def run(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
+    report_page: bool = True,
 ) -> RunResult:
     """Reconstruct a capture folder, an ``.lp`` file or an existing ``.ptm`` file.
 
-    See :func:`run_capture` and :func:`run_ptm`.
+    See :func:`run_capture` and :func:`run_ptm`. ``report_page=False`` leaves report.html
+    to a step that follows (``run --scan``: :func:`run_compare` writes it with the comparison).
     """
     if Path(source).suffix.lower() == ".ptm" and Path(source).is_file():
-        return run_ptm(source, output, options, progress=progress)
-    return run_capture(source, output, options, progress=progress)
+        return run_ptm(source, output, options, progress=progress, report_page=report_page)
+    return run_capture(source, output, options, progress=progress, report_page=report_page)
 
 
 def run_capture(
@@ -688,6 +686,7 @@ def run_capture(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
+    report_page: bool = True,
 ) -> RunResult:
     """Reconstruct one capture and write the output folder.
 
@@ -702,6 +701,8 @@ def run_capture(
     options : RunOptions, optional
     progress : callable, optional
         ``progress(stage, done, total)`` as work advances.
+    report_page : bool
+        Write report.html (False when a step that follows writes it, as ``run --scan`` does).
 
     Returns
     -------
@@ -866,7 +867,8 @@ def run_capture(
         if near is not None:
             write_light_positions(staging / "light_positions.csv", [p.name for p in lights.paths], near.positions)
             names.append("light_positions.csv")
-        reports = _write_reports(staging, report, stage, photographs=list(zip(lights.paths, lights.directions)))
+        reports = _write_reports(staging, report, stage, report_page,
+                                 photographs=list(zip(lights.paths, lights.directions)))
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
         final = _publish(staging, out, [*ptm_names, *loo_names, *names, *reports])
     finally:
@@ -888,6 +890,7 @@ def run_ptm(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
+    report_page: bool = True,
 ) -> RunResult:
     """Normals, height and meshes from an existing ``.ptm`` file (no photographs needed).
 
@@ -927,7 +930,8 @@ def run_ptm(
         inputs = {"ptm": str(ptm_path.resolve()), "format": ptm.format, "width": w, "height": h,
                   "mask": _mask_source(opt.mask, mask)}
         report = _report(inputs, opt, mesh, stage, warnings, accuracy=None)
-        reports = _write_reports(staging, report, stage)
+        # The page relights a subsample of the source .ptm: read again, only that is decoded.
+        reports = _write_reports(staging, report, stage, report_page)
         final = _publish(staging, out, [*web, *names, *reports])
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -1050,7 +1054,12 @@ def run_compare(
     (with the reconstruction's own report when it is an output folder).
     """
     from .compare import align, distances, load_geometry, within_tolerance
-    from .compare_report import default_limit, write_distance_ply, write_histogram, write_overlay
+    from .compare_report import (
+        default_limit,
+        write_distance_ply,
+        write_histogram,
+        write_overlay,
+    )
 
     opt = options or CompareOptions()
     if opt.tolerance is not None and not (math.isfinite(opt.tolerance) and opt.tolerance > 0):
@@ -1130,10 +1139,13 @@ def run_compare(
             "versions": _versions(),
             "warnings": warnings,
         })
-        outputs.write_json(staging / "comparison.json", report)
         # The page also shows the reconstruction's report when the comparison is written
-        # beside it (``run --scan``) or made from its output folder.
-        write_report_html(staging, also=[out, *([rec_folder] if rec_folder else [])])
+        # beside it (``run --scan``) or made from its output folder; comparison.json follows
+        # it, with its time.
+        with timer.stage("report"):
+            write_report_html(staging, comparison=report, also=[out, *([rec_folder] if rec_folder else [])])
+        report["stages"] = json_safe(timer.stages)
+        outputs.write_json(staging / "comparison.json", report)
         final = _publish(staging, out, [*names, "report.html"])
     finally:
         shutil.rmtree(staging, ignore_errors=True)

@@ -19,15 +19,16 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
+from ptmcore.relight import light_direction
 from reconstruct import rendering
 from reconstruct.preview_scene import (
     MODES,
     PreviewScene,
     distance,
-    light_from_angles,
     mode_colors,
     profile,
 )
+from reconstruct.report_figures import finite_range
 
 __all__ = ["PreviewWindow", "build_plotter", "has_display", "render_screenshot"]
 
@@ -45,12 +46,6 @@ r: reset the view
 h: this help
 q: quit"""
 
-# Viridis at nine stops: a perceptually even map, without needing matplotlib's colour maps.
-_VIRIDIS = np.array(
-    [[68, 1, 84], [71, 44, 122], [59, 81, 139], [44, 113, 142], [33, 144, 141],
-     [39, 173, 129], [92, 200, 99], [170, 220, 50], [253, 231, 37]], dtype=np.float64
-)
-
 _BACKGROUND = (0.16, 0.16, 0.18)
 # Scale bars lie along the bottom, where the light sliders are in the relit mode (which has
 # no scale bar); the profile plot sits above them on the right, the status at the top right.
@@ -64,29 +59,6 @@ def has_display() -> bool:
     if sys.platform in ("win32", "darwin"):
         return True
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-
-
-def _lookup_table(rgb: np.ndarray, clim: tuple[float, float]):
-    import pyvista as pv
-
-    lut = pv.LookupTable()
-    lut.values = np.column_stack([rgb, np.full(len(rgb), 255, np.uint8)])
-    lut.scalar_range = clim
-    return lut
-
-
-def _viridis(n: int = 256) -> np.ndarray:
-    t = np.linspace(0, 1, n)
-    stops = np.linspace(0, 1, len(_VIRIDIS))
-    return np.rint(np.stack([np.interp(t, stops, _VIRIDIS[:, k]) for k in range(3)], -1)).astype(np.uint8)
-
-
-def _finite_range(values: np.ndarray) -> tuple[float, float]:
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return 0.0, 1.0
-    lo, hi = (float(x) for x in np.percentile(v, [0.5, 99.5]))
-    return (lo, hi) if hi > lo else (lo - 0.5, lo + 0.5)
 
 
 class PreviewWindow:
@@ -103,7 +75,7 @@ class PreviewWindow:
 
         self.scene = scene
         self.azimuth, self.elevation = float(azimuth), float(elevation)
-        light_from_angles(self.azimuth, self.elevation)  # validates before anything is built
+        self._light()  # checks the angles before anything is built
         self.picks: list[np.ndarray] = []
         self.profile_mode = False
         self.help_shown = False
@@ -170,24 +142,23 @@ class PreviewWindow:
         if "height" in scene.modes:
             surface = mesh.copy(deep=False)
             surface.point_data["height"] = scene.vertices[:, 2]
-            clim = _finite_range(scene.vertices[:, 2])
+            clim = finite_range(scene.vertices[:, 2])
             title = f"height ({unit})"
             self._actors["height"] = self.plotter.add_mesh(
-                surface, scalars="height", cmap=_lookup_table(_viridis(), clim), clim=clim,
+                surface, scalars="height", cmap="viridis", clim=clim,
                 smooth_shading=True, ambient=0.3, diffuse=0.7, name="height",
                 scalar_bar_args={"title": title, "color": _TEXT, "fmt": "%.3g", **_BAR},
             )
             self._bars["height"] = title
         if "distance" in scene.modes:
-            from reconstruct.compare_report import NAN_COLOR, diverging_colors
+            from reconstruct.compare_report import NAN_COLOR, distance_lookup_table
 
             limit = float(scene.distance_limit)
             surface = mesh.copy(deep=False)
             surface.point_data["distance"] = scene.vertex_distance
             title = "distance to scan (mm)"
-            lut = _lookup_table(diverging_colors(np.linspace(-limit, limit, 256), limit), (-limit, limit))
             self._actors["distance"] = self.plotter.add_mesh(
-                surface, scalars="distance", cmap=lut, clim=(-limit, limit),
+                surface, scalars="distance", cmap=distance_lookup_table(limit), clim=(-limit, limit),
                 nan_color=tuple(c / 255 for c in NAN_COLOR), lighting=False, name="distance",
                 scalar_bar_args={"title": title, "color": _TEXT, "fmt": "%.3g", **_BAR},
             )
@@ -222,7 +193,7 @@ class PreviewWindow:
     # --- callbacks ----------------------------------------------------------------------
 
     def _light(self) -> np.ndarray:
-        return light_from_angles(self.azimuth, self.elevation)
+        return light_direction(azimuth_deg=self.azimuth, elevation_deg=self.elevation)
 
     def _show_colours(self, colours: np.ndarray) -> None:
         self.colors[:] = colours.reshape(-1, 3)
@@ -249,7 +220,7 @@ class PreviewWindow:
     def set_mode(self, name: str) -> None:
         """Show one view mode (see :data:`reconstruct.preview_scene.MODES`)."""
         if name not in self.scene.modes:
-            raise ValueError(f"{self.scene.name} has no {name!r} view; it has {', '.join(self.scene.modes)}")
+            raise ValueError(f"{self.scene.name} has no {name} view; it has {', '.join(self.scene.modes)}")
         self.mode = name
         shown = self._actors[name]
         for actor in self._actors.values():
@@ -401,7 +372,7 @@ def build_plotter(
         If rendering is not available.
     """
     if mode is not None and mode not in scene.modes:
-        raise ValueError(f"{scene.name} has no {mode!r} view; it has {', '.join(scene.modes)}")
+        raise ValueError(f"{scene.name} has no {mode} view; it has {', '.join(scene.modes)}")
     return PreviewWindow(scene, off_screen=off_screen, size=size, mode=mode, azimuth=azimuth, elevation=elevation)
 
 

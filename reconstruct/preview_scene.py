@@ -25,6 +25,7 @@ import json
 import math
 import os
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -32,12 +33,19 @@ import numpy as np
 from ptmcore.errors import InputError
 from ptmcore.relight import display_srgb, light_direction, relight
 from reconstruct.mesh import grid_mesh
+from reconstruct.report_figures import (
+    display_pixel_size,
+    linear_ptm,
+    normal_colors,
+    ply_header,
+    shade_lambertian,
+    stride_for,
+)
 
 __all__ = [
     "MODES",
     "PreviewScene",
     "distance",
-    "light_from_angles",
     "load_scene",
     "mode_colors",
     "profile",
@@ -51,18 +59,6 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
 #: relit frame of a 2048-pixel texture takes tens of milliseconds (see the report).
 MAX_VERTICES = 250_000
 MAX_TEXTURE = 2048
-
-# sRGB decoding of 8-bit values, and encoding through a table fine enough that neighbouring
-# output levels stay distinct (the steepest part of the curve is near black).
-_LEVELS = np.arange(256) / 255.0
-_SRGB_TO_LINEAR = np.where(
-    _LEVELS <= 0.04045, _LEVELS / 12.92, ((_LEVELS + 0.055) / 1.055) ** 2.4
-).astype(np.float32)
-_ENCODE_STEPS = 4096
-_LINEAR = np.linspace(0.0, 1.0, _ENCODE_STEPS)
-_LINEAR_TO_SRGB = np.round(
-    255 * np.where(_LINEAR <= 0.0031308, 12.92 * _LINEAR, 1.055 * _LINEAR ** (1 / 2.4) - 0.055)
-).astype(np.uint8)
 
 
 @dataclass
@@ -100,6 +96,9 @@ class PreviewScene:
     linear_ptm : bool
         The PTM holds linear light (fitted to 16-bit photographs, as report.json says): its
         renderings are encoded as sRGB for display.
+
+    The scene is read, not changed, once built: :attr:`modes` and the ray-casting structure
+    of the profiles are computed once, on first use.
     """
 
     name: str
@@ -117,7 +116,7 @@ class PreviewScene:
     distance_limit: float | None = None
     linear_ptm: bool = False
 
-    @property
+    @cached_property
     def modes(self) -> tuple[str, ...]:
         """The view modes this scene can show, in the order of :data:`MODES`."""
         have = {
@@ -129,22 +128,15 @@ class PreviewScene:
         }
         return tuple(m for m in MODES if have[m])
 
+    @cached_property
+    def _ray_scene(self):
+        """Open3D's ray-casting structure (a BVH) of the display mesh, for profiles on mesh files."""
+        from reconstruct.meshops import _scene
+
+        return _scene(self.vertices, self.faces)
+
 
 # --- colouring ---------------------------------------------------------------------------
-
-
-def light_from_angles(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """Unit vector towards a light at an azimuth (0° from the right, 90° from the top) and an
-    elevation (0° grazing, 90° from the camera)."""
-    return light_direction(azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
-
-
-def _lambert(normals: np.ndarray, albedo: np.ndarray, light: np.ndarray) -> np.ndarray:
-    """sRGB colours of a Lambertian surface: albedo × max(n·l, 0) in linear light."""
-    shade = np.maximum(normals @ light.astype(np.float32), 0.0)
-    linear = _SRGB_TO_LINEAR[albedo] * shade[..., None]
-    index = np.minimum(linear * (_ENCODE_STEPS - 1), _ENCODE_STEPS - 1).astype(np.int32)
-    return _LINEAR_TO_SRGB[index]
 
 
 def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) -> np.ndarray:
@@ -157,7 +149,8 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     ----------
     scene : PreviewScene
     light : array_like, shape (3,)
-        Direction towards the light (x right, y up, z towards the camera).
+        Direction towards the light (x right, y up, z towards the camera), as
+        :func:`ptmcore.relight.light_direction` accepts it (and checks it, once).
 
     Returns
     -------
@@ -169,18 +162,12 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     ValueError
         If the scene cannot be relit or the light is below the horizon.
     """
-    light = light_direction(light=light)
     if scene.coefficients is not None:
-        image = relight(scene.coefficients, scene.rgb, light)
+        image = relight(scene.coefficients, scene.rgb, light)  # checks the light
         return display_srgb(image) if scene.linear_ptm else image
     if scene.normals is None or scene.albedo is None:
         raise ValueError(f"{scene.name} has neither PTM coefficients nor normals and colours to relight")
-    return _lambert(scene.normals, scene.albedo, light)
-
-
-def normal_colors(normals: np.ndarray) -> np.ndarray:
-    """Unit normals as 8-bit OpenGL-style colours, (n + 1)/2."""
-    return np.round((np.clip(normals, -1, 1) + 1) * 127.5).astype(np.uint8)
+    return shade_lambertian(scene.normals, scene.albedo, light_direction(light=light))
 
 
 def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None) -> np.ndarray:
@@ -223,15 +210,10 @@ def _surface_z(scene: PreviewScene, xy: np.ndarray) -> np.ndarray:
         return map_coordinates(scene.height, [rows, cols], order=1, mode="constant", cval=np.nan)
     import open3d as o3d
 
-    ray_scene = o3d.t.geometry.RaycastingScene()
-    ray_scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(scene.vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(scene.faces, dtype=np.uint32)),
-    )
     top = float(scene.vertices[:, 2].max()) + 1.0
     rays = np.zeros((len(xy), 6), np.float32)
     rays[:, :2], rays[:, 2], rays[:, 5] = xy, top, -1.0
-    hit = ray_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    hit = scene._ray_scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
     return np.where(np.isfinite(hit), top - hit, np.nan)
 
 
@@ -296,6 +278,7 @@ def _grid_step(shape: tuple[int, int], max_vertices: int) -> int:
 
 
 def _unit_normals(normals: np.ndarray) -> np.ndarray:
+    """Normals rescaled to unit length (area averages are shorter); (0, 0, 1) where unknown."""
     normals = np.nan_to_num(np.asarray(normals, dtype=np.float32), nan=0.0)
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     flat = np.zeros_like(normals)
@@ -304,20 +287,29 @@ def _unit_normals(normals: np.ndarray) -> np.ndarray:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    from PIL import Image
+    from ptmcore.images import read_image
 
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"))
-    except OSError as exc:
-        raise InputError(f"cannot read the image ({exc})", path) from None
+    image = read_image(path)
+    return np.repeat(image[..., None], 3, axis=2) if image.ndim == 2 else image
 
 
-def _lrgb(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    from reconstruct.relighting import as_lrgb, load_source
+def _lrgb(path: Path, max_texture: int) -> tuple[tuple[int, int], np.ndarray, np.ndarray]:
+    """The PTM's full size, and its LRGB coefficients and colour decoded at every k-th pixel,
+    k the largest step that keeps at least the texture's resolution (the texture is then an
+    area average of at most 2 × 2 samples per texel), so memory follows the texture, not the PTM."""
+    from ptmcore.ptmfile import read_ptm
+    from reconstruct.relighting import as_lrgb
 
-    ptm = load_source(path)
-    return as_lrgb(ptm)
+    ptm = read_ptm(path, max_side=2 * max_texture)
+    return (ptm.height, ptm.width), *as_lrgb(ptm)
+
+
+def _texture_normals(normals: np.ndarray, tex: tuple[int, int], max_texture: int) -> np.ndarray:
+    """Unit normals at texture size from a (memory-mapped) full-resolution normal map: strided
+    as the PTM is (:func:`_lrgb`) before anything is copied, then area-averaged."""
+    s = stride_for(normals.shape, 2 * max_texture)
+    sample = np.nan_to_num(np.asarray(normals[::s, ::s], dtype=np.float32), nan=0.0)
+    return _unit_normals(_resize(sample, tex))
 
 
 def _read_distances(ply: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -389,7 +381,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
     if height.ndim != 2:
         raise InputError(f"the height map must be one 2-D plane, not {height.shape}", height_file)
     unit = report.get("height_unit", "pixel")
-    pixel_size = (report.get("parameters") or {}).get("pixel_size") if unit == "mm" else None
+    pixel_size = display_pixel_size(report)
     s = float(pixel_size) if pixel_size else 1.0
 
     step = _grid_step(height.shape, max_vertices)
@@ -400,9 +392,9 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
 
     coefficients = rgb = None
     if (folder / "coefficients.ptm").is_file():
-        coef, colour = _lrgb(folder / "coefficients.ptm")
-        if coef.shape[:2] != height.shape:
-            raise InputError(f"coefficients.ptm is {coef.shape[:2]}, height.tif {height.shape}", folder)
+        shape, coef, colour = _lrgb(folder / "coefficients.ptm", max_texture)
+        if shape != height.shape:
+            raise InputError(f"coefficients.ptm is {shape}, height.tif {height.shape}", folder)
         coefficients, rgb = _resize(coef, tex).astype(np.float32), _resize(colour, tex)
         del coef, colour
     normals = None
@@ -410,7 +402,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         full = np.load(folder / "normals.npy", mmap_mode="r")
         if full.shape != height.shape + (3,):
             raise InputError(f"normals.npy is {full.shape}, expected {height.shape + (3,)}", folder)
-        normals = _unit_normals(_resize(np.nan_to_num(np.asarray(full, np.float32)), tex))
+        normals = _texture_normals(full, tex, max_texture)
     albedo = None
     for name in ("albedo.png", "mesh_texture.png"):
         if (folder / name).is_file():
@@ -434,22 +426,19 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         pixel_size=s,
         vertex_distance=d,
         distance_limit=limit,
-        linear_ptm=(report.get("ptm") or {}).get("encoding") == "linear",
+        linear_ptm=linear_ptm(report),
     )
 
 
 def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
     """A ``.ptm`` file as a flat plane (pixel units) textured by its relit PTM: a PTM holds
     no heights, and integrating its normals is what ``reconstruct run file.ptm`` does."""
-    from ptmcore.normals import ptm_maximum
+    from ptmcore.normals import normals_from_ptm
 
-    coef, colour = _lrgb(path)
-    shape = coef.shape[:2]
+    shape, coef, colour = _lrgb(path, max_texture)
     tex = _texture_shape(shape, max_texture)
     coefficients, rgb = _resize(coef, tex).astype(np.float32), _resize(colour, tex)
     del coef, colour
-    lu, lv, _ = ptm_maximum(coefficients)
-    nz = np.sqrt(np.clip(1.0 - lu * lu - lv * lv, 0.0, 1.0))
     mesh = grid_mesh(np.zeros(shape, np.float32), step=_grid_step(shape, max_vertices))
     return PreviewScene(
         name=path.stem,
@@ -459,7 +448,7 @@ def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
         uv=mesh.uv,
         coefficients=coefficients,
         rgb=rgb,
-        normals=_unit_normals(np.stack([lu, lv, nz], axis=-1)),
+        normals=normals_from_ptm(coefficients),
         albedo=rgb,
     )
 
@@ -468,13 +457,7 @@ def _mesh_unit(path: Path) -> str:
     """The unit a PLY states in a ``comment unit`` line (ours do), else ``"unknown"``."""
     if path.suffix.lower() != ".ply":
         return "unknown"
-    with open(path, "rb") as f:
-        head = f.read(4096).split(b"end_header")[0]
-    for line in head.decode("latin-1").splitlines():
-        parts = line.split()
-        if parts[:2] == ["comment", "unit"] and len(parts) > 2:
-            return parts[2]
-    return "unknown"
+    return next((w[2] for w in ply_header(path) if w[:2] == ["comment", "unit"] and len(w) > 2), "unknown")
 
 
 def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:

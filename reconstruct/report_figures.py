@@ -12,12 +12,15 @@ import io
 import math
 import os
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
+from ptmcore.images import linear_to_srgb, srgb_to_linear
+from ptmcore.relight import light_direction
+
 from . import rendering
+from .outputs import encode_png
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
@@ -33,9 +36,12 @@ RELIGHT_LIGHTS = (
     ("raking 12° from the bottom", 270.0, 12.0),
 )
 
-#: Largest ``coefficients.ptm`` relit from its polynomials; larger ones are relit from the
-#: normals and albedo, because decoding a PTM holds all its coefficients as float32.
-MAX_PTM_BYTES = 80 * 2**20
+# Lambertian shading through tables: 8-bit sRGB to linear, and linear to sRGB fine enough
+# (4096 steps) that neighbouring output levels stay distinct near black, where the curve is
+# steepest. A table lookup is several times faster than the power law on every pixel.
+_SRGB_TO_LINEAR = srgb_to_linear(np.arange(256, dtype=np.float32) / 255)
+_ENCODE_STEPS = 4096
+_LINEAR_TO_SRGB = np.round(255 * linear_to_srgb(np.linspace(0.0, 1.0, _ENCODE_STEPS))).astype(np.uint8)
 
 
 def stride_for(shape: Sequence[int], max_side: int) -> int:
@@ -54,13 +60,45 @@ def fit_width(image: np.ndarray, max_width: int) -> np.ndarray:
     return cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
 
 
+def finite_range(values: np.ndarray) -> tuple[float, float]:
+    """The 0.5th to 99.5th percentile of the finite values: a colour range that a few outliers
+    do not stretch (``(0, 1)`` without finite values, widened when they are all equal)."""
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return 0.0, 1.0
+    lo, hi = (float(x) for x in np.percentile(v, [0.5, 99.5]))
+    return (lo, hi) if hi > lo else (lo - 0.5, lo + 0.5)
+
+
+def display_pixel_size(report: dict | None) -> float | None:
+    """Millimetres per height-map pixel for drawing a run's x and y beside its heights.
+
+    The run's pixel size when its heights are in mm and its camera is orthographic; None
+    otherwise (heights in pixels or relative depth, or a perspective camera, whose pixels do
+    not all cover the same size on the object): x and y are then in pixels.
+    """
+    report = report or {}
+    params = report.get("parameters") or {}
+    if report.get("height_unit") != "mm" or params.get("intrinsics"):
+        return None
+    return params.get("pixel_size") or None
+
+
+def linear_ptm(report: dict | None) -> bool:
+    """Whether a run's PTM holds linear light (fitted to 16-bit photographs), as its
+    ``report.json`` says: its renderings are then encoded as sRGB for display."""
+    return ((report or {}).get("ptm") or {}).get("encoding") == "linear"
+
+
 def encode(image: np.ndarray, fmt: str = "PNG", quality: int = 85) -> bytes:
-    """Encode an 8-bit grey or RGB image as ``"PNG"`` or ``"JPEG"`` bytes."""
+    """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`reconstruct.outputs.encode_png`)
+    or ``"JPEG"`` bytes."""
     from PIL import Image
 
+    if fmt == "PNG":
+        return encode_png(np.asarray(image))
     buf = io.BytesIO()
-    options = {"quality": quality} if fmt == "JPEG" else {"optimize": True}
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format=fmt, **options)
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format=fmt, quality=quality)
     return buf.getvalue()
 
 
@@ -86,7 +124,7 @@ def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.nda
     """
     from PIL import Image
 
-    from ptmcore.images import linear_to_srgb, read_image
+    from ptmcore.images import read_image
 
     path = Path(path)
     if path.suffix.lower() in (".jpg", ".jpeg"):
@@ -96,7 +134,8 @@ def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.nda
             im.thumbnail((max_side, max_side), Image.Resampling.LANCZOS)
             return np.asarray(im)
     image = read_image(path)
-    image = image[:: stride_for(image.shape, 2 * max_side), :: stride_for(image.shape, 2 * max_side)]
+    s = stride_for(image.shape, 2 * max_side)
+    image = image[::s, ::s]
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     if image.dtype != np.uint8:
@@ -108,67 +147,71 @@ def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.nda
     return fit_width(image, max(1, round(w * k))) if k < 1 else image
 
 
-def normal_map_image(normals: np.ndarray, max_side: int = MAX_WIDTH // 2) -> np.ndarray:
-    """An 8-bit OpenGL-style picture (R = x, G = y, B = z) of a subsample of ``normals``."""
-    s = stride_for(normals.shape, max_side)
-    n = np.asarray(normals[::s, ::s], dtype=np.float32)
-    return np.round((np.nan_to_num(n, nan=-1.0) + 1) * 127.5).clip(0, 255).astype(np.uint8)
+def normal_colors(normals: np.ndarray) -> np.ndarray:
+    """Normals ``(..., 3)`` as 8-bit OpenGL-style colours (R = x, G = y, B = z), (n + 1)/2;
+    NaN (no normal) is black."""
+    n = np.clip(np.nan_to_num(np.asarray(normals, dtype=np.float32), nan=-1.0), -1.0, 1.0)
+    return np.round((n + 1) * 127.5).astype(np.uint8)
 
 
-def light_vector(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
-    """Unit vector towards a light at an azimuth and elevation (project frame)."""
-    from ptmcore.relight import light_direction
+def shade_lambertian(normals: np.ndarray, albedo: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """8-bit sRGB colours of a Lambertian surface: albedo × max(n·l, 0) in linear light.
 
-    return light_direction(azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
+    Parameters
+    ----------
+    normals : ndarray, shape (..., 3)
+        Unit normals (NaN where unknown: black).
+    albedo : ndarray, shape (..., 3), uint8
+        sRGB colour without shading, at the normals' size.
+    light : ndarray, shape (3,)
+        Unit vector towards the light.
+    """
+    # fmax: a NaN normal shades to 0 instead of spreading NaN.
+    shade = np.fmax(normals @ np.asarray(light, dtype=np.float32), np.float32(0))
+    linear = _SRGB_TO_LINEAR[albedo] * shade[..., None]
+    index = np.minimum(linear * (_ENCODE_STEPS - 1), _ENCODE_STEPS - 1).astype(np.int32)
+    return _LINEAR_TO_SRGB[index]
 
 
 def relit_from_ptm(path: str | os.PathLike, max_side: int = 480, *, linear: bool = False
                    ) -> list[tuple[str, np.ndarray]]:
     """RTIViewer's default rendering of a subsample of a ``.ptm`` file under :data:`RELIGHT_LIGHTS`.
 
-    ``linear``: the PTM holds linear light (fitted to 16-bit photographs); its renderings are
-    then encoded as sRGB for display (:func:`ptmcore.relight.display_srgb`).
+    Only the subsample is decoded (:func:`ptmcore.ptmfile.read_ptm` with ``max_side``), so a
+    PTM of any size costs about the same. ``linear``: the PTM holds linear light (fitted to
+    16-bit photographs); its renderings are then encoded as sRGB for display
+    (:func:`ptmcore.relight.display_srgb`).
     """
     from ptmcore.ptmfile import read_ptm
     from ptmcore.relight import display_srgb
 
-    ptm = read_ptm(path)
-    s = stride_for(ptm.coefficients.shape, max_side)
-    small = replace(ptm, coefficients=np.ascontiguousarray(ptm.coefficients[::s, ::s]),
-                    rgb=None if ptm.rgb is None else np.ascontiguousarray(ptm.rgb[::s, ::s]))
-    del ptm
+    small = read_ptm(path, max_side=max_side)
     encode = display_srgb if linear else np.asarray
-    return [(label, encode(small.render(light_vector(az, el)))) for label, az, el in RELIGHT_LIGHTS]
+    return [(label, encode(small.render(light_direction(azimuth_deg=az, elevation_deg=el))))
+            for label, az, el in RELIGHT_LIGHTS]
 
 
 def relit_lambertian(
     normals: np.ndarray, albedo_srgb: np.ndarray | None, max_side: int = 480
 ) -> list[tuple[str, np.ndarray]]:
-    """Lambertian shading ``albedo · max(n·l, 0)`` of a subsample under :data:`RELIGHT_LIGHTS`.
+    """Lambertian shading (:func:`shade_lambertian`) of a subsample under :data:`RELIGHT_LIGHTS`.
 
-    ``albedo_srgb`` is the 8-bit sRGB albedo (any size: it is resampled to the normals'
-    subsample), or None for a uniform light grey.
+    ``albedo_srgb`` is the 8-bit sRGB albedo, grey or RGB (any size: it is resampled to the
+    normals' subsample), or None for a uniform light grey (sRGB 203, 0.6 in linear light).
     """
     import cv2
 
-    from ptmcore.images import linear_to_srgb, srgb_to_linear
-
     s = stride_for(normals.shape, max_side)
-    n = np.nan_to_num(np.asarray(normals[::s, ::s], dtype=np.float32))
+    n = np.asarray(normals[::s, ::s], dtype=np.float32)
     h, w = n.shape[:2]
     if albedo_srgb is None:
-        albedo = np.full((h, w, 3), 0.6, np.float32)
+        albedo = np.full((h, w, 3), 203, np.uint8)
     else:
-        small = cv2.resize(np.ascontiguousarray(albedo_srgb), (w, h), interpolation=cv2.INTER_AREA)
-        albedo = srgb_to_linear(small.astype(np.float32) / 255).astype(np.float32)
+        albedo = cv2.resize(np.ascontiguousarray(albedo_srgb), (w, h), interpolation=cv2.INTER_AREA)
         if albedo.ndim == 2:
             albedo = np.repeat(albedo[..., None], 3, axis=2)
-    out = []
-    for label, az, el in RELIGHT_LIGHTS:
-        shade = np.clip(n @ light_vector(az, el).astype(np.float32), 0, None)
-        rgb = linear_to_srgb(np.clip(albedo * shade[..., None], 0, 1))
-        out.append((label, np.round(rgb * 255).astype(np.uint8)))
-    return out
+    return [(label, shade_lambertian(n, albedo, light_direction(azimuth_deg=az, elevation_deg=el)))
+            for label, az, el in RELIGHT_LIGHTS]
 
 
 def read_subsampled(path: str | os.PathLike, max_side: int) -> tuple[np.ndarray, int]:
@@ -225,10 +268,7 @@ def height_figure(
     fig = Figure(figsize=(fig_w, fig_h), dpi=dpi, layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
-    finite = height[np.isfinite(height)]
-    lo, hi = (np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0))
-    if hi <= lo:
-        hi = lo + 1e-6
+    lo, hi = finite_range(height)
     import matplotlib as mpl
 
     cmap = mpl.colormaps["viridis"].with_extremes(bad=(0.92, 0.92, 0.92))
@@ -254,15 +294,16 @@ def height_figure(
 MAX_RENDER_FACES = 400_000
 
 
-def ply_face_count(path: str | os.PathLike) -> int | None:
-    """The face count in a PLY file's header, or None if it has none."""
+def ply_header(path: str | os.PathLike) -> list[list[str]]:
+    """The header lines of a PLY file split into words (its first 4 KiB: ours are far smaller)."""
     with open(path, "rb") as f:
         header = f.read(4096).split(b"end_header", 1)[0]
-    for line in header.splitlines():
-        parts = line.split()
-        if parts[:2] == [b"element", b"face"] and len(parts) == 3:
-            return int(parts[2])
-    return None
+    return [line.split() for line in header.decode("latin-1").splitlines()]
+
+
+def ply_face_count(path: str | os.PathLike) -> int | None:
+    """The face count in a PLY file's header, or None if it has none."""
+    return next((int(w[2]) for w in ply_header(path) if w[:2] == ["element", "face"] and len(w) == 3), None)
 
 
 def surface_from_height(height: np.ndarray, stride: int, pixel_size: float | None) -> tuple[np.ndarray, np.ndarray]:
@@ -303,8 +344,7 @@ def mesh_render(
     try:
         if isinstance(mesh, tuple):
             vertices, faces = mesh
-            cells = np.column_stack([np.full(len(faces), 3, np.int64), faces]).ravel()
-            surface = pv.PolyData(np.asarray(vertices, np.float32), cells)
+            surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float32), faces)
         else:
             surface = pv.read(str(mesh))
     except Exception as exc:  # pyvista's readers raise assorted types

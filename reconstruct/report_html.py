@@ -115,23 +115,15 @@ class _Folder:
         return json.loads(path.read_text(encoding="utf-8")) if path else None
 
 
-def _attempt(make: Callable[[], str], what: str, notes: list[str]) -> str:
-    """``make()``, or a note in its place when the picture cannot be made."""
+def _attempt(make: Callable[[], object], what: str, notes: list[str], fallback=None):
+    """``make()``, or ``fallback`` with a warning when it fails (``fallback(message)`` when
+    callable: a note in place of a picture)."""
     try:
         return make()
     except Exception as exc:  # noqa: BLE001 - a picture must never fail the run, whatever the cause
         message = f"no {what}: {exc}"
         notes.append(message)
-        return _note(message)
-
-
-def _attempt_value(make: Callable[[], object], what: str, notes: list[str]):
-    """``make()``, or None with a note when it fails."""
-    try:
-        return make()
-    except Exception as exc:  # noqa: BLE001 - an unreadable .lp only costs the contact sheet
-        notes.append(f"no {what}: {exc}")
-        return None
+        return fallback(message) if callable(fallback) else fallback
 
 
 def _photographs_from_report(report: dict | None) -> list[tuple[Path, np.ndarray]] | None:
@@ -168,8 +160,10 @@ def _relit(files: _Folder, report: dict | None) -> str:
     if ptm is None and source and Path(source).is_file():
         ptm = Path(source)  # a run from a .ptm file: relight the file itself
     normals = files.find("normals.npy")
-    if ptm is not None and ptm.stat().st_size <= figures.MAX_PTM_BYTES:
-        linear = ((report or {}).get("ptm") or {}).get("encoding") == "linear"
+    if ptm is not None:
+        # Only a subsample is decoded: for a run from a .ptm file this re-reads the source
+        # file, at the cost of the subsample.
+        linear = figures.linear_ptm(report)
         images = figures.relit_from_ptm(ptm, linear=linear)
         how = f"RTIViewer's default rendering of {ptm.name}" + (
             " (a PTM of linear light, from 16-bit photographs: shown sRGB-encoded)" if linear else "")
@@ -194,15 +188,17 @@ def _maps(files: _Folder, report: dict | None, notes: list[str]) -> str:
     parts = []
     normals = files.find("normals.npy")
     if normals is not None:
-        parts.append(_attempt(lambda: _figure(
-            figures.encode(figures.normal_map_image(np.load(normals, mmap_mode="r"))), "image/png",
-            "normal map (R = x right, G = y up, B = z towards the camera)"), "normal map picture", notes))
+        def normal_map() -> bytes:
+            n = np.load(normals, mmap_mode="r")
+            s = figures.stride_for(n.shape, figures.MAX_WIDTH // 2)
+            return figures.encode(figures.normal_colors(n[::s, ::s]))
+
+        parts.append(_attempt(lambda: _figure(normal_map(), "image/png",
+            "normal map (R = x right, G = y up, B = z towards the camera)"), "normal map picture", notes, _note))
     height = files.find("height.tif")
     if height is not None:
         unit = (report or {}).get("height_unit", "pixel")
-        params = (report or {}).get("parameters") or {}
-        # A perspective camera's pixels do not all cover the same size on the object.
-        pixel_size = params.get("pixel_size") if not params.get("intrinsics") else None
+        pixel_size = figures.display_pixel_size(report)
 
         def make() -> str:
             sub, stride = figures.read_subsampled(height, 1200)
@@ -210,7 +206,7 @@ def _maps(files: _Folder, report: dict | None, notes: list[str]) -> str:
             bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
             return _figure(png, "image/png", f"height map in {unit}; {bar}")
 
-        parts.append(_attempt(make, "height map picture", notes))
+        parts.append(_attempt(make, "height map picture", notes, _note))
     if not parts:
         return _note("no normal or height map in the folder")
     return f'<div class="grid" style="--min:420px">{"".join(parts)}</div>'
@@ -228,14 +224,13 @@ def _mesh(files: _Folder, report: dict | None, notes: list[str]) -> str:
             image = figures.mesh_render(mesh)
             what = "mesh.ply"
         else:
-            params = (report or {}).get("parameters") or {}
             sub, stride = figures.read_subsampled(height, 600)
-            image = figures.mesh_render(figures.surface_from_height(sub, stride, params.get("pixel_size")))
+            image = figures.mesh_render(figures.surface_from_height(sub, stride, figures.display_pixel_size(report)))
             what = f"mesh.ply's surface ({faces:,} triangles) sampled every {stride} pixels"
         return _figure(figures.encode(image, "JPEG", 90), "image/jpeg",
                        f"{what}, shaded, seen obliquely from the front (true scale)")
 
-    return _attempt(make, "mesh render", notes)
+    return _attempt(make, "mesh render", notes, _note)
 
 
 def _comparison(files: _Folder, comparison: dict, notes: list[str]) -> str:
@@ -255,7 +250,7 @@ def _comparison(files: _Folder, comparison: dict, notes: list[str]) -> str:
         path = files.find(name)
         if path is not None:
             parts.append(_attempt(lambda path=path, fmt=fmt, caption=caption: _figure(
-                figures.downscale_file(path, fmt=fmt), f"image/{fmt.lower()}", caption), name, notes))
+                figures.downscale_file(path, fmt=fmt), f"image/{fmt.lower()}", caption), name, notes, _note))
         elif name == "overlay.png":
             parts.append(_note("no overlay.png (see the warnings)"))
     return "".join(parts)
@@ -276,6 +271,8 @@ def _timings(report: dict | None, comparison: dict | None) -> str:
 def report_html(
     folder: str | os.PathLike,
     *,
+    report: dict | None = None,
+    comparison: dict | None = None,
     photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
     title: str | None = None,
     also: Sequence[str | os.PathLike] = (),
@@ -286,6 +283,10 @@ def report_html(
     ----------
     folder : path
         The folder holding ``report.json`` and/or ``comparison.json`` and the maps.
+    report, comparison : dict, optional
+        The run's report and the comparison's, when the caller holds them (they are written
+        after the page, with its time); by default read from ``report.json`` and
+        ``comparison.json`` in the folders.
     photographs : sequence of (path, light direction), optional
         The photographs of the capture, for the contact sheet (at most
         :data:`CONTACT_SHEET`, evenly spread, are shown). Default: those of the ``.lp`` file
@@ -301,9 +302,11 @@ def report_html(
     str
         A complete HTML5 document with every picture embedded.
     """
-    files = _Folder(Path(folder), [Path(p) for p in also])
-    report = files.json("report.json")
-    comparison = files.json("comparison.json")
+    # The same folder may be given twice (a comparison written into the run's own folder).
+    places = dict.fromkeys(Path(p).resolve() for p in also if Path(p).resolve() != Path(folder).resolve())
+    files = _Folder(Path(folder), list(places))
+    report = report if report is not None else files.json("report.json")
+    comparison = comparison if comparison is not None else files.json("comparison.json")
     notes: list[str] = []
     inputs = (report or {}).get("inputs") or {}
     source = inputs.get("capture") or inputs.get("ptm") or inputs.get("normal_map") \
@@ -322,11 +325,11 @@ def report_html(
         tables.append(_table(result.items(), ("result", "")))
         sections.append(("inputs", "Inputs and parameters", f'<div class="tables">{"".join(tables)}</div>'))
         if photographs is None:
-            photographs = _attempt_value(lambda: _photographs_from_report(report), "contact sheet", notes)
+            photographs = _attempt(lambda: _photographs_from_report(report), "contact sheet", notes)
         if photographs:
             sections.append(("photographs", "Photographs",
-                             _attempt(lambda: _contact_sheet(photographs), "contact sheet", notes)))
-        sections.append(("relit", "Relit renderings", _attempt(lambda: _relit(files, report), "relit renderings", notes)))
+                             _attempt(lambda: _contact_sheet(photographs), "contact sheet", notes, _note)))
+        sections.append(("relit", "Relit renderings", _attempt(lambda: _relit(files, report), "relit renderings", notes, _note)))
         sections.append(("maps", "Normal map and height map", _maps(files, report, notes)))
         sections.append(("mesh", "Mesh", _mesh(files, report, notes)))
         if report.get("accuracy"):
@@ -360,6 +363,8 @@ def report_html(
 def write_report_html(
     folder: str | os.PathLike,
     *,
+    report: dict | None = None,
+    comparison: dict | None = None,
     photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
     title: str | None = None,
     also: Sequence[str | os.PathLike] = (),
@@ -371,7 +376,8 @@ def write_report_html(
     Path
         The file written.
     """
-    text = report_html(folder, photographs=photographs, title=title, also=also)
+    text = report_html(folder, report=report, comparison=comparison, photographs=photographs, title=title,
+                       also=also)
     path = Path(folder) / "report.html"
     with atomic_write(path, "w") as f:
         f.write(text)

@@ -11,6 +11,7 @@ from helpers import run_cli
 
 from data_synthetic import write_capture
 from ptmcore.errors import InputError
+from ptmcore.relight import light_direction
 from reconstruct.compare_report import write_distance_ply
 from reconstruct.pipeline import RunOptions, run_capture
 from reconstruct.preview import _BACKGROUND, build_plotter
@@ -18,7 +19,6 @@ from reconstruct.preview_scene import (
     MODES,
     PreviewScene,
     distance,
-    light_from_angles,
     load_scene,
     mode_colors,
     profile,
@@ -28,6 +28,10 @@ from reconstruct.relighting import load_source, render
 
 SIZE = (320, 240)
 LIMIT = 0.4
+
+
+def light_from_angles(azimuth, elevation):
+    return light_direction(azimuth_deg=azimuth, elevation_deg=elevation)
 
 
 def _known_distance(xyz: np.ndarray) -> np.ndarray:
@@ -301,13 +305,18 @@ def test_cli_screenshot(folder, tmp_path, capsys):
     from PIL import Image
 
     shots = {}
-    for light in ("45,30", "225,30"):
-        path = tmp_path / f"shot_{light.replace(',', '_')}.png"
-        code, _, err = run_cli(["preview", folder, "--screenshot", path, "--light", light, "--size", "200x150"], capsys)
+    # --light is x,y,z as in `reconstruct relight`: (1, 1, √(2/3)) is azimuth 45°, elevation 30°.
+    z = float(np.sqrt(2 / 3))
+    for name, light in (("45,30", ["--azimuth", "45", "--elevation", "30"]),
+                        ("225,30", ["--azimuth", "225", "--elevation", "30"]),
+                        ("xyz", ["--light", f"1,1,{z}"])):
+        path = tmp_path / f"shot_{name.replace(',', '_')}.png"
+        code, _, err = run_cli(["preview", folder, "--screenshot", path, *light, "--size", "200x150"], capsys)
         assert code == 0, err
-        shots[light] = np.asarray(Image.open(path).convert("RGB"))
-        assert shots[light].shape == (150, 200, 3)
+        shots[name] = np.asarray(Image.open(path).convert("RGB"))
+        assert shots[name].shape == (150, 200, 3)
     assert np.abs(shots["45,30"].astype(int) - shots["225,30"]).mean() > 2
+    assert np.abs(shots["45,30"].astype(int) - shots["xyz"]).mean() < 0.5
     code, _, err = run_cli(["preview", folder / "coefficients.ptm", "--screenshot", tmp_path / "p.png",
                             "--mode", "normals", "--size", "200x150"], capsys)
     assert code == 0, err
@@ -321,6 +330,8 @@ def test_cli_screenshot(folder, tmp_path, capsys):
         (["{ptm}", "--mode", "height", "--screenshot", "x.png"], "no height view"),
         (["{folder}", "--light", "10", "--screenshot", "x.png"], "--light"),
         (["{folder}", "--elevation", "95", "--screenshot", "x.png"], "elevation"),
+        (["{folder}", "--light", "0,0,-1", "--screenshot", "x.png"], "below the horizon"),
+        (["{folder}", "--light", "0,0,1", "--azimuth", "10", "--screenshot", "x.png"], "--light"),
         (["{folder}", "--size", "10x10", "--screenshot", "x.png"], "--size"),
         (["{folder}"], "--screenshot"),
     ],

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
+from helpers import mutate
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-
 from ptm_samples import (
     LRGB_ORDER,
     LRGB_REFERENCE,
@@ -14,7 +14,7 @@ from ptm_samples import (
     sample_files,
     smooth_codes,
 )
-from helpers import mutate
+
 from ptmcore.errors import InputError
 from ptmcore.fit import light_matrix
 from ptmcore.images import read_image
@@ -364,6 +364,39 @@ def test_jpeg_lrgb_with_prediction_and_side_information(tmp_path):
     ptm = read_ptm(_write(tmp_path, data))
     np.testing.assert_array_equal(ptm.coefficients, _decode(np.moveaxis(expected[:6], 0, -1)))
     np.testing.assert_array_equal(ptm.rgb, np.moveaxis(expected[6:], 0, -1))
+
+
+@pytest.mark.parametrize("layout", ["lrgb", "lrgb_1.1", "rgb", "jpeg_lrgb", "jpeg_rgb"])
+@pytest.mark.parametrize("max_side", [5, 7, 100])
+def test_subsampled_read_equals_the_whole_strided(tmp_path, layout, max_side):
+    """``max_side`` decodes every k-th row and column from the top-left pixel, as the whole
+    file strided would give (k = ceil(longest side / max_side))."""
+    rng = np.random.default_rng(9)
+    h, w = 11, 14
+    if layout.startswith("jpeg"):
+        fmt = "PTM_FORMAT_JPEG_LRGB" if layout == "jpeg_lrgb" else "PTM_FORMAT_JPEG_RGB"
+        data, _, _ = jpeg_ptm(fmt, smooth_codes(rng, h, w, 9 if layout == "jpeg_lrgb" else 18), SCALE, BIAS,
+                              quality=80)
+    elif layout == "rgb":
+        planes = smooth_codes(rng, h, w, 18)
+        data = rgb_bytes(np.moveaxis(planes.reshape(3, 6, h, w), (0, 1), (2, 3)), SCALE, BIAS)
+    else:
+        planes = smooth_codes(rng, h, w, 9)
+        version = "PTM_1.1" if layout == "lrgb_1.1" else "PTM_1.2"
+        data = lrgb_bytes(np.moveaxis(planes[:6], 0, -1), np.moveaxis(planes[6:], 0, -1), SCALE, BIAS,
+                          version=version)
+    path = _write(tmp_path, data)
+    whole, small = read_ptm(path), read_ptm(path, max_side=max_side)
+    k = -(-w // max_side)
+    assert (small.width, small.height) == (w, h) and max(small.coefficients.shape[:2]) <= max_side
+    np.testing.assert_array_equal(small.coefficients, whole.coefficients[::k, ::k])
+    if whole.rgb is None:
+        assert small.rgb is None
+    else:
+        np.testing.assert_array_equal(small.rgb, whole.rgb[::k, ::k])
+        assert small.rgb.flags.c_contiguous
+    with pytest.raises(ValueError):
+        read_ptm(path, max_side=0)
 
 
 def test_jpeg_rgb(tmp_path):

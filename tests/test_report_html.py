@@ -9,6 +9,7 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 import tifffile
+from helpers import dome, sphere_normals
 from PIL import Image
 
 from cli.main import main
@@ -16,8 +17,6 @@ from ptmcore.lp import write_lp
 from reconstruct import report_figures
 from reconstruct.pipeline import RunOptions, run_capture
 from reconstruct.report_html import report_html
-
-from helpers import dome, sphere_normals
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 
@@ -122,8 +121,10 @@ def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     report = json.loads((out / "report.json").read_text())
     for name in ("decode", "normals", "ptm", "integrate", "mesh", "write", "compare: align"):
         assert name in text, name
-    # The page's own time is recorded in report.json, which is rewritten after it.
-    assert "report" in report["stages"]
+    # The page is made once, by the comparison that follows the run: its own time is recorded
+    # in comparison.json, written after it (a run alone records it in report.json).
+    assert "report" in json.loads((out / "comparison.json").read_text())["stages"]
+    assert "report" not in report["stages"]
     assert "accuracy" in report and "height_rmse_mm" in text
     # 16-bit photographs: the PTM holds linear light, and its renderings say they are encoded.
     assert report["ptm"]["encoding"] == "linear" and "shown sRGB-encoded" in text
@@ -149,6 +150,7 @@ def test_report_from_a_ptm_and_from_a_normal_map(scanned, tmp_path):
     assert "photographs" not in checker.ids
     assert any("PTM's maximum" in t for t in checker.text), "the run's warning is shown"
     assert any("default rendering of coefficients.ptm" in t for t in checker.text), "relit from the source PTM"
+    assert "report" in json.loads((from_ptm / "report.json").read_text())["stages"]
 
     from_normals = tmp_path / "normals"
     assert main(["integrate", str(out / "normals.png"), "-o", str(from_normals), "-q"]) == 0
@@ -193,3 +195,13 @@ def test_height_figure_scale_bar_measures_the_full_map():
     assert image.format == "PNG" and image.width == 600
     # 80 pixels at stride 4 and 0.05 mm: 16 mm wide, so the bar is the 2 mm nearest a quarter.
     assert report_figures._nice_length(0.25 * 80 * 4 * 0.05) == 2
+
+
+def test_run_with_an_unreadable_scan_still_writes_its_page(tmp_path):
+    (tmp_path / "scan.ply").write_text("not a mesh")
+    out = tmp_path / "out"
+    code = main(["run", str(_small_capture(tmp_path / "cap")), "-o", str(out), "--pixel-size", "0.1", "-q",
+                 "--scan", str(tmp_path / "scan.ply")])
+    assert code == 2
+    checker = check_page(out / "report.html")
+    assert {"inputs", "relit", "maps"} <= checker.ids and "comparison" not in checker.ids
