@@ -25,8 +25,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import ptmcore  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
-from reconstruct.accuracy import height_rmse, load_ground_truth, normal_accuracy  # noqa: E402
-from reconstruct.integrate import integrate  # noqa: E402
+from reconstruct.surface.accuracy import height_rmse, load_ground_truth, normal_accuracy  # noqa: E402
+from reconstruct.surface.integrate import integrate  # noqa: E402
 
 
 def measure(scene: str, encoding: str, shape: tuple[int, int], n_lights: int, seed: int) -> list[dict]:

@@ -6,7 +6,7 @@ JPEG, the background's brightness, tint and texture, 0–2 photographs with hidd
 and for every fourth capture a pinhole camera (focal length 0.7–1.3 × the image width, a
 wide to normal lens) instead of the orthographic view.
 
-Measured, with no hints (spheres detected by :func:`reconstruct.calibrate.detect_spheres`):
+Measured, with no hints (spheres detected by :func:`reconstruct.calibration.calibrate.detect_spheres`):
 
 - detection: a capture is detected when every sphere is found (centre within 2 px of the
   true outline's centre, radius within 2 % of its mean radius) and nothing else is;
@@ -38,8 +38,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
-from reconstruct.calibrate import calibrate
-from reconstruct.sphere_reflection import ellipse_mean_radius
+from reconstruct.calibration.calibrate import calibrate
+from reconstruct.calibration.reflection import ellipse_mean_radius
 
 SHAPES = ((300, 400), (360, 480), (400, 560), (480, 640))
 SILENT_DEG = 2.0

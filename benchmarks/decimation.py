@@ -2,7 +2,7 @@
 
 The ground-truth height of the synthetic clay tablet (512×384, pixel size 80/512 mm) is meshed
 on its mask and decimated to 1 % of its triangles; the error reported by
-:func:`reconstruct.meshops.decimate` (max and RMS distance between the two surfaces, both ways)
+:func:`reconstruct.mesh.ops.decimate` (max and RMS distance between the two surfaces, both ways)
 is compared with the pixel pitch. Target: below 0.5 pixel pitch.
 
 Run: ``.venv/bin/python benchmarks/decimation.py``
@@ -21,8 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_synthetic.surfaces import SCENES  # noqa: E402
-from reconstruct.mesh import grid_mesh  # noqa: E402
-from reconstruct.meshops import decimate  # noqa: E402
+from reconstruct.mesh.grid import grid_mesh  # noqa: E402
+from reconstruct.mesh.ops import decimate  # noqa: E402
 
 
 def main() -> None:

@@ -3,9 +3,9 @@
 Renders a capture lit by a hand-held flash one to two image widths from the object, with two
 black glossy spheres beside it (``data_synthetic.nearlight``), then
 
-1. calibrates from the auto-detected spheres (``reconstruct.calibrate.calibrate_stack``,
+1. calibrates from the auto-detected spheres (``reconstruct.calibration.calibrate.calibrate_stack``,
    with the disagreement tolerance opened so every photograph keeps its combined direction)
-   and triangulates each photograph's light (``reconstruct.triangulate``);
+   and triangulates each photograph's light (``reconstruct.calibration.triangulate``);
 2. computes normals three ways: (a) ``ptmcore.photometric_stereo`` with one distant direction
    per photograph (the spheres' combined direction); (b) ``near_photometric_stereo`` with the
    triangulated positions; (c) the same with the true positions, as a reference;
@@ -34,9 +34,9 @@ from data_synthetic.nearlight import render_nearlight_capture
 from ptmcore import load_stack, photometric_stereo
 from ptmcore.atomic import atomic_write
 from ptmcore.nearlight import near_photometric_stereo
-from reconstruct.accuracy import load_ground_truth, normal_accuracy
-from reconstruct.calibrate import calibrate_stack
-from reconstruct.triangulate import lights_are_near, triangulate
+from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy
+from reconstruct.calibration.calibrate import calibrate_stack
+from reconstruct.calibration.triangulate import lights_are_near, triangulate
 
 
 def run(shape: tuple[int, int], n_lights: int, distance: tuple[float, float], seed: int,

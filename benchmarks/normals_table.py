@@ -55,7 +55,7 @@ from ptmcore.robust import (  # noqa: E402
     robust_photometric_stereo,
     robust_ptm,
 )
-from reconstruct.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
+from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
 
 #: The scenes: write_capture options (lights= is filled in for the ring).
 SCENES = {

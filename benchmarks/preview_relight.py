@@ -3,7 +3,7 @@
 The synthetic tablet's height at 2048×1536 becomes a display mesh of at most 250 000 vertices
 (as ``reconstruct preview`` subsamples it) and a PTM made from its normals (the Lambertian
 shading n·l with √(1 − lu² − lv²) ≈ 1 − (lu² + lv²)/2, which is a PTM). Timed, median of 15
-light positions: the relit texture alone (:func:`reconstruct.preview_scene.relit_texture`),
+light positions: the relit texture alone (:func:`reconstruct.viewer.scene.relit_texture`),
 the light callback (relight and copy into VTK's texture memory), and the callback plus an
 off-screen render of a 1280×900 window (texture upload and draw; on a machine without a GPU
 this is Mesa's software rasteriser), then the render alone for smaller display meshes.
@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_synthetic.surfaces import SCENES
 from ptmcore.relight import light_direction
-from reconstruct.mesh import grid_mesh
-from reconstruct.preview import build_plotter
-from reconstruct.preview_scene import (
+from reconstruct.mesh.grid import grid_mesh
+from reconstruct.viewer.preview import build_plotter
+from reconstruct.viewer.scene import (
     MAX_VERTICES,
     PreviewScene,
     _grid_step,

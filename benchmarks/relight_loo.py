@@ -40,7 +40,7 @@ from data_synthetic import ring_lights, write_capture  # noqa: E402
 from ptmcore.fit import light_matrix  # noqa: E402
 from ptmcore.hsh import hsh_basis  # noqa: E402
 from ptmcore.loo import UndeterminedLightWarning, hat_diagonal, loo_error, undetermined_lights  # noqa: E402
-from reconstruct.accuracy import load_ground_truth  # noqa: E402
+from reconstruct.surface.accuracy import load_ground_truth  # noqa: E402
 
 BASES = {
     "PTM": light_matrix,

@@ -2,7 +2,7 @@
 
 An output folder is made as ``reconstruct run`` writes it (normals.npy, normals.png, albedo.png,
 height.tif, mesh.ply with the automatic mesh step, report.json) from a synthetic relief, with 8
-full-size JPEG photographs for the contact sheet; then :func:`reconstruct.report_html.write_report_html`
+full-size JPEG photographs for the contact sheet; then :func:`reconstruct.report.html.write_report_html`
 runs in a fresh process, which reports its wall time and the peak RSS above what the imports
 take. The folder has no ``coefficients.ptm``: relighting uses the normals and albedo (a PTM
 would be relit from a subsample decoded by ``read_ptm(path, max_side=480)``).
@@ -27,14 +27,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from reconstruct import outputs
-from reconstruct.mesh import grid_mesh, write_ply
-from reconstruct.pipeline import auto_step
+from ptmcore.images import write_png
+from reconstruct.report import outputs
+from reconstruct.mesh.grid import grid_mesh, write_ply
+from reconstruct.pipeline.run import auto_step
 
 _MEASURE = """
 import json, sys, time
 sys.path.insert(0, {root!r})
-from reconstruct.profiling import peak_rss_mb, _reset_peak_rss
+from reconstruct.pipeline.profiling import peak_rss_mb, _reset_peak_rss
 from reconstruct import report_html, report_figures
 import matplotlib.figure, pyvista  # the imports' memory is not the report's
 import numpy as np
@@ -62,8 +63,8 @@ def make_folder(folder: Path, shape: tuple[int, int]) -> list[tuple[str, list[fl
     normals = normals.astype(np.float32)
     albedo = np.full((h, w, 3), 180, np.uint8)
     outputs.write_npy(folder / "normals.npy", normals)
-    outputs.write_png(folder / "normals.png", outputs.normals_to_rgb16(normals))
-    outputs.write_png(folder / "albedo.png", albedo)
+    write_png(folder / "normals.png", outputs.normals_to_rgb16(normals))
+    write_png(folder / "albedo.png", albedo)
     outputs.write_height_tiff(folder / "height.tif", height, "mm", 0.02)
     step = auto_step(shape)
     write_ply(folder / "mesh.ply", grid_mesh(height, texture=albedo, step=step, pixel_size=0.02))

@@ -1,4 +1,4 @@
-"""The ``reconstruct`` command: a thin layer over :mod:`reconstruct.pipeline`."""
+"""The ``reconstruct`` command: a thin layer over :mod:`reconstruct.pipeline.run`."""
 
 from __future__ import annotations
 
@@ -268,14 +268,14 @@ def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     from ptmcore.images import load_stack, read_image
     from ptmcore.nearlight import typical_distance
-    from reconstruct.calibrate import (
+    from reconstruct.calibration.calibrate import (
         calibration_camera,
         write_calibration_lp,
         write_diagnostic,
     )
-    from reconstruct.lightcheck import write_polar_plot
-    from reconstruct.pipeline import capture_images
-    from reconstruct.triangulate import sphere_lights, write_near_light_files
+    from reconstruct.calibration.lightcheck import write_polar_plot
+    from reconstruct.pipeline.run import capture_images
+    from reconstruct.calibration.triangulate import sphere_lights, write_near_light_files
 
     paths = capture_images(args.capture)
     stack = load_stack(paths, min_photographs=1)
@@ -305,7 +305,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_compare(args: argparse.Namespace) -> int:
-    from reconstruct.pipeline import CompareOptions, run_compare
+    from reconstruct.pipeline.run import CompareOptions, run_compare
 
     options = CompareOptions(
         scan_units=args.scan_units, scale=args.scale, initial=args.initial, no_align=args.no_align,
@@ -430,7 +430,7 @@ def _stderr_console():
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from reconstruct.pipeline import RunOptions, run
+    from reconstruct.pipeline.run import RunOptions, run
 
     options = RunOptions(
         lp=args.lp, pixel_size=args.pixel_size, normals=args.normals, integrator=args.integrator,
@@ -450,8 +450,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         result = run(args.capture, args.output, options, progress=progress, report_page=args.scan is None)
     compared = None
     if args.scan is not None:
-        from reconstruct.pipeline import CompareOptions, run_compare
-        from reconstruct.report_html import write_report_html
+        from reconstruct.pipeline.run import CompareOptions, run_compare
+        from reconstruct.report.html import write_report_html
 
         try:
             compared = run_compare(args.output, args.scan, args.output, CompareOptions(scan_units=args.scan_units))
@@ -497,7 +497,7 @@ def _parse_vector(text: str) -> list[float]:
 
 def _cmd_relight(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
-    from reconstruct.relighting import (
+    from reconstruct.viewer.relighting import (
         load_source,
         render,
         sweep_lights,
@@ -535,7 +535,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
 
 
 def _cmd_integrate(args: argparse.Namespace) -> int:
-    from reconstruct.pipeline import RunOptions, run_normals
+    from reconstruct.pipeline.run import RunOptions, run_normals
 
     mask = None if args.mask is None else (args.mask if args.mask == "auto" else Path(args.mask))
     options = RunOptions(pixel_size=args.pixel_size, integrator=args.integrator, step=args.step, mask=mask,
@@ -553,7 +553,7 @@ def _cmd_integrate(args: argparse.Namespace) -> int:
 
 def _cmd_lights(args: argparse.Namespace) -> int:
     from ptmcore.lp import read_lp
-    from reconstruct.lightcheck import check_lights, report_text, write_polar_plot
+    from reconstruct.calibration.lightcheck import check_lights, report_text, write_polar_plot
 
     lights = read_lp(args.lp)
     print(report_text(check_lights(lights.directions)))
@@ -565,7 +565,7 @@ def _cmd_lights(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from data_synthetic import write_capture
-    from reconstruct.pipeline import RunOptions, run_capture
+    from reconstruct.pipeline.run import RunOptions, run_capture
 
     try:
         w, h = (int(v) for v in args.size.lower().split("x"))
@@ -589,14 +589,14 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     import math
 
     from ptmcore.relight import light_direction
-    from reconstruct.preview import (
+    from reconstruct.viewer.preview import (
         DEFAULT_AZIMUTH,
         DEFAULT_ELEVATION,
         build_plotter,
         has_display,
         render_screenshot,
     )
-    from reconstruct.preview_scene import load_scene
+    from reconstruct.viewer.scene import load_scene
 
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))

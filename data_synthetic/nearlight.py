@@ -29,7 +29,7 @@ from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
 from ptmcore.nearlight import image_centre, write_light_positions
-from reconstruct.sphere_reflection import sphere_normal_at
+from reconstruct.calibration.reflection import sphere_normal_at
 
 from .encoding import write_mask_png, write_npy, write_png8, write_tiff16
 from .lights import dome_lights

@@ -17,8 +17,8 @@ import numpy as np
 
 from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
-from reconstruct.perspective import Intrinsics
-from reconstruct.sphere_reflection import ray_sphere_distance, sphere_normal_at
+from reconstruct.calibration.camera import Intrinsics
+from reconstruct.calibration.reflection import ray_sphere_distance, sphere_normal_at
 
 from .encoding import write_jpeg8, write_npy, write_png8
 from .lights import dome_lights
@@ -73,7 +73,7 @@ def _pinhole_outline(centre: np.ndarray, focal_px: float, principal: tuple[float
                      ) -> tuple[float, float, float, float, float]:
     """Ellipse (x0, y0, a, b, phi) that a pinhole camera (square pixels) sees of a unit sphere.
 
-    A closed form independent of :func:`reconstruct.sphere_reflection.sphere_outline` (which
+    A closed form independent of :func:`reconstruct.calibration.reflection.sphere_outline` (which
     takes the conic of the tangent cone), kept as ground truth: the tests compare the two.
 
     With θ the angle of the centre off the optical axis and α the half-angle of the tangent

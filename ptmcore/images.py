@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_write
 from .errors import InputError
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
@@ -397,3 +398,27 @@ def load_stack(
                 f.cancel()
             raise
     return ImageStack(luminance, _chroma_in_place(channel_sum), paths, max(depths), linearize, saturated)
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """Encode an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG bytes.
+
+    OpenCV's encoder releases the GIL (it runs beside other writers) and, unlike Pillow, writes
+    16-bit RGB.
+    """
+    import cv2
+
+    if image.dtype not in (np.uint8, np.uint16):
+        raise TypeError("PNG images must be uint8 or uint16")
+    img = image[..., ::-1] if image.ndim == 3 else image  # OpenCV stores BGR
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:
+        raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
+    return buf.tobytes()
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG."""
+    data = encode_png(image)
+    with atomic_write(path, "wb") as f:
+        f.write(data)

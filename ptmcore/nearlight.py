@@ -3,7 +3,7 @@
 A hand-held flash one or two image widths from the object lights each pixel from a different
 direction and with a different strength. Given the flash's 3D position P in each photograph
 (for example triangulated from the highlights on two glossy spheres, see
-``reconstruct.triangulate``), every pixel X sees the direction ``(P − X)/|P − X|`` and an
+``reconstruct.calibration.triangulate``), every pixel X sees the direction ``(P − X)/|P − X|`` and an
 irradiance falling off as ``1/|P − X|²``; the fit and the photometric stereo here use those
 per-pixel lights instead of one direction per photograph.
 

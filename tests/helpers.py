@@ -75,7 +75,7 @@ def mutate(good: bytes, rng: np.random.Generator, *, header_bytes: int, header_l
 
 def run_cli(argv, capsys):
     """Run the ``reconstruct`` command in-process; return (status, stdout, stderr)."""
-    from cli.main import main
+    from reconstruct.cli.main import main
 
     code = main([str(a) for a in argv])
     out = capsys.readouterr()

@@ -11,7 +11,7 @@ from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
-from reconstruct.calibrate import (
+from reconstruct.calibration.calibrate import (
     calibrate,
     calibrate_stack,
     detect_spheres,
@@ -20,7 +20,7 @@ from reconstruct.calibrate import (
     write_calibration_lp,
     write_diagnostic,
 )
-from reconstruct.sphere_reflection import light_from_highlight
+from reconstruct.calibration.reflection import light_from_highlight
 
 HIDDEN = (3, 10)
 
@@ -182,7 +182,7 @@ def test_bad_inputs_raise_input_error(tmp_path, capture):
 
 def test_band_of_columns_matches_the_full_band(capture):
     from ptmcore.images import load_stack
-    from reconstruct.calibrate import _sphere_crops
+    from reconstruct.calibration.calibrate import _sphere_crops
 
     stack = load_stack(capture.image_paths[:3])
     values, saturated = stack.band(20, 60, 30, 90)

@@ -10,9 +10,9 @@ from PIL import Image
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.lp import read_lp
-from reconstruct.calibrate import calibrate, calibration_camera, fit_circle
-from reconstruct.perspective import Intrinsics, intrinsics_from_exif
-from reconstruct.sphere_reflection import (
+from reconstruct.calibration.calibrate import calibrate, calibration_camera, fit_circle
+from reconstruct.calibration.camera import Intrinsics, intrinsics_from_exif
+from reconstruct.calibration.reflection import (
     ellipse_mean_radius,
     light_from_highlight,
     sphere_centre_3d,

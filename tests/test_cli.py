@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from cli.main import main
+from reconstruct.cli.main import main
 from ptmcore.lp import write_lp
 
 from helpers import dome, sphere_normals, run_cli as _run
@@ -95,7 +95,7 @@ def test_version_and_help(capsys):
 def test_console_script_exit_status(capture, tmp_path):
     # The real process: one line on stderr, status 2, no traceback.
     exe = Path(sys.executable).with_name("reconstruct")
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "cli.main"]
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "reconstruct"]
     r = subprocess.run(cmd + ["run", str(tmp_path / "nothing"), "-o", str(tmp_path / "o")],
                        capture_output=True, text=True)
     assert r.returncode == 2

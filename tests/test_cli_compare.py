@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from cli.main import main
+from reconstruct.cli.main import main
 
 from helpers import run_cli as _run
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from cli.main import main
+from reconstruct.cli.main import main
 
 from helpers import run_cli as _run
 from ptmcore.images import read_image

@@ -1,4 +1,4 @@
-"""Tests for reconstruct.compare: loading, aligning and measuring a scan against a mesh."""
+"""Tests for reconstruct.compare.align: loading, aligning and measuring a scan against a mesh."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import trimesh
 
 from data_synthetic import write_capture
 from ptmcore.errors import InputError
-from reconstruct.compare import (
+from reconstruct.compare.align import (
     Geometry, align, distances, load_geometry, within_tolerance, _mesh_distances)
-from reconstruct.mesh import grid_mesh
+from reconstruct.mesh.grid import grid_mesh
 
 
 class Case:

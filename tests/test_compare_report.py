@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from reconstruct.compare_report import (
+from reconstruct.compare.figures import (
     NAN_COLOR,
     default_limit,
     diverging_colors,
@@ -14,7 +14,7 @@ from reconstruct.compare_report import (
     write_histogram,
     write_overlay,
 )
-from reconstruct.mesh import grid_mesh
+from reconstruct.mesh.grid import grid_mesh
 
 
 def _dome(n: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

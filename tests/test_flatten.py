@@ -1,4 +1,4 @@
-"""Tests for reconstruct.flatten: known bends removed, detail kept, masked pixels inert."""
+"""Tests for reconstruct.surface.flatten: known bends removed, detail kept, masked pixels inert."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from data_synthetic import SCENES
-from reconstruct.flatten import flatten, high_pass, remove_plane, remove_polynomial
+from reconstruct.surface.flatten import flatten, high_pass, remove_plane, remove_polynomial
 
 H, W = 192, 256
 

@@ -1,4 +1,4 @@
-"""Tests for reconstruct.integrate: analytic surfaces, signs, units, masks, discretisation."""
+"""Tests for reconstruct.surface.integrate: analytic surfaces, signs, units, masks, discretisation."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from reconstruct.integrate import (
+from reconstruct.surface.integrate import (
     frankot_chellappa,
     gradients_from_normals,
     integrate,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruct.integrate import (
+from reconstruct.surface.integrate import (
     discontinuity_preserving,
     integrate,
     masked_laplacian,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from reconstruct.lightcheck import PLOT_MARGIN, check_lights, plot_positions, report_text, write_polar_plot
+from reconstruct.calibration.lightcheck import PLOT_MARGIN, check_lights, plot_positions, report_text, write_polar_plot
 
 
 def sph(elev_deg, azim_deg) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests for reconstruct.mesh and reconstruct.atomic: grid meshes, PLY/OBJ round trips."""
+"""Tests for reconstruct.mesh.grid and reconstruct.atomic: grid meshes, PLY/OBJ round trips."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import trimesh
 from PIL import Image
 
 from ptmcore.errors import InputError
-from reconstruct import mesh as mesh_module
+from reconstruct.mesh import grid as mesh_module
 from ptmcore.atomic import atomic_write
-from reconstruct.mesh import GridMesh, grid_mesh, write_obj, write_ply
+from reconstruct.mesh.grid import GridMesh, grid_mesh, write_obj, write_ply
 
 H, W = 6, 8
 RED, BLUE = (255, 0, 0), (0, 0, 255)

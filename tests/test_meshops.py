@@ -1,4 +1,4 @@
-"""Tests for reconstruct.meshops: decimation, printable solids, STL and GLB exports."""
+"""Tests for reconstruct.mesh.ops: decimation, printable solids, STL and GLB exports."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from reconstruct.mesh import GridMesh, grid_mesh
-from reconstruct.meshops import decimate, solid, write_glb, write_stl
+from reconstruct.mesh.grid import GridMesh, grid_mesh
+from reconstruct.mesh.ops import decimate, solid, write_glb, write_stl
 
 o3d = pytest.importorskip("open3d")
 o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)

@@ -20,9 +20,9 @@ from ptmcore.nearlight import (
     write_light_positions,
 )
 from ptmcore.normals import angular_error, photometric_stereo
-from reconstruct.accuracy import load_ground_truth
-from reconstruct.calibrate import Calibration, calibrate_stack
-from reconstruct.triangulate import (
+from reconstruct.surface.accuracy import load_ground_truth
+from reconstruct.calibration.calibrate import Calibration, calibrate_stack
+from reconstruct.calibration.triangulate import (
     BEHIND,
     OK,
     PARALLEL,
@@ -330,7 +330,7 @@ def test_near_albedo_without_photometric_stereo(capture):
 
 
 def test_sphere_lights_of_a_near_capture(capture):
-    from reconstruct.triangulate import near_lights, sphere_lights
+    from reconstruct.calibration.triangulate import near_lights, sphere_lights
 
     info, stack, _ = capture
     found = sphere_lights(stack)
@@ -350,7 +350,7 @@ def test_sphere_lights_of_a_near_capture(capture):
 def test_near_ptm_normals_get_an_albedo_without_photometric_stereo(capture):
     from ptmcore.nearlight import near_lambertian_albedo
     from ptmcore.normals import normals_from_ptm
-    from reconstruct.pipeline import NearLights, RunOptions, _estimate_normals
+    from reconstruct.pipeline.run import NearLights, RunOptions, _estimate_normals
 
     info, stack, truth = capture
     calls = []

@@ -14,13 +14,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruct.integrate import integrate
-from reconstruct.perspective import (
-    Intrinsics,
-    integrate_perspective,
-    parse_intrinsics,
-    perspective_gradients,
-)
+from reconstruct.surface.integrate import integrate
+from reconstruct.calibration.camera import Intrinsics, parse_intrinsics
+from reconstruct.surface.perspective import integrate_perspective, perspective_gradients
 
 H, W = 120, 160
 CAM = Intrinsics(float(W), float(W), (W - 1) / 2.0, (H - 1) / 2.0)  # ~53° field: short lens

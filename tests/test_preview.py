@@ -12,10 +12,10 @@ from helpers import run_cli
 from data_synthetic import write_capture
 from ptmcore.errors import InputError
 from ptmcore.relight import light_direction
-from reconstruct.compare_report import write_distance_ply
-from reconstruct.pipeline import RunOptions, run_capture
-from reconstruct.preview import _BACKGROUND, build_plotter
-from reconstruct.preview_scene import (
+from reconstruct.compare.figures import write_distance_ply
+from reconstruct.pipeline.run import RunOptions, run_capture
+from reconstruct.viewer.preview import _BACKGROUND, build_plotter
+from reconstruct.viewer.scene import (
     MODES,
     PreviewScene,
     distance,
@@ -24,7 +24,7 @@ from reconstruct.preview_scene import (
     profile,
     relit_texture,
 )
-from reconstruct.relighting import load_source, render
+from reconstruct.viewer.relighting import load_source, render
 
 SIZE = (320, 240)
 LIMIT = 0.4

@@ -12,11 +12,11 @@ import tifffile
 from helpers import dome, sphere_normals
 from PIL import Image
 
-from cli.main import main
+from reconstruct.cli.main import main
 from ptmcore.lp import write_lp
-from reconstruct import report_figures
-from reconstruct.pipeline import RunOptions, run_capture
-from reconstruct.report_html import report_html
+from reconstruct.report import figures as report_figures
+from reconstruct.pipeline.run import RunOptions, run_capture
+from reconstruct.report.html import report_html
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}
 

@@ -1,4 +1,4 @@
-"""Tests for reconstruct.segment: the synthetic tablet against its ground-truth mask."""
+"""Tests for reconstruct.surface.segment: the synthetic tablet against its ground-truth mask."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from data_synthetic import SCENES, dome_lights, render
-from reconstruct.segment import foreground_mask
+from reconstruct.surface.segment import foreground_mask
 
 SHAPE = (192, 256)
 

@@ -1,4 +1,4 @@
-"""Tests for reconstruct.textfmt: vectorised number formatting against Python's own."""
+"""Tests for reconstruct.mesh.textfmt: vectorised number formatting against Python's own."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from reconstruct import textfmt
+from reconstruct.mesh import textfmt
 
 
 def _texts(column: textfmt.Column) -> list[str]:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from reconstruct.mesh import grid_mesh, write_obj, write_ply
+from reconstruct.mesh.grid import grid_mesh, write_obj, write_ply
 
 pymeshlab = pytest.importorskip("pymeshlab")
 

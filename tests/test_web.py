@@ -9,7 +9,7 @@ from PIL import Image
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_matrix
 from ptmcore.relight import light_direction, relight
-from reconstruct.web import PLANE_TERMS, export_openlime, lrgb_planes
+from reconstruct.report.web import PLANE_TERMS, export_openlime, lrgb_planes
 
 from helpers import dome
 

@@ -2,7 +2,7 @@
 
 With an orthographic camera (view v = (0, 0, 1)) the sphere normal at the highlight is
 s = ((hx − cx)/r, (cy − hy)/r, √(1 − …)) and the light l = 2(s·v)s − v. With a pinhole camera
-(:class:`reconstruct.perspective.Intrinsics`) the view is the highlight's own ray and the
+(:class:`reconstruct.calibration.camera.Intrinsics`) the view is the highlight's own ray and the
 sphere's 3D position comes from its outline (:func:`sphere_centre_3d`).
 
 Coordinates: image positions are (x_img, y_img) = (column, row) with pixel centres at integers;
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from reconstruct.perspective import Intrinsics
+from reconstruct.calibration.camera import Intrinsics
 
 Sphere = tuple[float, float, float]
 
@@ -171,7 +171,7 @@ def ray_sphere_distance(rays: np.ndarray, centre: np.ndarray) -> tuple[np.ndarra
     Parameters
     ----------
     rays : ndarray, shape (..., 3)
-        Unit rays (:meth:`reconstruct.perspective.Intrinsics.rays`).
+        Unit rays (:meth:`reconstruct.calibration.camera.Intrinsics.rays`).
     centre : ndarray, shape (3,)
         Sphere centre in units of its radius.
 
@@ -221,7 +221,7 @@ def light_from_highlight(hx, hy, sphere: Sphere,
     sphere : (cx, cy, r)
         The sphere's outline in pixels.
     intrinsics : Intrinsics, optional
-        Pinhole camera in pixels (:class:`reconstruct.perspective.Intrinsics`); None for an
+        Pinhole camera in pixels (:class:`reconstruct.calibration.camera.Intrinsics`); None for an
         orthographic view.
 
     Returns

@@ -1,6 +1,6 @@
 """Mesh operations for delivery: decimation, watertight solids for printing, STL and GLB.
 
-A grid mesh (:func:`reconstruct.mesh.grid_mesh`) has one vertex per pixel, far more than a
+A grid mesh (:func:`reconstruct.mesh.grid.grid_mesh`) has one vertex per pixel, far more than a
 viewer or a printer needs. :func:`decimate` reduces it to a triangle budget or to a maximum
 geometric error; :func:`solid` closes the relief into a printable solid, written by
 :func:`write_stl`; :func:`write_glb` writes a single-file glTF for web and AR viewers.
@@ -21,7 +21,7 @@ import trimesh
 from PIL import Image
 
 from ptmcore.atomic import atomic_write
-from reconstruct.mesh import GridMesh, grid_mesh
+from reconstruct.mesh.grid import GridMesh, grid_mesh
 
 __all__ = ["decimate", "solid", "write_glb", "write_stl"]
 
@@ -326,7 +326,7 @@ def solid(
     relief : GridMesh or numpy.ndarray
         A mesh that is a height field (one z per (x, y), counter-clockwise from +z), such
         as a grid mesh or its decimation, or an ``(H, W)`` height map with NaN outside the
-        object, meshed by :func:`reconstruct.mesh.grid_mesh`.
+        object, meshed by :func:`reconstruct.mesh.grid.grid_mesh`.
     base_thickness : float
         Thickness of the base below the lowest point of the relief, in the mesh's unit.
     pixel_size : float, optional

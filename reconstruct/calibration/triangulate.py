@@ -29,9 +29,9 @@ from ptmcore.images import ImageStack
 from ptmcore.lp import write_lp
 from ptmcore.nearlight import centre_directions, typical_distance, write_light_positions
 
-from .calibrate import Calibration, calibrate_stack
-from .perspective import Intrinsics
-from .sphere_reflection import Sphere, mirror, sphere_normal_at
+from reconstruct.calibration.calibrate import Calibration, calibrate_stack
+from reconstruct.calibration.camera import Intrinsics
+from reconstruct.calibration.reflection import Sphere, mirror, sphere_normal_at
 
 #: Status of a photograph whose light was triangulated.
 OK = "ok"
@@ -85,7 +85,7 @@ def sphere_rays(calibration: Calibration, heights: list[float] | np.ndarray | No
     Parameters
     ----------
     calibration : Calibration
-        Spheres and highlights (:func:`reconstruct.calibrate.calibrate_stack`).
+        Spheres and highlights (:func:`reconstruct.calibration.calibrate.calibrate_stack`).
     heights : sequence of float, optional
         Height of each sphere's centre above the base plane, in pixels; default its radius
         (the sphere rests on the plane).
@@ -234,7 +234,7 @@ class SphereLights:
     Attributes
     ----------
     calibration : Calibration
-        The highlights and distant directions (:func:`reconstruct.calibrate.calibrate_stack`).
+        The highlights and distant directions (:func:`reconstruct.calibration.calibrate.calibrate_stack`).
     triangulation : Triangulation or None
         The near lights' positions when two or more spheres show them near, else None.
     usable : ndarray, shape (N,), bool
@@ -288,7 +288,7 @@ def sphere_lights(
     Raises
     ------
     InputError
-        As :func:`reconstruct.calibrate.calibrate_stack`.
+        As :func:`reconstruct.calibration.calibrate.calibrate_stack`.
     """
     cal = calibrate_stack(stack, spheres=spheres, intrinsics=intrinsics)
     tri = near_lights(cal) if near else None

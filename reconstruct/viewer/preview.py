@@ -1,6 +1,6 @@
 """``reconstruct preview``: a pyvista window on a reconstruction, relit live.
 
-The arrays come from :mod:`reconstruct.preview_scene`; this module puts them in a VTK scene
+The arrays come from :mod:`reconstruct.viewer.scene`; this module puts them in a VTK scene
 and wires the controls. :func:`build_plotter` returns a :class:`PreviewWindow` whose methods
 are the window's callbacks (``on_light``, ``set_mode``, ``on_pick``, ``reset_view``,
 ``save_screenshot``, ``toggle_help``, ``toggle_profile``), so they run the same off-screen,
@@ -20,15 +20,15 @@ import numpy as np
 
 from ptmcore.errors import InputError
 from ptmcore.relight import light_direction
-from reconstruct import rendering
-from reconstruct.preview_scene import (
+from reconstruct.report import rendering
+from reconstruct.viewer.scene import (
     MODES,
     PreviewScene,
     distance,
     mode_colors,
     profile,
 )
-from reconstruct.report_figures import finite_range
+from reconstruct.report.figures import finite_range
 
 __all__ = ["PreviewWindow", "build_plotter", "has_display", "render_screenshot"]
 
@@ -151,7 +151,7 @@ class PreviewWindow:
             )
             self._bars["height"] = title
         if "distance" in scene.modes:
-            from reconstruct.compare_report import NAN_COLOR, distance_lookup_table
+            from reconstruct.compare.figures import NAN_COLOR, distance_lookup_table
 
             limit = float(scene.distance_limit)
             surface = mesh.copy(deep=False)
@@ -218,7 +218,7 @@ class PreviewWindow:
         self._update_status()
 
     def set_mode(self, name: str) -> None:
-        """Show one view mode (see :data:`reconstruct.preview_scene.MODES`)."""
+        """Show one view mode (see :data:`reconstruct.viewer.scene.MODES`)."""
         if name not in self.scene.modes:
             raise ValueError(f"{self.scene.name} has no {name} view; it has {', '.join(self.scene.modes)}")
         self.mode = name
@@ -322,7 +322,7 @@ class PreviewWindow:
     def save_screenshot(self, path: str | os.PathLike | None = None) -> Path:
         """Write the current image as PNG (atomically); by default ``<source>_preview.png``
         in the working folder, numbered when it exists. Returns the path."""
-        from reconstruct.relighting import write_image
+        from reconstruct.viewer.relighting import write_image
 
         if path is None:
             while True:

@@ -22,7 +22,7 @@ import numpy as np
 
 from ptmcore.atomic import atomic_write
 
-from . import report_figures as figures
+from reconstruct.report import figures
 
 #: At most this many photographs on the contact sheet.
 CONTACT_SHEET = 8

@@ -1,7 +1,7 @@
 """Writing the raster outputs of a run: normal maps, albedo, height, mask, report.
 
-Every file is written through :func:`reconstruct.atomic.atomic_write`, so it appears whole or
-not at all.
+Every file is written through :func:`ptmcore.atomic.atomic_write`, so it appears whole or not
+at all. PNG encoding itself is :func:`ptmcore.images.write_png`.
 """
 
 from __future__ import annotations
@@ -14,30 +14,6 @@ import numpy as np
 from ptmcore.images import linear_to_srgb
 
 from ptmcore.atomic import atomic_write
-
-
-def encode_png(image: np.ndarray) -> bytes:
-    """Encode an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG bytes.
-
-    OpenCV's encoder releases the GIL (it runs beside other writers) and, unlike Pillow, writes
-    16-bit RGB.
-    """
-    import cv2
-
-    if image.dtype not in (np.uint8, np.uint16):
-        raise TypeError("PNG images must be uint8 or uint16")
-    img = image[..., ::-1] if image.ndim == 3 else image  # OpenCV stores BGR
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
-    if not ok:
-        raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
-    return buf.tobytes()
-
-
-def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG."""
-    data = encode_png(image)
-    with atomic_write(path, "wb") as f:
-        f.write(data)
 
 
 def normals_to_rgb16(normals: np.ndarray) -> np.ndarray:

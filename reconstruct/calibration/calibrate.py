@@ -4,17 +4,17 @@ A hand-held flash lights the object from a different direction in each photograp
 more black glossy spheres beside the object show a small mirror highlight where the sphere
 normal bisects the light and the viewing direction. With an orthographic camera (a distant
 lens, view v = (0, 0, 1)) the light follows from the highlight position alone; with a pinhole
-camera (:class:`reconstruct.perspective.Intrinsics`, e.g. from EXIF) the view is each
+camera (:class:`reconstruct.calibration.camera.Intrinsics`, e.g. from EXIF) the view is each
 highlight's own ray and the sphere's position comes from its outline
-(:func:`reconstruct.sphere_reflection.sphere_centre_3d`).
+(:func:`reconstruct.calibration.reflection.sphere_centre_3d`).
 
 Coordinates: image positions are (x_img, y_img) = (column, row) with pixel centres at integers;
 spheres are (cx, cy, r) in those units. Directions use the project frame: x right, y up,
 z towards the camera (so y = (cy − hy)/r, rows go down).
 
-The geometry of the reflection is in :mod:`reconstruct.sphere_reflection`. Near lights (a
+The geometry of the reflection is in :mod:`reconstruct.calibration.reflection`. Near lights (a
 flash close to the object) are triangulated from two or more spheres by
-:mod:`reconstruct.triangulate`; here every sphere gives a distant direction, and their
+:mod:`reconstruct.calibration.triangulate`; here every sphere gives a distant direction, and their
 disagreement lowers the confidence.
 """
 
@@ -32,8 +32,8 @@ from ptmcore.bands import band_rows, run_bands
 from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, linear_to_srgb, load_stack
 from ptmcore.lp import write_lp
-from reconstruct.perspective import Intrinsics
-from reconstruct.sphere_reflection import Sphere, light_from_highlight
+from reconstruct.calibration.camera import Intrinsics
+from reconstruct.calibration.reflection import Sphere, light_from_highlight
 
 
 @dataclass
@@ -480,7 +480,7 @@ def calibration_camera(
     At most one of: ``intrinsics`` (an :class:`Intrinsics` or ``"fx,fy,cx,cy"`` in
     pixels), ``focal_mm`` with ``sensor_width_mm`` (square pixels, principal point at the
     image centre; :meth:`Intrinsics.from_focal`), or ``exif`` (read from ``photograph``'s
-    EXIF by :func:`reconstruct.perspective.intrinsics_from_exif`). None of them: None, the
+    EXIF by :func:`reconstruct.calibration.camera.intrinsics_from_exif`). None of them: None, the
     orthographic view.
 
     Parameters
@@ -502,7 +502,7 @@ def calibration_camera(
         Two descriptions at once, a focal length without a sensor width (or the reverse),
         non-positive or non-numeric values, or ``exif`` on a photograph without the tags.
     """
-    from reconstruct.perspective import intrinsics_from_exif, parse_intrinsics
+    from reconstruct.calibration.camera import intrinsics_from_exif, parse_intrinsics
 
     lens = focal_mm is not None or sensor_width_mm is not None
     if sum([intrinsics is not None, lens, bool(exif)]) > 1:
@@ -627,8 +627,8 @@ def calibrate(
     disagreement_tol_deg : float
         Angle between spheres' directions at which the confidence drops to 0.
     intrinsics : Intrinsics, optional
-        Pinhole camera (see :func:`reconstruct.perspective.intrinsics_from_exif` and
-        :meth:`~reconstruct.perspective.Intrinsics.from_focal`): the reflection then uses
+        Pinhole camera (see :func:`reconstruct.calibration.camera.intrinsics_from_exif` and
+        :meth:`~reconstruct.calibration.camera.Intrinsics.from_focal`): the reflection then uses
         each highlight's own view ray (:func:`light_from_highlight`). None: orthographic
         view, right for long lenses.
 

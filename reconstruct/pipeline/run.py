@@ -4,7 +4,7 @@
 ``.lp`` file, :func:`run_ptm` for an existing ``.ptm`` file. Each step is also a plain function
 that a notebook user can call alone (:func:`ptmcore.load_stack`, :func:`ptmcore.fit_ptm`,
 :func:`ptmcore.photometric_stereo`, :func:`ptmcore.ptmfile.fit_ptm_encoded`,
-:func:`reconstruct.integrate.integrate`, :func:`reconstruct.mesh.grid_mesh`, ...).
+:func:`reconstruct.surface.integrate.integrate`, :func:`reconstruct.mesh.grid.grid_mesh`, ...).
 
 Output folder layout (stable; later versions add files, never rename them)::
 
@@ -44,7 +44,7 @@ import ptmcore
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
-from ptmcore.images import LUMA_WEIGHTS, ImageStack, load_stack, read_image
+from ptmcore.images import LUMA_WEIGHTS, ImageStack, load_stack, read_image, write_png
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import (
@@ -67,18 +67,19 @@ from ptmcore.robust import (
 from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from ptmcore.solvers import analyse_lights
 
-from . import outputs
-from .accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
-from .flatten import flatten
-from .integrate import integrate
-from .mesh import grid_mesh, write_obj, write_ply
-from .meshops import decimate, solid, write_glb, write_stl
-from .normalmaps import read_normal_map, shaded
-from .perspective import integrate_perspective, parse_intrinsics
-from .profiling import StageTimer
-from .report_html import write_report_html
-from .segment import foreground_mask
-from .web import export_openlime
+from reconstruct.report import outputs
+from reconstruct.surface.accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
+from reconstruct.surface.flatten import flatten
+from reconstruct.surface.integrate import integrate
+from reconstruct.mesh.grid import grid_mesh, write_obj, write_ply
+from reconstruct.mesh.ops import decimate, solid, write_glb, write_stl
+from reconstruct.surface.normalmaps import read_normal_map, shaded
+from reconstruct.calibration.camera import parse_intrinsics
+from reconstruct.surface.perspective import integrate_perspective
+from reconstruct.pipeline.profiling import StageTimer
+from reconstruct.report.html import write_report_html
+from reconstruct.surface.segment import foreground_mask
+from reconstruct.report.web import export_openlime
 
 #: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
 NORMAL_METHODS = ("ps", "ptm", "ptm-debiased")
@@ -162,7 +163,7 @@ class RunOptions:
         photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
     mask : Path, "auto" or None
         Image whose non-zero pixels are the object, or ``"auto"`` to segment the object from
-        its albedo and normals (:func:`reconstruct.segment.foreground_mask`); height and mesh
+        its albedo and normals (:func:`reconstruct.surface.segment.foreground_mask`); height and mesh
         are restricted to it.
     threads : int or None
         Decoding threads (default: all CPUs).
@@ -175,7 +176,7 @@ class RunOptions:
         own light direction and inverse-square falloff. ``"auto"``: the file
         ``light_positions.csv`` beside the ``.lp`` when there is one, or, for a capture
         calibrated from two or more spheres, the lights triangulated from their highlights
-        when they are near (:func:`reconstruct.triangulate.lights_are_near`). ``"none"``:
+        when they are near (:func:`reconstruct.calibration.triangulate.lights_are_near`). ``"none"``:
         distant lights, one direction per photograph.
     """
 
@@ -267,8 +268,8 @@ def _calibrate_from_spheres(
     show them to be near (then every triangulated photograph is kept, even where the spheres'
     distant directions disagree, as they must for a near light).
     """
-    from .calibrate import calibration_camera
-    from .triangulate import sphere_lights
+    from reconstruct.calibration.calibrate import calibration_camera
+    from reconstruct.calibration.triangulate import sphere_lights
 
     camera = calibration_camera(stack.paths[0], stack.shape, intrinsics=opt.intrinsics)
     try:
@@ -482,18 +483,18 @@ def _surface_and_files(
         if opt.decimate is not None or opt.max_error is not None:
             mesh, decimation = decimate(mesh, target_faces=opt.decimate, max_error=opt.max_error)
     with stage("write"):
-        outputs.write_png(staging / "albedo.png", texture)
+        write_png(staging / "albedo.png", texture)
         jobs: dict[str, Callable[[], None]] = {
             # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
             # writes release it and proceed alongside.
             "mesh.obj": lambda: write_obj(staging / "mesh.obj", mesh, staging / "albedo.png"),
-            "normals.png": lambda: outputs.write_png(staging / "normals.png", outputs.normals_to_rgb16(normals)),
+            "normals.png": lambda: write_png(staging / "normals.png", outputs.normals_to_rgb16(normals)),
             "mesh.ply": lambda: write_ply(staging / "mesh.ply", mesh, texture_file="mesh_texture.png"),
             "normals.npy": lambda: outputs.write_npy(staging / "normals.npy", normals),
             "height.tif": lambda: outputs.write_height_tiff(staging / "height.tif", height, unit, opt.pixel_size),
         }
         if mask is not None:
-            jobs["mask.png"] = lambda: outputs.write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
+            jobs["mask.png"] = lambda: write_png(staging / "mask.png", mask.astype(np.uint8) * 255)
         if opt.glb:
             jobs["mesh.glb"] = lambda: write_glb(staging / "mesh.glb", mesh, texture)
         if opt.solid is not None:
@@ -947,7 +948,7 @@ def run_normals(
 ) -> RunResult:
     """Height map and meshes from a normal map made elsewhere (``reconstruct integrate``).
 
-    The map is read by :func:`reconstruct.normalmaps.read_normal_map`; pixels without a valid
+    The map is read by :func:`reconstruct.surface.normalmaps.read_normal_map`; pixels without a valid
     normal are outside the object unless a mask says otherwise. The texture is a grey shaded
     rendering of the normals. Parameters and output folder as :func:`run_capture`.
     """
@@ -1053,8 +1054,8 @@ def run_compare(
     render; skipped with a warning where the machine cannot render) and ``report.html``
     (with the reconstruction's own report when it is an output folder).
     """
-    from .compare import align, distances, load_geometry, within_tolerance
-    from .compare_report import (
+    from reconstruct.compare.align import align, distances, load_geometry, within_tolerance
+    from reconstruct.compare.figures import (
         default_limit,
         write_distance_ply,
         write_histogram,

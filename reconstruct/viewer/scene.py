@@ -4,7 +4,7 @@ A source (an output folder of ``reconstruct run``, a mesh file or a ``.ptm`` fil
 :class:`PreviewScene`: a display mesh small enough to turn smoothly (at most
 ``max_vertices`` vertices), and the data its view modes are made from, at a bounded texture
 resolution (at most ``max_texture`` pixels on the long side) so that relighting one frame
-stays fast enough to follow a slider. The window itself is in :mod:`reconstruct.preview`.
+stays fast enough to follow a slider. The window itself is in :mod:`reconstruct.viewer.preview`.
 
 View modes:
 
@@ -32,8 +32,8 @@ import numpy as np
 
 from ptmcore.errors import InputError
 from ptmcore.relight import display_srgb, light_direction, relight
-from reconstruct.mesh import grid_mesh
-from reconstruct.report_figures import (
+from reconstruct.mesh.grid import grid_mesh
+from reconstruct.report.figures import (
     display_pixel_size,
     linear_ptm,
     normal_colors,
@@ -131,7 +131,7 @@ class PreviewScene:
     @cached_property
     def _ray_scene(self):
         """Open3D's ray-casting structure (a BVH) of the display mesh, for profiles on mesh files."""
-        from reconstruct.meshops import _scene
+        from reconstruct.mesh.ops import _scene
 
         return _scene(self.vertices, self.faces)
 
@@ -298,7 +298,7 @@ def _lrgb(path: Path, max_texture: int) -> tuple[tuple[int, int], np.ndarray, np
     k the largest step that keeps at least the texture's resolution (the texture is then an
     area average of at most 2 × 2 samples per texel), so memory follows the texture, not the PTM."""
     from ptmcore.ptmfile import read_ptm
-    from reconstruct.relighting import as_lrgb
+    from reconstruct.viewer.relighting import as_lrgb
 
     ptm = read_ptm(path, max_side=2 * max_texture)
     return (ptm.height, ptm.width), *as_lrgb(ptm)
@@ -356,7 +356,7 @@ def _comparison(folder: Path, vertices: np.ndarray, spacing: float) -> tuple[np.
         except (KeyError, IndexError, TypeError, ValueError):
             limit = None
     if limit is None or not limit > 0:
-        from reconstruct.compare_report import default_limit
+        from reconstruct.compare.figures import default_limit
 
         limit = default_limit(d)
     return d, limit
@@ -476,8 +476,8 @@ def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:
     faces = np.asarray(mesh.faces, dtype=np.int64)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float32)
     if len(vertices) > max_vertices:
-        from reconstruct.mesh import GridMesh
-        from reconstruct.meshops import decimate
+        from reconstruct.mesh.grid import GridMesh
+        from reconstruct.mesh.ops import decimate
 
         full = GridMesh(vertices, faces, np.zeros((len(vertices), 2), np.float32),
                         colors if colors is not None else np.full((len(vertices), 3), 255, np.uint8), normals)

@@ -29,9 +29,9 @@ import numpy as np
 from PIL import Image
 
 from ptmcore.errors import InputError
-from reconstruct import textfmt
+from reconstruct.mesh import textfmt
 from ptmcore.atomic import atomic_write
-from reconstruct.outputs import encode_png
+from ptmcore.images import encode_png
 
 __all__ = ["GridMesh", "grid_mesh", "write_ply", "write_obj"]
 
@@ -371,7 +371,7 @@ def _write_lines(
     columns: Callable[[slice], list[textfmt.Column]],
 ) -> None:
     """Write `n_rows` lines, formatting chunks of rows in `pool` into the columns that
-    :func:`reconstruct.textfmt.join` concatenates, and writing them in order.
+    :func:`reconstruct.mesh.textfmt.join` concatenates, and writing them in order.
 
     At most :data:`_AHEAD` chunks are formatted or waiting, which bounds the memory.
     """
@@ -441,7 +441,7 @@ def write_obj(
 
     Numbers are written with six decimals, correctly rounded, without trailing zeros
     (``0.05``, ``-12.345678``, ``1``), never in exponent notation. The text is formatted
-    in parallel threads, a chunk of rows at a time (:mod:`reconstruct.textfmt`).
+    in parallel threads, a chunk of rows at a time (:mod:`reconstruct.mesh.textfmt`).
 
     Parameters
     ----------

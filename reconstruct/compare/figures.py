@@ -2,7 +2,7 @@
 
 The functions take plain arrays (vertices, faces, points, signed distances in mm and the
 statistics as a dict), so they do not depend on how the distances were computed
-(:mod:`reconstruct.compare`). All of them colour distances with the same diverging map,
+(:mod:`reconstruct.compare.align`). All of them colour distances with the same diverging map,
 :func:`diverging_colors`: blue for negative, white at 0, red for positive, clipped to
 ±limit, so the PLY, the histogram and the overlay read alike.
 
@@ -21,7 +21,7 @@ from PIL import Image, ImageDraw, ImageFont
 
 from ptmcore.atomic import atomic_write
 
-from . import rendering
+from reconstruct.report import rendering
 
 __all__ = [
     "DEFAULT_SIGN_CONVENTION",
@@ -58,7 +58,7 @@ _RDBU_T = np.linspace(-1.0, 1.0, len(_RDBU))
 NAN_COLOR = (150, 150, 150)
 
 #: Sign convention written into outputs unless the caller states its own.
-#: It is :mod:`reconstruct.compare`'s, for distances of scan points and reverse distances.
+#: It is :mod:`reconstruct.compare.align`'s, for distances of scan points and reverse distances.
 DEFAULT_SIGN_CONVENTION = (
     "d > 0: the scan lies on the camera side of the reconstruction (where its normals point)"
 )
@@ -351,7 +351,7 @@ def write_histogram(
     stats : mapping of str to float
         Statistics to print. Recognised keys: ``mean``, ``std``, ``rms``, ``median_abs``,
         ``p95_abs``, ``max_abs`` (in `unit`), ``overlap`` or ``overlap_fraction`` (fraction
-        0–1 in the overlap, as :mod:`reconstruct.compare` reports it), ``count``,
+        0–1 in the overlap, as :mod:`reconstruct.compare.align` reports it), ``count``,
         ``within_tolerance`` (fraction 0–1). Other keys are ignored. Missing ones are
         computed from `distances` where possible; ``overlap`` is shown as "n/a" when absent.
     tolerance : float, optional
@@ -466,7 +466,7 @@ def write_histogram(
     for key, label in _STAT_LABELS:
         if key in summary:
             lines.append((label, f"{summary[key]:.4g} {unit}"))
-    # reconstruct.compare names it overlap_fraction.
+    # reconstruct.compare.align names it overlap_fraction.
     overlap = summary.get("overlap", summary.get("overlap_fraction"))
     lines.append(("overlap", "n/a" if overlap is None else f"{100 * overlap:.1f} %"))
     lines.append(("count", f"{int(summary['count']):,}"))

@@ -19,8 +19,8 @@ import numpy as np
 from ptmcore.images import linear_to_srgb, srgb_to_linear
 from ptmcore.relight import light_direction
 
-from . import rendering
-from .outputs import encode_png
+from reconstruct.report import rendering
+from ptmcore.images import encode_png
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
@@ -91,7 +91,7 @@ def linear_ptm(report: dict | None) -> bool:
 
 
 def encode(image: np.ndarray, fmt: str = "PNG", quality: int = 85) -> bytes:
-    """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`reconstruct.outputs.encode_png`)
+    """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`ptmcore.images.encode_png`)
     or ``"JPEG"`` bytes."""
     from PIL import Image
 
@@ -308,7 +308,7 @@ def ply_face_count(path: str | os.PathLike) -> int | None:
 
 def surface_from_height(height: np.ndarray, stride: int, pixel_size: float | None) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and faces of the grid mesh of a strided height map, in the full mesh's frame."""
-    from .mesh import grid_mesh
+    from reconstruct.mesh.grid import grid_mesh
 
     mesh = grid_mesh(height, pixel_size=(pixel_size or 1.0) * stride)
     return mesh.vertices, mesh.faces

@@ -1,0 +1,5 @@
+"""``python -m reconstruct``: the ``reconstruct`` command."""
+
+from reconstruct.cli.main import main
+
+raise SystemExit(main())
