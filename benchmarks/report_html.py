@@ -29,7 +29,8 @@ sys.path.insert(0, str(ROOT))
 
 from ptmcore.images import write_png
 from reconstruct.report import outputs
-from reconstruct.mesh.grid import grid_mesh, write_ply
+from reconstruct.mesh.grid import grid_mesh
+from reconstruct.mesh.ply import write_ply
 from reconstruct.pipeline.run import auto_step
 
 _MEASURE = """

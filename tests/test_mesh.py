@@ -10,9 +10,11 @@ import trimesh
 from PIL import Image
 
 from ptmcore.errors import InputError
-from reconstruct.mesh import grid as mesh_module
+from reconstruct.mesh import obj as obj_module
 from ptmcore.atomic import atomic_write
-from reconstruct.mesh.grid import GridMesh, grid_mesh, write_obj, write_ply
+from reconstruct.mesh.grid import GridMesh, grid_mesh
+from reconstruct.mesh.obj import write_obj
+from reconstruct.mesh.ply import write_ply
 
 H, W = 6, 8
 RED, BLUE = (255, 0, 0), (0, 0, 255)
@@ -350,9 +352,9 @@ def test_obj_text_matches_python_formatting(tmp_path, monkeypatch):
     write_obj(tmp_path / "one.obj", mesh, texture)
     assert (tmp_path / "one.obj").read_bytes() == _expected_obj(mesh, "one")
     # Many small chunks formatted by several threads give the same bytes.
-    monkeypatch.setattr(mesh_module, "_TEXT_CHUNK", 1000)
-    monkeypatch.setattr(mesh_module, "_WORKERS", 3)
-    monkeypatch.setattr(mesh_module, "_AHEAD", 4)
+    monkeypatch.setattr(obj_module, "_TEXT_CHUNK", 1000)
+    monkeypatch.setattr(obj_module, "_WORKERS", 3)
+    monkeypatch.setattr(obj_module, "_AHEAD", 4)
     write_obj(tmp_path / "one.obj", mesh, texture)
     assert (tmp_path / "one.obj").read_bytes() == _expected_obj(mesh, "one")
     # Without a texture: vertex colours, no material.
@@ -363,7 +365,7 @@ def test_obj_text_matches_python_formatting(tmp_path, monkeypatch):
 
 def test_obj_faces_in_any_order(tmp_path, monkeypatch):
     # Chunks of shuffled faces use vertices far apart, unlike a grid's rows.
-    monkeypatch.setattr(mesh_module, "_TEXT_CHUNK", 7)
+    monkeypatch.setattr(obj_module, "_TEXT_CHUNK", 7)
     mesh = grid_mesh(_height(), texture=_texture())
     mesh.faces = mesh.faces[np.random.default_rng(0).permutation(len(mesh.faces))]
     write_obj(tmp_path / "m.obj", mesh, _texture())

@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
-from reconstruct.mesh.grid import grid_mesh, write_obj, write_ply
+from reconstruct.mesh.grid import grid_mesh
+from reconstruct.mesh.obj import write_obj
+from reconstruct.mesh.ply import write_ply
 
 pymeshlab = pytest.importorskip("pymeshlab")
 

@@ -71,7 +71,9 @@ from reconstruct.report import outputs
 from reconstruct.surface.accuracy import GroundTruth, height_rmse, load_ground_truth, normal_accuracy
 from reconstruct.surface.flatten import flatten
 from reconstruct.surface.integrate import integrate
-from reconstruct.mesh.grid import grid_mesh, write_obj, write_ply
+from reconstruct.mesh.grid import grid_mesh
+from reconstruct.mesh.obj import write_obj
+from reconstruct.mesh.ply import write_ply
 from reconstruct.mesh.ops import decimate, solid, write_glb, write_stl
 from reconstruct.surface.normalmaps import read_normal_map, shaded
 from reconstruct.calibration.camera import parse_intrinsics
