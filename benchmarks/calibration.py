@@ -6,7 +6,7 @@ JPEG, the background's brightness, tint and texture, 0–2 photographs with hidd
 and for every fourth capture a pinhole camera (focal length 0.7–1.3 × the image width, a
 wide to normal lens) instead of the orthographic view.
 
-Measured, with no hints (spheres detected by :func:`reconstruct.calibration.calibrate.detect_spheres`):
+Measured, with no hints (spheres detected by :func:`reconstruct.calibration.spheres.detect_spheres`):
 
 - detection: a capture is detected when every sphere is found (centre within 2 px of the
   true outline's centre, radius within 2 % of its mean radius) and nothing else is;

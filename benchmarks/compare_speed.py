@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_synthetic.scan import sample_scan  # noqa: E402
 from data_synthetic.surfaces import SCENES  # noqa: E402
-from reconstruct.compare.align import Geometry, align, distances  # noqa: E402
+from reconstruct.compare import Geometry, align, distances  # noqa: E402
 from reconstruct.mesh.grid import grid_mesh  # noqa: E402
 from reconstruct.pipeline.profiling import StageTimer  # noqa: E402
 

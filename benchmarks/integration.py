@@ -27,7 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from reconstruct.surface.integrate import (  # noqa: E402
+from reconstruct.surface import (  # noqa: E402
     discontinuity_preserving,
     frankot_chellappa,
     masked_poisson,

@@ -8,8 +8,8 @@
    scene the table gives the mean and median angular error inside the tablet's mask of:
 
    * PTM maximum: :func:`ptmcore.normals.normals_from_ptm` of the plain fit
-     (:func:`ptmcore.fit.fit_ptm`) and of the robust fit (:func:`ptmcore.robust.robust_ptm`);
-   * PTM debiased: :func:`ptmcore.robust.debiased_normals` of the plain fit (with the lights'
+     (:func:`ptmcore.fit.fit_ptm`) and of the robust fit (:func:`ptmcore.robustptm.robust_ptm`);
+   * PTM debiased: :func:`ptmcore.robustptm.debiased_normals` of the plain fit (with the lights'
      hemisphere PTM) and of the robust fit (with its per-pixel hemisphere);
    * photometric stereo: plain (:func:`ptmcore.normals.photometric_stereo`) and robust
      (:func:`ptmcore.robust.robust_photometric_stereo`);
@@ -49,12 +49,8 @@ from data_synthetic.lights import dome_lights, ring_lights  # noqa: E402
 from data_synthetic.render import render  # noqa: E402
 from data_synthetic.sphere import sphere_cap  # noqa: E402
 from ptmcore.images import LUMA_WEIGHTS, SATURATED, ImageStack  # noqa: E402
-from ptmcore.robust import (  # noqa: E402
-    debiased_normals,
-    hemisphere_coefficients,
-    robust_photometric_stereo,
-    robust_ptm,
-)
+from ptmcore.robust import robust_photometric_stereo  # noqa: E402
+from ptmcore.robustptm import debiased_normals, hemisphere_coefficients, robust_ptm  # noqa: E402
 from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
 
 #: The scenes: write_capture options (lights= is filled in for the ring).

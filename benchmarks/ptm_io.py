@@ -30,7 +30,8 @@ from data_synthetic import write_capture  # noqa: E402
 from ptmcore.fit import light_matrix  # noqa: E402
 from ptmcore.images import read_image  # noqa: E402
 from ptmcore.lp import read_lp  # noqa: E402
-from ptmcore.ptmfile import fit_ptm_encoded, fit_ptm_rgb_encoded, read_ptm, write_ptm  # noqa: E402
+from ptmcore.ptmencoded import fit_ptm_encoded, fit_ptm_rgb_encoded  # noqa: E402
+from ptmcore.ptmfile import read_ptm, write_ptm  # noqa: E402
 
 
 def _rmse(a: np.ndarray, b: np.ndarray) -> float:

@@ -31,21 +31,22 @@ from ptmcore.images import write_png
 from reconstruct.report import outputs
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.mesh.ply import write_ply
-from reconstruct.pipeline.run import auto_step
+from reconstruct.pipeline.stages import auto_step
 
 _MEASURE = """
 import json, sys, time
 sys.path.insert(0, {root!r})
-from reconstruct.pipeline.profiling import peak_rss_mb, _reset_peak_rss
-from reconstruct import report_html, report_figures
+from reconstruct.pipeline.profiling import StageTimer, current_rss_mb
+from reconstruct.report import html as report_html
 import matplotlib.figure, pyvista  # the imports' memory is not the report's
 import numpy as np
 photos = json.loads({photos!r})
-_reset_peak_rss()
-base = peak_rss_mb()
+base = current_rss_mb()
+timer = StageTimer()
 t0 = time.perf_counter()
-report_html.write_report_html({folder!r}, photographs=[(p, np.array(d)) for p, d in photos])
-print(json.dumps({{"seconds": time.perf_counter() - t0, "peak_rss_mb_above_imports": peak_rss_mb() - base}}))
+with timer.stage("report"):  # resident memory sampled every 20 ms while the page is made
+    report_html.write_report_html({folder!r}, photographs=[(p, np.array(d)) for p, d in photos])
+print(json.dumps({{"seconds": time.perf_counter() - t0, "peak_rss_mb_above_imports": timer.stages["report"]["peak_rss_mb"] - base}}))
 """
 
 

@@ -120,6 +120,87 @@ def _shade(normals: np.ndarray, points: np.ndarray, light: np.ndarray, d0: float
     return np.einsum("...c,...c->...", normals, l), d0 * d0 / dist2, l
 
 
+def _checked_arguments(shape, n_lights: int, encoding: str, distance, pixel_size
+                       ) -> tuple[int, int, float, float, float]:
+    """Validate :func:`render_nearlight_capture`'s arguments.
+
+    Returns
+    -------
+    tuple
+        ``(h, w, lo, hi, s)``: the image size, the distance range in image widths and the
+        pixel size in mm.
+    """
+    try:
+        h, w = (int(v) for v in shape)
+    except (TypeError, ValueError):
+        raise InputError(f"shape must be (height, width), got {shape!r}") from None
+    if h < 32 or w < 32:
+        raise InputError(f"images must be at least 32×32 pixels, got {h}×{w}")
+    if n_lights < 3:
+        raise InputError(f"need at least 3 lights, got {n_lights}")
+    if encoding not in ("png", "tiff16"):
+        raise InputError(f"unknown encoding {encoding!r}; choose png or tiff16")
+    lo, hi = (float(v) for v in distance)
+    if not (np.isfinite([lo, hi]).all() and 0 < lo <= hi):
+        raise InputError(f"distance must be (lo, hi) image widths with 0 < lo ≤ hi, got {distance!r}")
+    s = REFERENCE_FOV_MM / max(h, w) if pixel_size is None else float(pixel_size)
+    if not (np.isfinite(s) and s > 0):
+        raise InputError(f"pixel_size must be a positive number of mm, got {pixel_size!r}")
+    return h, w, lo, hi, s
+
+
+def _sphere_patch(sphere: tuple[float, float, float]) -> tuple:
+    """Sub-samples of a sphere's bounding box: which of them fall on the sphere, and the
+    sphere's normal and 3D point there.
+
+    Returns
+    -------
+    tuple
+        ``(r0, r1, c0, c1, inside, normals, points)``: the box's pixel rows and columns, the
+        ``(ss·(r1 − r0), ss·(c1 − c0))`` bool sub-samples on the disc, and ``(n, 3)`` unit
+        normals and points (pixels) at those.
+    """
+    cx, cy, r = sphere
+    ss = _SUPERSAMPLE
+    sub = (np.arange(ss) + 0.5) / ss - 0.5
+    r0, r1 = int(np.floor(cy - r)) - 1, int(np.ceil(cy + r)) + 2
+    c0, c1 = int(np.floor(cx - r)) - 1, int(np.ceil(cx + r)) + 2
+    ys = (np.arange(r0, r1)[:, None] + sub).ravel()
+    xs = (np.arange(c0, c1)[:, None] + sub).ravel()
+    normals_s = sphere_normal_at(xs[None, :], ys[:, None], (cx, cy, r))
+    inside = normals_s[..., 2] > 0  # off the disc the normal is clamped to the limb
+    n_s = normals_s[inside]
+    x_s = np.array([cx, -cy, r]) + r * n_s
+    return r0, r1, c0, c1, inside, n_s, x_s
+
+
+def _paint_sphere(img: np.ndarray, patch: tuple, light: np.ndarray, d0: float,
+                  shininess: float, specular: float, sphere_albedo: float) -> None:
+    """Shade a sphere's sub-samples (a :func:`_sphere_patch`) under the point light and
+    average them, with the image's own pixels elsewhere, into `img` in place."""
+    r0, r1, c0, c1, inside, n_s, x_s = patch
+    ss = _SUPERSAMPLE
+    ndotl, irr_s, l_s = _shade(n_s, x_s, light, d0)
+    # Phong: r·v with v = +z is the z component of the mirror direction 2(n·l)n − l.
+    rdotv = np.clip(2.0 * ndotl * n_s[:, 2] - l_s[:, 2], 0.0, None)
+    rad = irr_s * (sphere_albedo * np.clip(ndotl, 0.0, None)
+                   + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0))
+    fine = np.repeat(np.repeat(img[r0:r1, c0:c1], ss, 0), ss, 1)
+    fine[inside] = rad[:, None]
+    img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
+
+
+def _relief_mask(shape: tuple[int, int], spheres) -> np.ndarray:
+    """The object, as a bool image: the relief without the sphere discs (and their
+    anti-aliased limbs)."""
+    h, w = shape
+    mask = np.ones((h, w), dtype=bool)
+    yy, xx = np.ogrid[0:h, 0:w]
+    for cx, cy, r in spheres:
+        mask &= np.hypot(xx - cx, yy - cy) > r + 2.0
+    return mask
+
+
 def render_nearlight_capture(
     out_dir: str | os.PathLike,
     *,
@@ -172,22 +253,7 @@ def render_nearlight_capture(
     -------
     NearLightCaptureInfo
     """
-    try:
-        h, w = (int(v) for v in shape)
-    except (TypeError, ValueError):
-        raise InputError(f"shape must be (height, width), got {shape!r}") from None
-    if h < 32 or w < 32:
-        raise InputError(f"images must be at least 32×32 pixels, got {h}×{w}")
-    if n_lights < 3:
-        raise InputError(f"need at least 3 lights, got {n_lights}")
-    if encoding not in ("png", "tiff16"):
-        raise InputError(f"unknown encoding {encoding!r}; choose png or tiff16")
-    lo, hi = (float(v) for v in distance)
-    if not (np.isfinite([lo, hi]).all() and 0 < lo <= hi):
-        raise InputError(f"distance must be (lo, hi) image widths with 0 < lo ≤ hi, got {distance!r}")
-    s = REFERENCE_FOV_MM / max(h, w) if pixel_size is None else float(pixel_size)
-    if not (np.isfinite(s) and s > 0):
-        raise InputError(f"pixel_size must be a positive number of mm, got {pixel_size!r}")
+    h, w, lo, hi, s = _checked_arguments(shape, n_lights, encoding, distance, pixel_size)
     sph = check_spheres(default_spheres((h, w)) if spheres is None else spheres, (h, w))
 
     out = Path(out_dir)
@@ -210,21 +276,7 @@ def render_nearlight_capture(
     rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
     points = np.stack([cols, -rows, height], axis=-1)
 
-    # Sub-samples of each sphere's bounding box: their image coordinates, which of them fall
-    # on the sphere, and the sphere's normal and 3D point there.
-    ss = _SUPERSAMPLE
-    sub = (np.arange(ss) + 0.5) / ss - 0.5
-    patches = []
-    for cx, cy, r in sph:
-        r0, r1 = int(np.floor(cy - r)) - 1, int(np.ceil(cy + r)) + 2
-        c0, c1 = int(np.floor(cx - r)) - 1, int(np.ceil(cx + r)) + 2
-        ys = (np.arange(r0, r1)[:, None] + sub).ravel()
-        xs = (np.arange(c0, c1)[:, None] + sub).ravel()
-        normals_s = sphere_normal_at(xs[None, :], ys[:, None], (cx, cy, r))
-        inside = normals_s[..., 2] > 0  # off the disc the normal is clamped to the limb
-        n_s = normals_s[inside]
-        x_s = np.array([cx, -cy, r]) + r * n_s
-        patches.append((r0, r1, c0, c1, inside, n_s, x_s))
+    patches = [_sphere_patch(sphere) for sphere in sph]
 
     noise_rng = np.random.default_rng((_STREAM, seed, 1))
     paths = []
@@ -232,15 +284,8 @@ def render_nearlight_capture(
     for k, light in enumerate(positions):
         cosine, irradiance, _ = _shade(normals, points, light, d0)
         img = albedo * (np.clip(cosine, 0.0, None) * irradiance)[..., None]
-        for r0, r1, c0, c1, inside, n_s, x_s in patches:
-            ndotl, irr_s, l_s = _shade(n_s, x_s, light, d0)
-            # Phong: r·v with v = +z is the z component of the mirror direction 2(n·l)n − l.
-            rdotv = np.clip(2.0 * ndotl * n_s[:, 2] - l_s[:, 2], 0.0, None)
-            rad = irr_s * (sphere_albedo * np.clip(ndotl, 0.0, None)
-                           + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0))
-            fine = np.repeat(np.repeat(img[r0:r1, c0:c1], ss, 0), ss, 1)
-            fine[inside] = rad[:, None]
-            img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
+        for patch in patches:
+            _paint_sphere(img, patch, light, d0, shininess, specular, sphere_albedo)
         img += noise_rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
         if encoding == "png":
@@ -255,15 +300,10 @@ def render_nearlight_capture(
     positions_csv = out / "light_positions_truth.csv"
     write_light_positions(positions_csv, names, positions)
 
-    # The object is the relief; sphere discs (and their anti-aliased limbs) are not.
-    mask = np.ones((h, w), dtype=bool)
-    yy, xx = np.ogrid[0:h, 0:w]
-    for cx, cy, r in sph:
-        mask &= np.hypot(xx - cx, yy - cy) > r + 2.0
     write_npy(gt_dir / "normals.npy", normals.astype(np.float32))
     write_npy(gt_dir / "height.npy", (height * s).astype(np.float32))
     write_npy(gt_dir / "albedo.npy", albedo.astype(np.float32))
-    write_mask_png(gt_dir / "mask.png", mask)
+    write_mask_png(gt_dir / "mask.png", _relief_mask((h, w), sph))
     description = {
         "scene": "nearlight",
         "shape": [h, w],

@@ -6,8 +6,9 @@ import os
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
-from ptmcore.atomic import atomic_write
+from reconstruct.mesh.ply import write_binary_ply
 from .surface import Surface
 
 # Keeps the random streams of different modules apart for the same user seed.
@@ -38,8 +39,7 @@ def random_rigid_transform(
     axis = rng.standard_normal(3)
     axis /= np.linalg.norm(axis)
     angle = np.deg2rad(rng.uniform(*angle_range_deg))
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    rotation = np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * (k @ k)  # Rodrigues
+    rotation = Rotation.from_rotvec(angle * axis).as_matrix()
     direction = rng.standard_normal(3)
     direction /= np.linalg.norm(direction)
     transform = np.eye(4)
@@ -125,12 +125,6 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, comment: str = "") ->
     comment : str
         One line stored as a PLY comment.
     """
-    points = np.ascontiguousarray(points, dtype="<f4").reshape(-1, 3)
-    header = ["ply", "format binary_little_endian 1.0"]
-    if comment:
-        header.append(f"comment {comment}")
-    header += [f"element vertex {len(points)}", "property float x", "property float y",
-               "property float z", "end_header", ""]
-    with atomic_write(path) as fh:
-        fh.write("\n".join(header).encode("ascii"))
-        fh.write(points.tobytes())
+    points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    comments = [comment] if comment else []
+    write_binary_ply(path, dict(zip(("x", "y", "z"), points.T)), comments=comments)

@@ -141,6 +141,54 @@ def _sphere_patch(box, spheres, camera: Intrinsics | None, centres: np.ndarray |
     return r0, r1, c0, c1, on_sphere, n_sph, -rays[on_sphere]
 
 
+def _pinhole_scene(spheres, focal_px: float, shape: tuple[int, int]
+                   ) -> tuple[Intrinsics, np.ndarray, tuple]:
+    """The pinhole camera (principal point at the image centre), the spheres' centres in its
+    frame for unit radii, and their outline ellipses, checking that each outline fits.
+
+    Sphere (cx, cy, r) has its centre on the ray through pixel (cx, cy), at the depth where
+    a unit radius looks r pixels long.
+    """
+    h, w = shape
+    if not (np.isfinite(focal_px) and focal_px > 0):
+        raise InputError(f"focal_px must be a positive number of pixels, got {focal_px!r}")
+    camera = Intrinsics(float(focal_px), float(focal_px), (w - 1) / 2.0, (h - 1) / 2.0)
+    centres = np.array([[(cx - camera.cx) / r, -(cy - camera.cy) / r, -focal_px / r]
+                        for cx, cy, r in spheres])
+    outlines = tuple(_pinhole_outline(c, float(focal_px), (camera.cx, camera.cy))
+                     for c in centres)
+    for (cx, cy, r), box in zip(spheres, _outline_boxes(outlines)):
+        if box[0] < 1 or box[1] < 1 or box[2] > w - 2 or box[3] > h - 2:
+            raise InputError(f"sphere {(cx, cy, r)!r} seen through a {focal_px}-pixel "
+                             f"lens does not fit inside a {h}×{w} image")
+    return camera, centres, outlines
+
+
+def _paint_spheres(img: np.ndarray, background: np.ndarray, patch: tuple, light: np.ndarray,
+                   highlight: bool, shininess: float, specular: float,
+                   sphere_albedo: float) -> None:
+    """Shade the sub-samples of a :func:`_sphere_patch` under a distant light and average
+    them into `img` in place; sub-samples off the spheres see the `background`.
+
+    Boxes may overlap: each box starts again from the background and covers every sphere
+    within it. Without `highlight` (an occluded flash) the spheres get no specular lobe.
+    """
+    r0, r1, c0, c1, on_sphere, n_sph, view = patch
+    ss = _SUPERSAMPLE
+    ndotl = n_sph @ light
+    sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
+    if highlight:
+        # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
+        if view is None:
+            rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
+        else:
+            rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light, 0, None)
+        sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
+    fine = np.repeat(np.repeat(background[r0:r1, c0:c1], ss, 0), ss, 1)
+    fine[on_sphere] = sphere_rad[:, None]
+    img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
+
+
 def check_spheres(spheres, shape: tuple[int, int]) -> tuple[tuple[float, float, float], ...]:
     """Validate the sphere list against the image size."""
     h, w = shape
@@ -242,17 +290,7 @@ def render_sphere_capture(
     sph = check_spheres(spheres, (h, w))
     camera, centres, outlines = None, None, tuple((cx, cy, r, r, 0.0) for cx, cy, r in sph)
     if focal_px is not None:
-        if not (np.isfinite(focal_px) and focal_px > 0):
-            raise InputError(f"focal_px must be a positive number of pixels, got {focal_px!r}")
-        camera = Intrinsics(float(focal_px), float(focal_px), (w - 1) / 2.0, (h - 1) / 2.0)
-        centres = np.array([[(cx - camera.cx) / r, -(cy - camera.cy) / r, -focal_px / r]
-                            for cx, cy, r in sph])
-        outlines = tuple(_pinhole_outline(c, float(focal_px), (camera.cx, camera.cy))
-                         for c in centres)
-        for (cx, cy, r), box in zip(sph, _outline_boxes(outlines)):
-            if box[0] < 1 or box[1] < 1 or box[2] > w - 2 or box[3] > h - 2:
-                raise InputError(f"sphere {(cx, cy, r)!r} seen through a {focal_px}-pixel "
-                                 f"lens does not fit inside a {h}×{w} image")
+        camera, centres, outlines = _pinhole_scene(sph, focal_px, (h, w))
     hidden = tuple(sorted({int(k) for k in hidden}))
     if any(k < 0 or k >= n_lights for k in hidden):
         raise InputError(f"hidden photographs must be in 0..{n_lights - 1}, got {hidden}")
@@ -283,26 +321,12 @@ def render_sphere_capture(
 
     paths = []
     ext = ".png" if encoding == "png" else ".jpg"
-    ss = _SUPERSAMPLE
     for k, light in enumerate(lights):
         background = bg_albedo * np.clip(bg_normals @ light, 0, None)[..., None]
         img = background.copy()
-        for r0, r1, c0, c1, on_sphere, n_sph, view in patches:
-            ndotl = n_sph @ light
-            sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
-            if k not in hidden:
-                # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
-                if view is None:
-                    rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
-                else:
-                    rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light,
-                                    0, None)
-                sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
-            # Sub-samples off the spheres see the background (boxes may overlap: each box
-            # starts again from the background and covers every sphere within it).
-            fine = np.repeat(np.repeat(background[r0:r1, c0:c1], ss, 0), ss, 1)
-            fine[on_sphere] = sphere_rad[:, None]
-            img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
+        for patch in patches:
+            _paint_spheres(img, background, patch, light, k not in hidden,
+                           shininess, specular, sphere_albedo)
         img += rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
         if encoding == "png":

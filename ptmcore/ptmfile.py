@@ -1,4 +1,4 @@
-"""HP Polynomial Texture Map (``.ptm``) files: reading, writing, and HP's own LRGB fit.
+"""HP Polynomial Texture Map (``.ptm``) files: reading and writing, with HP's quantisation.
 
 File layout (Malzbender & Gelb, *Polynomial Texture Map (.ptm) File Format*, HP Labs, version
 1.2, 2001), as HP's PTMfitter writes it and RTIViewer reads it::
@@ -27,18 +27,9 @@ Payloads:
   luminance polynomial L is in units of about 0..255.
 * ``PTM_FORMAT_RGB``: three blocks (R, G, B) of W·H·6 bytes, one shared set of scales and biases;
   each channel's polynomial gives that channel's value directly.
-* ``PTM_FORMAT_JPEG_LRGB`` / ``PTM_FORMAT_JPEG_RGB``: after the bias line, a line with the JPEG
-  quality, then seven lines of one integer per plane (9 planes for LRGB: a0..a5, R, G, B; 18 for
-  RGB: a0..a5 of R, then of G, then of B, the order of the uncompressed blocks and of Perathoner's
-  ptmlib; no file from HP's own JPEG-RGB writer was at hand to confirm it): transform, motion
-  vector x, motion vector y, decoding order, reference plane, compressed size, side-information
-  size. The payload holds, plane by plane in plane order, a grayscale JPEG stream (rows bottom
-  first, like the raw formats) followed by its side information. Planes are decoded in increasing ``order``; a plane with a reference
-  plane r ≥ 0 stores a residual, and its value is ``(residual + ref − 128) mod 256`` where ``ref``
-  is plane r after its own decoding, or ``255 − ref`` when bit 0 of the transform (plane
-  inversion) is set. Side information then overwrites single bytes: 5-byte records, a 4-byte
-  big-endian offset into the plane (in file order) and the value. Bit 1 of the transform (motion
-  compensation) is not supported by RTIViewer or any public reader and is refused here.
+* ``PTM_FORMAT_JPEG_LRGB`` / ``PTM_FORMAT_JPEG_RGB``: the same planes, each compressed as a
+  grayscale JPEG, with a table of the planes after the bias line (read only; see
+  :mod:`ptmcore.ptmjpeg`).
 
 HP's quantisation (reproduces PTMfitter's header on the shared fixture): per coefficient over the
 whole image (and over the three channels for the RGB format), with ``max − min = m · 2^e``
@@ -46,33 +37,16 @@ whole image (and over the three channels for the RGB format), with ``max − min
 scale while ``bias > 255``; otherwise ``bias = 0`` and the scale doubles while
 ``max/scale > 255``. A value is stored as ``floor(v/scale + bias + 0.5)`` clamped to 0..255.
 
-PTMfitter's LRGB fit (worked out from ``shared/fixtures/ptmfitter_8x5``, whose 12 photographs
-and PTMfitter output are reproduced **byte for byte** by :func:`fit_ptm_encoded` followed by
-:func:`write_ptm`): it fits the photographs' own 8-bit values, not linear light.
-
-* The luminance of a photograph is the luma ``0.2125 R + 0.7154 G + 0.0721 B`` of its bytes (the
-  Rec. 709 weights as they were quoted around 2000; the current 0.2126/0.7152/0.0722 misses one
-  of the 240 coefficient bytes, by 0.005 of a step; Rec. 601 weights or the mean of R, G, B miss
-  most of them). In a grid search (steps of 0.0005) only weights next to these reproduce every
-  byte, but that rests on a handful of bytes close to a rounding boundary in one small fixture.
-* Per pixel, that luminance is normalised so that the pixel's brightest photograph has L = 255:
-  ``L_n = 255 · Y_n / max_n Y_n``; the polynomial is the least-squares (pseudoinverse) fit of L_n.
-* The pixel's colour in the RGB block is the least-squares solution of ``C_n ≈ rgb · L_n / 255``
-  over the photographs, ``rgb = max_n Y_n · Σ C_n Y_n / Σ Y_n²``, truncated (not rounded) to an
-  integer. (Fitting against the polynomial's values instead of the observed L_n gives the same
-  bytes on the fixture; the mean colour times the peak luminance, or the colour of the brightest
-  photograph, do not.)
+PTMfitter's own fit of the photographs, which :func:`write_ptm` turns into its file byte for
+byte, is :func:`ptmcore.ptmencoded.fit_ptm_encoded`.
 """
 
 from __future__ import annotations
 
-import io
-import itertools
 import math
 import mmap
 import os
-import re
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,19 +54,16 @@ import numpy as np
 
 from .atomic import atomic_write
 from .errors import InputError, read_input_file
-from .fit import fit_matrix, light_matrix
-from .lp import as_directions
-from .streaming import accumulate_photographs, fit_channels
+from .fit import light_matrix
+from .ptmheader import HeaderCursor
+from .ptmjpeg import read_jpeg_planes
 
 __all__ = [
     "FORMAT_JPEG_LRGB",
     "FORMAT_JPEG_RGB",
     "FORMAT_LRGB",
     "FORMAT_RGB",
-    "HP_LUMA_WEIGHTS",
     "PTMFile",
-    "fit_ptm_encoded",
-    "fit_ptm_rgb_encoded",
     "quantization_parameters",
     "quantize",
     "read_ptm",
@@ -111,19 +82,6 @@ VERSION = "PTM_1.2"
 #: Versions whose LRGB payload interleaves a0..a5 R G B per pixel (RTIViewer knows PTM_1.1;
 #: relight treats every version other than 1.2 so).
 _INTERLEAVED_VERSIONS = ("PTM_1.0", "PTM_1.1")
-
-#: Luma weights HP's PTMfitter applies to the photographs' R, G, B bytes (see the module notes).
-HP_LUMA_WEIGHTS = np.array([0.2125, 0.7154, 0.0721])
-
-_HEADER_TOKEN_MAX = 40  # longer "numbers" in a header are garbage, not data
-_INT_RE = re.compile(rb"[+-]?[0-9]+")
-_FLOAT_RE = re.compile(rb"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
-_WHITESPACE = b" \t\r\n"
-#: Largest plausible decompressed/compressed size ratio of one JPEG plane. A baseline JPEG needs
-#: at least ~2 bits per 8×8 block (a DC code and an end-of-block code), i.e. a ratio of 256 at
-#: most; the slack leaves room for arithmetic coding while still refusing, before anything is
-#: allocated, a header that claims a gigapixel plane for a few bytes.
-_JPEG_MAX_RATIO = 1024
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,72 +186,6 @@ class PTMFile:
 # Reading
 
 
-class _Cursor:
-    """Reads the text header of a PTM held in memory, refusing anything malformed."""
-
-    def __init__(self, data: bytes, path: Path) -> None:
-        self.data = data
-        self.pos = 0
-        self.path = path
-
-    def fail(self, problem: str) -> InputError:
-        return InputError(problem, self.path)
-
-    def line(self, what: str) -> str:
-        end = self.data.find(b"\n", self.pos, self.pos + 256)
-        if end < 0:
-            raise self.fail(f"not a PTM file: no {what} line")
-        raw = self.data[self.pos : end].strip(_WHITESPACE)
-        self.pos = end + 1
-        try:
-            return raw.decode("ascii")
-        except UnicodeDecodeError:
-            raise self.fail(f"not a PTM file: the {what} line is not text") from None
-
-    def token(self, what: str) -> bytes:
-        data, n = self.data, len(self.data)
-        i = self.pos
-        while i < n and data[i] in _WHITESPACE:
-            i += 1
-        j = i
-        while j < n and data[j] not in _WHITESPACE and j - i <= _HEADER_TOKEN_MAX:
-            j += 1
-        if i == j:
-            raise self.fail(f"header ends before the {what}")
-        if j - i > _HEADER_TOKEN_MAX:
-            raise self.fail(f"the {what} hold something too long to be a number")
-        self.pos = j
-        return data[i:j]
-
-    def _numbers(self, count: int, what: str, pattern: re.Pattern, convert: Callable, kind: str) -> list:
-        values = []
-        for k in range(count):
-            tok = self.token(what)
-            if not pattern.fullmatch(tok):
-                shown = tok.decode("ascii", "backslashreplace")
-                raise self.fail(f"the {what} must be {kind}; value {k + 1} is {shown!r}")
-            values.append(convert(tok))
-        return values
-
-    def ints(self, count: int, what: str) -> list[int]:
-        return self._numbers(count, what, _INT_RE, int, "integers")
-
-    def floats(self, count: int, what: str) -> list[float]:
-        return self._numbers(count, what, _FLOAT_RE, float, "numbers")
-
-    def end_header(self) -> int:
-        """Consume the rest of the last header line; the payload starts right after it.
-
-        Only the rest of *that* line may be skipped: the payload is binary and may begin with
-        bytes that look like white space.
-        """
-        end = self.data.find(b"\n", self.pos, self.pos + 256)
-        if end < 0 or self.data[self.pos : end].strip(b" \t\r"):
-            raise self.fail("the header's last line has unexpected content or no line end")
-        self.pos = end + 1
-        return self.pos
-
-
 def _decode_block(
     raw: np.ndarray, scale: np.ndarray, bias: np.ndarray, out: np.ndarray | None = None
 ) -> np.ndarray:
@@ -314,108 +206,6 @@ def _decode_block(
         band *= s32
         out[r0:r1] = band
     return out
-
-
-def _decode_gray_jpeg(stream: bytes, width: int, height: int, plane: int, path: Path) -> np.ndarray:
-    """One grayscale JPEG plane as ``(H, W)`` uint8; InputError if it is not a JPEG of that size."""
-    where = f"JPEG plane {plane}"
-    # The decoders' exceptions are their own business: whatever they raise on a broken stream
-    # becomes the user's one-line error.
-    try:
-        import simplejpeg
-    except ImportError:  # pragma: no cover - simplejpeg is a dependency; Pillow still works
-        simplejpeg = None
-    try:
-        if simplejpeg is not None:
-            h, w = simplejpeg.decode_jpeg_header(stream)[:2]
-        else:  # pragma: no cover
-            from PIL import Image
-
-            with Image.open(io.BytesIO(stream)) as im:
-                w, h = im.size
-    except Exception as exc:
-        raise InputError(f"{where} is not a readable JPEG stream ({exc})", path) from None
-    if (w, h) != (width, height):
-        raise InputError(f"{where} is {w}×{h} but the header says {width}×{height}", path)
-    try:
-        if simplejpeg is not None:
-            return simplejpeg.decode_jpeg(stream, colorspace="GRAY").reshape(height, width)
-        with Image.open(io.BytesIO(stream)) as im:  # pragma: no cover
-            return np.asarray(im.convert("L"))
-    except Exception as exc:
-        raise InputError(f"{where} cannot be decoded ({exc})", path) from None
-
-
-def _read_jpeg_planes(cur: _Cursor, fmt: str, width: int, height: int) -> tuple[np.ndarray, int]:
-    """Decode the JPEG planes of a compressed PTM; returns ``(n, H, W)`` uint8 in file order."""
-    n = _JPEG_PLANES[fmt]
-    path = cur.path
-    (quality,) = cur.ints(1, "JPEG quality")
-    transform = cur.ints(n, "plane transforms")
-    cur.ints(2 * n, "motion vectors")  # meaningful only with motion compensation, refused below
-    order = cur.ints(n, "plane order")
-    reference = cur.ints(n, "reference planes")
-    sizes = cur.ints(n, "compressed plane sizes")
-    side = cur.ints(n, "side-information sizes")
-    start = cur.end_header()
-
-    if sorted(order) != list(range(n)):
-        raise InputError(f"the plane order must list each of 0..{n - 1} once, not {order}", path)
-    for p in range(n):
-        if transform[p] not in (0, 1, 2, 3):
-            raise InputError(f"plane {p}: unknown transform {transform[p]}", path)
-        if transform[p] & 2:
-            raise InputError(f"plane {p}: motion-compensated prediction is not supported", path)
-        r = reference[p]
-        if r != -1 and not (0 <= r < n and r != p and order[r] < order[p]):
-            raise InputError(
-                f"plane {p}: reference plane {r} is not a plane decoded before it", path
-            )
-        if sizes[p] <= 0:
-            raise InputError(f"plane {p}: compressed size {sizes[p]} is not positive", path)
-        if side[p] < 0 or side[p] % 5:
-            raise InputError(
-                f"plane {p}: side-information size {side[p]} is not a multiple of 5 bytes", path
-            )
-        if width * height > max(1 << 20, _JPEG_MAX_RATIO * sizes[p]):
-            raise InputError(
-                f"plane {p}: {width}×{height} pixels cannot come from {sizes[p]} compressed bytes",
-                path,
-            )
-    # Python integers: a hostile header's sizes may not fit in 64 bits.
-    offsets = list(itertools.accumulate((a + b for a, b in zip(sizes, side)), initial=start))
-    if offsets[-1] > len(cur.data):
-        raise InputError(
-            f"file is truncated: the JPEG planes need {offsets[-1] - start} bytes after the header, "
-            f"{len(cur.data) - start} are there",
-            path,
-        )
-
-    planes = np.empty((n, height, width), dtype=np.uint8)
-    npix = width * height
-    for p in sorted(range(n), key=order.__getitem__):
-        o = offsets[p]
-        plane = _decode_gray_jpeg(cur.data[o : o + sizes[p]], width, height, p, path)
-        r = reference[p]
-        if r >= 0:
-            ref = planes[r]
-            if transform[p] & 1:
-                ref = 255 - ref
-            # uint8 arithmetic wraps, so this is (residual + ref − 128) mod 256.
-            plane = plane + ref
-            plane += np.uint8(128)
-        if side[p]:
-            rec = np.frombuffer(cur.data, np.uint8, side[p], o + sizes[p]).reshape(-1, 5)
-            at = rec[:, :4].astype(np.int64) @ np.array([1 << 24, 1 << 16, 1 << 8, 1], dtype=np.int64)
-            if at.max() >= npix:
-                raise InputError(
-                    f"plane {p}: side information addresses pixel {int(at.max())} of {npix}", path
-                )
-            plane = np.array(plane, copy=True).reshape(-1)
-            plane[at] = rec[:, 4]
-            plane = plane.reshape(height, width)
-        planes[p] = plane
-    return planes, quality
 
 
 def _map_file(path: Path) -> bytes | mmap.mmap:
@@ -471,7 +261,7 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     data = _map_file(path)
     if not data:
         raise InputError("PTM file is empty", path)
-    cur = _Cursor(data, path)
+    cur = HeaderCursor(data, path)
     if data[:4] == b"#HSH":
         raise InputError("this is an HSH .rti file, not a PTM", path)
     version = cur.line("version")
@@ -503,7 +293,7 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     stride = 1 if max_side is None else max(1, math.ceil(max(width, height) / max_side))
     quality = None
     if fmt in _JPEG_PLANES:
-        planes, quality = _read_jpeg_planes(cur, fmt, width, height)
+        planes, quality = read_jpeg_planes(cur, _JPEG_PLANES[fmt], width, height)
         planes = np.moveaxis(_every(np.moveaxis(planes, 0, -1), stride), -1, 0)
         if fmt == FORMAT_JPEG_LRGB:
             coefficients = _decode_block(np.moveaxis(planes[:6], 0, -1), scale, bias)
@@ -761,135 +551,3 @@ def write_ptm(
         "rms_error": rms.tolist(),
         "clipped": stats.clipped.tolist(),
     }
-
-
-# ---------------------------------------------------------------------------------------------
-# Fitting in the photographs' own encoding, as PTMfitter does
-
-
-def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray, solver: str) -> tuple[int, np.ndarray]:
-    n = len(images)
-    # Fewer than six photographs leave the six coefficients underdetermined; the
-    # pseudoinverse then gives the minimum-norm fit, and the caller warns about it.
-    if n < 1:
-        raise InputError("no photographs given")
-    pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
-    return n, pinv
-
-
-def fit_ptm_encoded(
-    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
-    directions: np.ndarray,
-    *,
-    solver: str = "pinv",
-    threads: int | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Fit an LRGB PTM to photographs as HP's PTMfitter does, in their own encoding.
-
-    The photographs' bytes are used as they are (sRGB-encoded, not linearised). Per photograph
-    and pixel the luma ``Y = 0.2125 R + 0.7154 G + 0.0721 B`` is normalised to
-    ``L = 255 · Y / max_n Y`` (the pixel's brightest photograph has L = 255), the polynomial is
-    the pseudoinverse fit of L, and the colour is the least-squares ``rgb`` of
-    ``C ≈ rgb · L / 255``, truncated to bytes. Written with :func:`write_ptm` this reproduces
-    PTMfitter's file byte for byte on the shared fixture (see the module notes).
-
-    The photographs are streamed: one is decoded (in background threads) and added to running
-    per-pixel sums at a time, so memory is 11 float32 per pixel (the six coefficient sums, the
-    peak luma, Σ C·Y and Σ Y²) plus a few photographs, however many there are.
-
-    Parameters
-    ----------
-    images : sequence of path or ndarray, or ndarray (N, H, W[, 3])
-        The photographs, 8-bit (16-bit values are divided by 257, floats multiplied by 255).
-    directions : ndarray, shape (N, 3)
-        Unit light directions, one per photograph.
-    solver : {"pinv", "lstsq", "rohde"}
-        The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
-    threads : int, optional
-        Decoding threads (default: all CPUs).
-    progress : callable, optional
-        Called with 1 after each photograph.
-
-    Returns
-    -------
-    coefficients : ndarray, shape (H, W, 6), float32
-        Luminance coefficients, L in 0..255 units, row 0 at the top.
-    rgb : ndarray, shape (H, W, 3), uint8
-        The colour block.
-
-    Raises
-    ------
-    InputError
-        If no photograph is given, one cannot be read, or sizes differ.
-    """
-    _, pinv = _fit_setup(images, directions, solver)
-    wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
-    sums: dict[str, np.ndarray] = {}
-
-    def allocate(shape: tuple[int, int]) -> None:
-        # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
-        # NumPy loop over the last axis of 6 and runs several times slower.
-        sums.update(acc=np.zeros((6,) + shape, np.float32), peak=np.zeros(shape, np.float32),
-                    cy=np.zeros((3,) + shape, np.float32), y2=np.zeros(shape, np.float32))
-
-    def add(k: int, c: np.ndarray, r0: int, r1: int) -> None:
-        y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
-        for j in range(6):
-            sums["acc"][j, r0:r1] += y * pinv[j, k]
-        np.maximum(sums["peak"][r0:r1], y, out=sums["peak"][r0:r1])
-        for j in range(3):
-            sums["cy"][j, r0:r1] += c[..., j] * y
-        sums["y2"][r0:r1] += y * y
-
-    shape = accumulate_photographs(images, allocate, add, threads=threads, progress=progress)
-    acc, peak, cy, y2 = sums["acc"], sums["peak"], sums["cy"], sums["y2"]
-    coefficients = np.empty(shape + (6,), dtype=np.float32)
-    rgb = np.empty(shape + (3,), dtype=np.uint8)
-    step = max(1, (1 << 18) // shape[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for r0 in range(0, shape[0], step):
-            band = slice(r0, r0 + step)
-            p = peak[band]
-            # A pixel black in every photograph keeps L = 0 and colour 0.
-            norm = np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
-            coefficients[band] = np.moveaxis(acc[:, band], 0, -1) * norm
-            colour = np.floor(p[..., None] * np.moveaxis(cy[:, band], 0, -1) / y2[band][..., None])
-            rgb[band] = np.clip(np.nan_to_num(colour, nan=0.0, posinf=255.0), 0, 255).astype(np.uint8)
-    return coefficients, rgb
-
-
-def fit_ptm_rgb_encoded(
-    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
-    directions: np.ndarray,
-    *,
-    solver: str = "pinv",
-    threads: int | None = None,
-    progress: Callable[[int], None] | None = None,
-) -> np.ndarray:
-    """Fit an RGB-format PTM (one polynomial per channel) to photographs in their own encoding.
-
-    Each channel's byte values (0..255, not linearised) are fitted by the pseudoinverse, so
-    ``PTMFile.render`` of the written file approximates the photographs directly. Streams the
-    photographs like :func:`fit_ptm_encoded` (18 float32 per pixel).
-
-    Parameters
-    ----------
-    images : sequence of path or ndarray, or ndarray (N, H, W[, 3])
-        The photographs.
-    directions : ndarray, shape (N, 3)
-        Unit light directions, one per photograph.
-    solver : {"pinv", "lstsq", "rohde"}
-        The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
-    threads : int, optional
-        Decoding threads (default: all CPUs).
-    progress : callable, optional
-        Called with 1 after each photograph.
-
-    Returns
-    -------
-    ndarray, shape (H, W, 3, 6), float32
-        Per-channel coefficients in 0..255 units, row 0 at the top.
-    """
-    _, pinv = _fit_setup(images, directions, solver)
-    return fit_channels(images, pinv, threads=threads, progress=progress)

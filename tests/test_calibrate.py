@@ -14,13 +14,12 @@ from ptmcore.lp import read_lp
 from reconstruct.calibration.calibrate import (
     calibrate,
     calibrate_stack,
-    detect_spheres,
-    find_highlight,
-    fit_circle,
     write_calibration_lp,
     write_diagnostic,
 )
+from reconstruct.calibration.highlights import find_highlight
 from reconstruct.calibration.reflection import light_from_highlight
+from reconstruct.calibration.spheres import detect_spheres, fit_circle
 
 HIDDEN = (3, 10)
 

@@ -10,7 +10,7 @@ from PIL import Image
 from data_synthetic.spheres import render_sphere_capture
 from ptmcore.errors import InputError
 from ptmcore.lp import read_lp
-from reconstruct.calibration.calibrate import calibrate, calibration_camera, fit_circle
+from reconstruct.calibration.calibrate import calibrate, calibration_camera
 from reconstruct.calibration.camera import Intrinsics, intrinsics_from_exif
 from reconstruct.calibration.reflection import (
     ellipse_mean_radius,
@@ -18,6 +18,7 @@ from reconstruct.calibration.reflection import (
     sphere_centre_3d,
     sphere_outline,
 )
+from reconstruct.calibration.spheres import fit_circle
 
 CAMERA = Intrinsics(450.0, 450.0, 199.5, 149.5)
 

@@ -12,7 +12,8 @@ from helpers import run_cli as _run
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
 from ptmcore.fit import light_matrix
-from ptmcore.ptmfile import fit_ptm_encoded, read_ptm
+from ptmcore.ptmencoded import fit_ptm_encoded
+from ptmcore.ptmfile import read_ptm
 
 
 @pytest.fixture(scope="module")

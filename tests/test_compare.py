@@ -1,4 +1,4 @@
-"""Tests for reconstruct.compare.align: loading, aligning and measuring a scan against a mesh."""
+"""Tests for reconstruct.compare: loading, aligning and measuring a scan against a mesh."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import trimesh
 
 from data_synthetic import write_capture
 from ptmcore.errors import InputError
-from reconstruct.compare.align import (
-    Geometry, align, distances, load_geometry, within_tolerance, _mesh_distances)
+from reconstruct.compare import Geometry, align, distances, load_geometry, within_tolerance
+from reconstruct.compare.signed_distance import _mesh_distances
 from reconstruct.mesh.grid import grid_mesh
 
 

@@ -1,4 +1,5 @@
-"""Tests for reconstruct.surface.integrate: analytic surfaces, signs, units, masks, discretisation."""
+"""Tests for the whole-rectangle integrators and the dispatcher: analytic surfaces, signs,
+units, masks, discretisation."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from reconstruct.surface.integrate import (
+from reconstruct.surface import (
     frankot_chellappa,
     gradients_from_normals,
     integrate,

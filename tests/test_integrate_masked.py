@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from reconstruct.surface.integrate import (
+from reconstruct.surface import (
     discontinuity_preserving,
     integrate,
     masked_laplacian,

@@ -1,4 +1,5 @@
-"""Tests for reconstruct.mesh.ops: decimation, printable solids, STL and GLB exports."""
+"""Tests for reconstruct.mesh.ops (decimation, printable solids, STL and GLB exports), the
+boundary edges of reconstruct.mesh.topology and the general writer of reconstruct.mesh.ply."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ import trimesh
 
 from reconstruct.mesh.grid import GridMesh, grid_mesh
 from reconstruct.mesh.ops import decimate, solid, write_glb, write_stl
+from reconstruct.mesh.ply import write_binary_ply
+from reconstruct.mesh.topology import boundary_edges, directed_edges, edge_face_counts, edge_keys
 
 o3d = pytest.importorskip("open3d")
 o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
@@ -234,3 +237,57 @@ def test_write_glb_with_vertex_colours(tmp_path):
     (back,) = scene.geometry.values()
     assert back.visual.kind == "vertex"
     np.testing.assert_array_equal(back.visual.vertex_colors[:, :3], mesh.colors)
+
+
+def test_boundary_edges_of_a_square_with_a_hole():
+    # A 4×4 grid of vertices, 3×3 quads split in two, without the centre quad.
+    mesh = grid_mesh(np.zeros((4, 4), np.float32))
+    faces = np.asarray(mesh.faces)
+    centre = {5, 6, 9, 10}
+    faces = faces[[not set(f) <= centre for f in faces.tolist()]]
+    edges = boundary_edges(faces, 16)
+    assert edges.shape == (16, 2) and edges.dtype == np.int64
+    # Each boundary vertex starts one edge and ends one: closed loops.
+    np.testing.assert_array_equal(np.sort(edges[:, 0]), np.sort(edges[:, 1]))
+    assert set(edges.ravel()) == set(range(16))
+    # Directed as the faces wind them, counter-clockwise from +z: the outline turns left
+    # (positive signed area) and the hole's rim right.
+    x, y = mesh.vertices[:, 0].astype(np.float64), mesh.vertices[:, 1].astype(np.float64)
+
+    def area(e: np.ndarray) -> float:  # the shoelace formula
+        return 0.5 * float(np.sum(x[e[:, 0]] * y[e[:, 1]] - x[e[:, 1]] * y[e[:, 0]]))
+
+    outer = ~np.isin(edges, list(centre)).any(axis=1)
+    assert area(edges[outer]) > 0 > area(edges[~outer])
+    counts = edge_face_counts(faces, 16)
+    assert counts.shape == (3 * len(faces),) and set(counts) == {1, 2}
+    assert len(directed_edges(faces)) == 3 * len(faces)
+    np.testing.assert_array_equal(edge_keys([[2, 7], [7, 2]], 16), [2 * 16 + 7] * 2)
+
+
+def test_write_binary_ply_layout(tmp_path):
+    x = np.array([0.0, 1.0, 2.0], np.float32)
+    quality = np.array([1.5, -2.0, np.nan])
+    vertex = {"x": x, "y": x, "z": x, "red": np.array([1, 2, 3], np.uint8), "quality": quality}
+    write_binary_ply(tmp_path / "m.ply", vertex, [[0, 1, 2]], comments=["unit mm"])
+    data = (tmp_path / "m.ply").read_bytes()
+    header, body = data.split(b"end_header\n")
+    assert header.decode().splitlines() == [
+        "ply", "format binary_little_endian 1.0", "comment unit mm", "element vertex 3",
+        "property float x", "property float y", "property float z", "property uchar red",
+        "property double quality", "element face 1", "property list uchar int vertex_indices",
+    ]
+    record = np.dtype([("xyz", "<f4", 3), ("red", "u1"), ("quality", "<f8")])
+    vertices = np.frombuffer(body[: 3 * record.itemsize], record)
+    np.testing.assert_array_equal(vertices["quality"], quality)
+    assert body[3 * record.itemsize :] == struct.pack("<Biii", 3, 0, 1, 2)
+    write_binary_ply(tmp_path / "p.ply", {"x": x})
+    assert b"element face" not in (tmp_path / "p.ply").read_bytes()
+    for bad in ({"x": x, "y": x[:2]}, {"x": x.astype(bool)}):
+        with pytest.raises(ValueError):
+            write_binary_ply(tmp_path / "bad.ply", bad)
+    with pytest.raises(ValueError, match="out of range"):
+        write_binary_ply(tmp_path / "bad.ply", {"x": x}, [[0, 1, 3]])
+    with pytest.raises(ValueError, match="single lines"):
+        write_binary_ply(tmp_path / "bad.ply", {"x": x}, comments=["a\nb"])
+    assert not (tmp_path / "bad.ply").exists()

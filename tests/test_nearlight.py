@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from helpers import stack_from_luminance
@@ -350,12 +352,13 @@ def test_sphere_lights_of_a_near_capture(capture):
 def test_near_ptm_normals_get_an_albedo_without_photometric_stereo(capture):
     from ptmcore.nearlight import near_lambertian_albedo
     from ptmcore.normals import normals_from_ptm
-    from reconstruct.pipeline.run import NearLights, RunOptions, _estimate_normals
+    from reconstruct.pipeline import Capture, NearLights, RunOptions, estimate_normals
 
     info, stack, truth = capture
     calls = []
-    normals, albedo, undetermined = _estimate_normals(
-        stack, None, RunOptions(normals="ptm"), calls.append, NearLights(info.positions, "truth"))
+    loaded = Capture(Path("capture"), "capture with .lp", stack, lights=None, near=NearLights(info.positions, "truth"))
+    found = estimate_normals(loaded, RunOptions(normals="ptm"), progress=calls.append)
+    normals, albedo, undetermined = found.normals, found.albedo, found.undetermined
     want = normals_from_ptm(fit_ptm_near(stack, info.positions).coefficients)
     np.testing.assert_allclose(normals, want, atol=1e-6)
     np.testing.assert_allclose(albedo, near_lambertian_albedo(stack, info.positions, want), rtol=1e-5)

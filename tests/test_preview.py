@@ -13,7 +13,7 @@ from data_synthetic import write_capture
 from ptmcore.errors import InputError
 from ptmcore.relight import light_direction
 from reconstruct.compare.figures import write_distance_ply
-from reconstruct.pipeline.run import RunOptions, run_capture
+from reconstruct.pipeline import RunOptions, run_capture
 from reconstruct.viewer.preview import _BACKGROUND, build_plotter
 from reconstruct.viewer.scene import (
     MODES,

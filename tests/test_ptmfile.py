@@ -19,16 +19,8 @@ from ptmcore.errors import InputError
 from ptmcore.fit import light_matrix
 from ptmcore.images import read_image
 from ptmcore.lp import read_lp
-from ptmcore.ptmfile import (
-    HP_LUMA_WEIGHTS,
-    PTMFile,
-    fit_ptm_encoded,
-    fit_ptm_rgb_encoded,
-    quantization_parameters,
-    quantize,
-    read_ptm,
-    write_ptm,
-)
+from ptmcore.ptmencoded import HP_LUMA_WEIGHTS, fit_ptm_encoded, fit_ptm_rgb_encoded
+from ptmcore.ptmfile import PTMFile, quantization_parameters, quantize, read_ptm, write_ptm
 
 SCALE = [0.5, 0.5, 0.25, 0.5, 0.25, 1.0]
 BIAS = [167, 97, 0, 0, 0, 0]

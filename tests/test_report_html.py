@@ -15,7 +15,7 @@ from PIL import Image
 from reconstruct.cli.main import main
 from ptmcore.lp import write_lp
 from reconstruct.report import figures as report_figures
-from reconstruct.pipeline.run import RunOptions, run_capture
+from reconstruct.pipeline import RunOptions, run_capture
 from reconstruct.report.html import report_html
 
 VOID = {"area", "base", "br", "col", "embed", "hr", "img", "input", "link", "meta", "source", "track", "wbr"}

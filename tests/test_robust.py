@@ -1,16 +1,11 @@
 import numpy as np
 import pytest
 
-from ptmcore import robust
+from ptmcore import pixelfit, robust
 from ptmcore.fit import fit_ptm, light_matrix
 from ptmcore.normals import angular_error, normals_from_ptm, photometric_stereo
-from ptmcore.robust import (
-    debiased_normals,
-    hemisphere_coefficients,
-    robust_fit_ptm,
-    robust_photometric_stereo,
-    robust_ptm,
-)
+from ptmcore.robust import robust_photometric_stereo
+from ptmcore.robustptm import debiased_normals, hemisphere_coefficients, robust_fit_ptm, robust_ptm
 
 from helpers import dome, sphere_normals, stack_from_luminance
 
@@ -151,7 +146,7 @@ def test_same_result_whatever_the_bands_and_threads(monkeypatch):
     ref_ptm = robust_ptm(stack, dirs, threads=1)
     # Bands of one row in three threads, and Cholesky chunks smaller than a band.
     monkeypatch.setattr(robust, "_BAND_BYTES", 1)
-    monkeypatch.setattr(robust, "_CHUNK", 7)
+    monkeypatch.setattr(pixelfit, "_CHUNK", 7)
     rows = []
     ps = robust_photometric_stereo(stack, dirs, threads=3, progress=rows.append)
     ptm = robust_ptm(stack, dirs, threads=3)
@@ -229,14 +224,14 @@ def test_batched_cholesky_matches_numpy():
     gram = m @ m.transpose(0, 2, 1) + 0.1 * np.eye(r)
     b = rng.normal(size=(p, r))
     i, j = np.triu_indices(r)
-    (x,), ok = robust._cholesky_solve(np.ascontiguousarray(gram[:, i, j].T), [b.T.copy()], None)
-    ridge = robust._RIDGE * np.trace(gram, axis1=1, axis2=2)[:, None, None] / r * np.eye(r)
+    (x,), ok = pixelfit.cholesky_solve(np.ascontiguousarray(gram[:, i, j].T), [b.T.copy()], None)
+    ridge = pixelfit._RIDGE * np.trace(gram, axis1=1, axis2=2)[:, None, None] / r * np.eye(r)
     expected = np.linalg.solve(gram + ridge, b[..., None])[..., 0]
     np.testing.assert_allclose(x.T, expected, rtol=1e-9, atol=1e-12)
     assert ok.all()
     # A singular matrix is flagged, and its solution tends to the prior.
     gram[0] = np.outer(gram[0, 0], gram[0, 0])
     prior = rng.normal(size=(r, p))
-    (x,), ok = robust._cholesky_solve(np.ascontiguousarray(gram[:, i, j].T), [np.zeros((r, p))], [prior])
+    (x,), ok = pixelfit.cholesky_solve(np.ascontiguousarray(gram[:, i, j].T), [np.zeros((r, p))], [prior])
     assert not ok[0] and ok[1:].all()
     assert np.all(np.isfinite(x))

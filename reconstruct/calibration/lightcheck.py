@@ -14,12 +14,12 @@ are numbered from 1, as the lines of an ``.lp`` file.
 from __future__ import annotations
 
 import functools
+import io
 import math
 import os
 from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
 from scipy.spatial import cKDTree
 
 from ptmcore.atomic import atomic_write
@@ -48,8 +48,6 @@ _COVERAGE_SAMPLES = 20000
 
 #: Margin around the plot's rim, as a fraction of the image size (room for azimuth labels).
 PLOT_MARGIN = 0.1
-
-_SUPERSAMPLE = 2
 
 
 @dataclass
@@ -264,7 +262,8 @@ def plot_positions(directions: np.ndarray, size: int) -> np.ndarray:
     ``R = size·(1/2 − PLOT_MARGIN)``. A light at elevation e and azimuth φ is at radius
     ``ρ = R·(90° − e)/90°`` and ``(x, y) = (size/2 + ρ·cos φ, size/2 − ρ·sin φ)``, so 0° (from
     the right) is to the right and 90° (from the top) is up. Pixel (col, row) covers
-    ``[col, col + 1) × [row, row + 1)``.
+    ``[col, col + 1) × [row, row + 1)``. The drawn dots are within half a pixel of these
+    positions (matplotlib snaps markers to pixel centres).
 
     Parameters
     ----------
@@ -281,29 +280,6 @@ def plot_positions(directions: np.ndarray, size: int) -> np.ndarray:
     rho = size * (0.5 - PLOT_MARGIN) * (90.0 - elev) / 90.0
     phi = np.radians(azim)
     return np.stack([size / 2 + rho * np.cos(phi), size / 2 - rho * np.sin(phi)], axis=1)
-
-
-def _font(pixels: int) -> ImageFont.ImageFont:
-    try:
-        return ImageFont.load_default(size=pixels)
-    except (TypeError, OSError):  # Pillow < 10.1, or no FreeType: the fixed bitmap font
-        return ImageFont.load_default()
-
-
-def _put(
-    draw: ImageDraw.ImageDraw,
-    xy: tuple[float, float],
-    text: str,
-    font: ImageFont.ImageFont | ImageFont.FreeTypeFont,
-    fill: tuple[int, int, int],
-    anchor: str,
-) -> None:
-    # Anchoring by the text's box rather than Pillow's ``anchor=`` also works with the bitmap
-    # font that old Pillow versions fall back to.
-    x0, y0, x1, y1 = draw.textbbox((0, 0), text, font=font)
-    x = xy[0] - {"l": x0, "m": (x0 + x1) / 2, "r": x1}[anchor[0]]
-    y = xy[1] - {"a": y0, "m": (y0 + y1) / 2, "s": y1}[anchor[1]]
-    draw.text((x, y), text, fill=fill, font=font)
 
 
 def write_polar_plot(
@@ -333,42 +309,52 @@ def write_polar_plot(
     """
     if size < 200:
         raise ValueError(f"plot size must be at least 200 pixels, got {size}")
-    s = _SUPERSAMPLE
-    big = size * s
-    # Drawing at twice the size and reducing smooths the circles, which ImageDraw does not
-    # anti-alias.
-    img = Image.new("RGB", (big, big), "white")
-    draw = ImageDraw.Draw(img)
-    c = big / 2
-    rim = big * (0.5 - PLOT_MARGIN)
-    small, label = _font(max(10, size // 50) * s), _font(max(11, size // 45) * s)
-    grid, ink = (200, 200, 200), (90, 90, 90)
+    with atomic_write(path, "wb") as f:
+        f.write(_polar_png(directions, title, size))
 
-    for az in range(0, 360, 30):
-        a = math.radians(az)
-        draw.line([(c, c), (c + rim * math.cos(a), c - rim * math.sin(a))], fill=grid, width=s)
-        at = rim + 0.45 * big * PLOT_MARGIN  # halfway across the margin
-        pos = (c + at * math.cos(a), c - at * math.sin(a))
-        _put(draw, pos, f"{az}°", label, ink, "mm")
-    for el in ELEVATION_EDGES[:-1]:
-        r = rim * (90.0 - el) / 90.0
-        draw.ellipse([c - r, c - r, c + r, c + r], outline=(120, 120, 120) if el == 0 else grid, width=s)
-        if el == 0:
-            continue  # the rim's 0° would collide with the 90° azimuth label; the legend says it
-        # Labels sit just right of the upward spoke.
-        _put(draw, (c + 4 * s, c - r - 2 * s), f"{el:.0f}°", small, ink, "ls")
 
-    pts = plot_positions(directions, size) * s
-    dot = max(4.0, size / 110) * s
-    for k, (x, y) in enumerate(pts):
-        draw.ellipse([x - dot, y - dot, x + dot, y + dot], fill=(20, 40, 110), outline="black")
-        _put(draw, (x + dot + s, y - dot - s), str(k + 1), small, (0, 0, 0), "ls")
+def _polar_png(directions: np.ndarray, title: str | None, size: int) -> bytes:
+    """The PNG of :func:`write_polar_plot`, drawn on a polar axes of its own figure."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    elev, azim = _angles(_unit(directions))
+    dpi = 100
+    pt = 72.0 / dpi  # points per pixel
+    small, label = max(10, size // 50) * pt, max(11, size // 45) * pt
+    grid, ink = "#c8c8c8", "#5a5a5a"
+    # A figure of its own (no pyplot), so plots can be drawn from several threads at once.
+    fig = Figure(figsize=(size / dpi, size / dpi), dpi=dpi, facecolor="white")
+    FigureCanvasAgg(fig)
+    # The axes' square spans the image less the margins, so its rim is where plot_positions
+    # puts it.
+    ax = fig.add_axes((PLOT_MARGIN, PLOT_MARGIN, 1 - 2 * PLOT_MARGIN, 1 - 2 * PLOT_MARGIN),
+                      projection="polar")
+    ax.set_theta_zero_location("E")
+    ax.set_ylim(0.0, 90.0)  # the radius is 90° − elevation
+    rings = ELEVATION_EDGES[1:-1]
+    ax.set_yticks(90.0 - rings, [f"{el:.0f}°" for el in rings], fontsize=small, color=ink)
+    ax.set_rlabel_position(85.0)  # just right of the upward spoke
+    ax.set_thetagrids(np.arange(0, 360, 30), [f"{az}°" for az in range(0, 360, 30)],
+                      fontsize=label, color=ink)
+    # Azimuth labels halfway across the margin.
+    ax.tick_params(axis="x", pad=0.45 * size * PLOT_MARGIN * pt - label / 2)
+    ax.grid(color=grid, linewidth=1.0)
+    ax.spines["polar"].set_color("#787878")
+
+    dot = max(4.0, size / 110)
+    theta, rho = np.radians(azim), 90.0 - elev
+    # Unclipped, so lights at or below the horizon show on or beyond the rim.
+    ax.plot(theta, rho, "o", ms=2 * dot * pt, mfc="#14286e", mec="black", mew=1.0,
+            linestyle="none", clip_on=False, zorder=3)
+    for k, (t, r) in enumerate(zip(theta, rho)):
+        ax.annotate(str(k + 1), (t, r), xytext=(dot + 1, dot + 1), textcoords="offset pixels",
+                    fontsize=small, color="black", annotation_clip=False, zorder=4)
 
     legend = "radius: elevation (90° centre, 0° rim) · angle: azimuth (0° = light from the right)"
-    _put(draw, (c, big - 0.25 * big * PLOT_MARGIN), legend, small, ink, "mm")
+    fig.text(0.5, 0.25 * PLOT_MARGIN, legend, ha="center", va="center", fontsize=small, color=ink)
     if title:
-        _put(draw, (3 * s, 3 * s), title, label, (0, 0, 0), "la")
-
-    out = img.resize((size, size), Image.Resampling.LANCZOS)
-    with atomic_write(path, "wb") as f:
-        out.save(f, format="PNG")
+        fig.text(3 / size, 1 - 3 / size, title, ha="left", va="top", fontsize=label)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return buf.getvalue()

@@ -67,7 +67,8 @@ def ellipse_mean_radius(a: float, b: float, n: int = 360) -> float:
     """Mean distance from an ellipse's centre to its outline over equally spaced angles.
 
     This is the radius a geometric circle fit gives for outline points sampled on rays at
-    equal angles from the centre, as :func:`refine_circle` samples them.
+    equal angles from the centre, as :func:`reconstruct.calibration.spheres.refine_circle` samples
+    them.
     """
     phi = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
     return float(np.mean(a * b / np.hypot(b * np.cos(phi), a * np.sin(phi))))

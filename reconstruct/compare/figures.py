@@ -2,9 +2,9 @@
 
 The functions take plain arrays (vertices, faces, points, signed distances in mm and the
 statistics as a dict), so they do not depend on how the distances were computed
-(:mod:`reconstruct.compare.align`). All of them colour distances with the same diverging map,
-:func:`diverging_colors`: blue for negative, white at 0, red for positive, clipped to
-±limit, so the PLY, the histogram and the overlay read alike.
+(:mod:`reconstruct.compare.signed_distance`). All of them colour distances with the same
+diverging map, :func:`diverging_colors`: blue for negative, white at 0, red for positive,
+clipped to ±limit, so the PLY, the histogram and the overlay read alike.
 
 Every file is written through :func:`ptmcore.atomic.atomic_write`.
 """
@@ -15,13 +15,20 @@ import io
 import math
 import os
 from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
 
 from ptmcore.atomic import atomic_write
-
+from ptmcore.images import write_png
+from reconstruct.mesh.ply import write_binary_ply
 from reconstruct.report import rendering
+
+# matplotlib and pyvista are imported on use: they are slow to import and only the
+# histogram and the overlay need them.
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 __all__ = [
     "DEFAULT_SIGN_CONVENTION",
@@ -58,7 +65,8 @@ _RDBU_T = np.linspace(-1.0, 1.0, len(_RDBU))
 NAN_COLOR = (150, 150, 150)
 
 #: Sign convention written into outputs unless the caller states its own.
-#: It is :mod:`reconstruct.compare.align`'s, for distances of scan points and reverse distances.
+#: It is :mod:`reconstruct.compare.signed_distance`'s, for distances of scan points and
+#: reverse distances.
 DEFAULT_SIGN_CONVENTION = (
     "d > 0: the scan lies on the camera side of the reconstruction (where its normals point)"
 )
@@ -143,14 +151,6 @@ def default_limit(distances: np.ndarray) -> float:
     return _nice_ceil(level)
 
 
-def _check_comment(text: str) -> str:
-    """A header comment must stay on one line or it corrupts the PLY."""
-    text = str(text)
-    if "\n" in text or "\r" in text:
-        raise ValueError(f"comments must be single lines, not {text!r}")
-    return text
-
-
 def _format_mm(x: float) -> str:
     """A length with at most 4 significant digits and no exponent for report-sized values."""
     return f"{x:.4g}"
@@ -206,64 +206,31 @@ def write_distance_ply(
     n = len(vertices)
     if distances.shape != (n,):
         raise ValueError(f"distances must be ({n},) like the vertices, not {distances.shape}")
-    if faces is not None:
-        faces = np.asarray(faces)
-        if faces.ndim != 2 or faces.shape[1] != 3:
-            raise ValueError(f"faces must be (F, 3), not {faces.shape}")
-        if faces.size and (faces.min() < 0 or faces.max() >= n):
-            raise ValueError("face indices out of range")
-        if n > np.iinfo(np.int32).max:
-            raise ValueError("too many vertices for PLY int32 indices")
-    colors = diverging_colors(distances, limit)
     lim = _format_mm(float(limit))
     n_known = int(np.count_nonzero(~np.isnan(distances)))
-
     header = [
-        "ply",
-        "format binary_little_endian 1.0",
-        f"comment unit {_UNIT}",
+        f"unit {_UNIT}",
         (
-            f"comment colour: signed distance, blue = -{lim} {_UNIT} or less, white = 0, "
+            f"colour: signed distance, blue = -{lim} {_UNIT} or less, white = 0, "
             f"red = +{lim} {_UNIT} or more (ColorBrewer RdBu, linear)"
         ),
         (
-            f"comment colour grey {NAN_COLOR[0]} {NAN_COLOR[1]} {NAN_COLOR[2]} = no distance "
+            f"colour grey {NAN_COLOR[0]} {NAN_COLOR[1]} {NAN_COLOR[2]} = no distance "
             f"({n - n_known} of {n} vertices)"
         ),
-        f"comment quality = signed distance in {_UNIT} (NaN = unknown)",
-        f"comment sign convention: {_check_comment(sign_convention)}",
+        f"quality = signed distance in {_UNIT} (NaN = unknown)",
+        f"sign convention: {sign_convention}",
+        *comments,
     ]
-    header += [f"comment {_check_comment(c)}" for c in comments]
-    header.append(f"element vertex {n}")
-    header += [f"property float {a}" for a in ("x", "y", "z")]
-    header += [f"property uchar {a}" for a in ("red", "green", "blue")]
-    header.append("property float quality")
-    if faces is not None:
-        header.append(f"element face {len(faces)}")
-        header.append("property list uchar int vertex_indices")
-    header.append("end_header")
-
-    # Packed structured records are PLY's binary layout, written in one call each.
-    record = np.empty(
-        n,
-        dtype=[("xyz", "<f4", (3,)), ("rgb", "u1", (3,)), ("quality", "<f4")],
-    )
-    record["xyz"] = vertices
-    record["rgb"] = colors
-    record["quality"] = distances
-    with atomic_write(path, "wb") as handle:
-        handle.write(("\n".join(header) + "\n").encode("utf-8"))
-        handle.write(record.tobytes())
-        if faces is not None:
-            face_record = np.empty(len(faces), dtype=[("count", "u1"), ("index", "<i4", (3,))])
-            face_record["count"] = 3
-            face_record["index"] = faces
-            handle.write(face_record.tobytes())
+    vertex = dict(zip(("x", "y", "z"), vertices.astype(np.float32).T))
+    vertex.update(zip(("red", "green", "blue"), diverging_colors(distances, limit).T))
+    vertex["quality"] = distances.astype(np.float32)
+    write_binary_ply(path, vertex, faces, comments=header)
 
 
 # --- histogram ---------------------------------------------------------------------------
 
-# Labels of the statistics drawn on the histogram, in order; values are mm unless noted.
+# Labels of the statistics printed beside the histogram, in order; values are mm unless noted.
 _STAT_LABELS = (
     ("mean", "mean"),
     ("std", "std"),
@@ -272,32 +239,16 @@ _STAT_LABELS = (
     ("p95_abs", "95th pct |d|"),
     ("max_abs", "max |d|"),
 )
+_TOLERANCE_BAND = (226, 240, 226)
+_TOLERANCE_LINE = (0, 120, 0)
+_BAR_EDGE = (90, 90, 90)
+_GREY_TEXT = (60, 60, 60)
+_DPI = 100
 
 
-def _font(size: int) -> ImageFont.FreeTypeFont | ImageFont.ImageFont:
-    """DejaVu Sans if the system has it, else Pillow's scalable built-in font."""
-    for name in ("DejaVuSans.ttf", "Arial.ttf", "LiberationSans-Regular.ttf"):
-        try:
-            return ImageFont.truetype(name, size)
-        except OSError:
-            continue
-    return ImageFont.load_default(size=size)
-
-
-def _nice_ticks(lo: float, hi: float, target: int = 6) -> np.ndarray:
-    """Round tick positions covering [lo, hi], about `target` of them."""
-    if hi <= lo:
-        return np.array([lo])
-    step = _nice_ceil((hi - lo) / target)
-    first = math.ceil(lo / step - 1e-9) * step
-    ticks = np.arange(first, hi + step * 1e-6, step)
-    # Rounding to the step's decimals removes "0.30000000000000004" and "-0".
-    decimals = max(0, -math.floor(math.log10(step)) + 1)
-    return np.round(ticks, decimals) + 0.0
-
-
-def _tick_label(x: float) -> str:
-    return f"{x:g}"
+def _rgb(color: Iterable[int]) -> tuple[float, ...]:
+    """An 8-bit colour as matplotlib's fractions."""
+    return tuple(c / 255 for c in color)
 
 
 def _summary(
@@ -324,6 +275,73 @@ def _summary(
     return out
 
 
+def _bins(d: np.ndarray, limit: float, tolerance: float | None) -> tuple[np.ndarray, float]:
+    """Bin edges over ±extent: the colour limit, widened to the 99th percentile of |d| and
+    past the tolerance, rounded up to a nice number."""
+    a = np.abs(d)
+    extent = max(float(limit), float(np.percentile(a, 99)) if a.size else 0.0)
+    if tolerance is not None:
+        extent = max(extent, float(tolerance) * 1.2)
+    extent = _nice_ceil(extent) if extent > 0 else 1.0
+    # An odd number of bins puts one bar centred on 0, which reads as "no deviation".
+    n_bins = 2 * int(np.clip(math.sqrt(max(d.size, 1)) / 2, 7, 40)) + 1
+    return np.linspace(-extent, extent, n_bins + 1), extent
+
+
+def _stat_lines(
+    summary: Mapping[str, float], unit: str, tolerance: float | None, limit: float,
+    outside: int, extent: float,
+) -> list[tuple[str, str]]:
+    """(label, value) rows of the statistics panel."""
+    lines = [(label, f"{summary[key]:.4g} {unit}") for key, label in _STAT_LABELS
+             if key in summary]
+    # reconstruct.compare.signed_distance names it overlap_fraction.
+    overlap = summary.get("overlap", summary.get("overlap_fraction"))
+    lines.append(("overlap", "n/a" if overlap is None else f"{100 * overlap:.1f} %"))
+    lines.append(("count", f"{int(summary['count']):,}"))
+    if tolerance is not None:
+        lines.append(("tolerance", f"±{tolerance:g} {unit}"))
+        within = summary.get("within_tolerance")
+        lines.append(("within", "n/a" if within is None else f"{100 * within:.1f} %"))
+    lines.append(("colour range", f"±{limit:g} {unit}"))
+    if outside:
+        lines.append(("beyond plot", f"{outside:,} (|d| > {extent:g})"))
+    return lines
+
+
+def _histogram_figure(
+    width: int, height: int, title: str, xlabel: str
+) -> tuple[Figure, Axes, Axes, tuple[float, float]]:
+    """A figure of `width` × `height` pixels with the title, the plot's axes (and x label) on
+    the left and the statistics panel's on the right; and the sizes of the text and the
+    small text (pt). The panel's y runs down from its top in pixels of the default size."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    # A figure of its own (no pyplot), so histograms can be drawn from several threads.
+    fig = Figure(figsize=(width / _DPI, height / _DPI), dpi=_DPI, facecolor="white")
+    FigureCanvasAgg(fig)
+    # Text scales with the height, so the default size stays legible on a laptop screen,
+    # down to a legible minimum (sizes in pixels, converted to points).
+    scale = height / 560
+    title_size, text_size, small_size = (
+        max(least, size * scale) * 72 / _DPI for size, least in ((22, 12), (16, 10), (14, 9))
+    )
+    fig.text(0.5, 1 - 12 * scale / height, title, ha="center", va="top", fontsize=title_size)
+    panel_w = min(300 * scale, 0.36 * width)
+    left, right = 70 * scale, width - panel_w - 20 * scale
+    # Tick labels and the x label below the plot do not shrink below their minimum sizes.
+    top, bottom = 55 * scale, height - max(65 * scale, 40)
+    plot = fig.add_axes((left / width, 1 - bottom / height, (right - left) / width,
+                         (bottom - top) / height))
+    panel = fig.add_axes((1 - panel_w / width, 1 - bottom / height,
+                          (panel_w - 14 * scale) / width, (bottom - top) / height))
+    panel.set_axis_off()
+    panel.set_ylim((bottom - top) / scale, 0)
+    plot.set_xlabel(xlabel, fontsize=text_size, labelpad=2)
+    return fig, plot, panel, (text_size, small_size)
+
+
 def write_histogram(
     path: str | os.PathLike,
     distances: np.ndarray,
@@ -335,7 +353,7 @@ def write_histogram(
     limit: float | None = None,
     title: str = "Signed distance, reconstruction to scan",
 ) -> None:
-    """Draw a histogram of signed distances with its statistics as a PNG.
+    """Draw a histogram of signed distances with its statistics as a PNG (matplotlib).
 
     Bars are coloured with :func:`diverging_colors` at their centres (same map and limit
     as the PLY and the overlay); the tolerance band, when given, is shaded and its share
@@ -351,9 +369,10 @@ def write_histogram(
     stats : mapping of str to float
         Statistics to print. Recognised keys: ``mean``, ``std``, ``rms``, ``median_abs``,
         ``p95_abs``, ``max_abs`` (in `unit`), ``overlap`` or ``overlap_fraction`` (fraction
-        0–1 in the overlap, as :mod:`reconstruct.compare.align` reports it), ``count``,
-        ``within_tolerance`` (fraction 0–1). Other keys are ignored. Missing ones are
-        computed from `distances` where possible; ``overlap`` is shown as "n/a" when absent.
+        0–1 in the overlap, as :mod:`reconstruct.compare.signed_distance` reports it),
+        ``count``, ``within_tolerance`` (fraction 0–1). Other keys are ignored. Missing ones
+        are computed from `distances` where possible; ``overlap`` is shown as "n/a" when
+        absent.
     tolerance : float, optional
         Half-width of the accepted band ±tolerance.
     unit : str
@@ -372,6 +391,8 @@ def write_histogram(
     InputError
         If the file cannot be written.
     """
+    from matplotlib.ticker import MaxNLocator, ScalarFormatter
+
     width, height = (int(size[0]), int(size[1]))
     if width < 400 or height < 250:
         raise ValueError(f"size must be at least (400, 250), not {size}")
@@ -381,124 +402,44 @@ def write_histogram(
     d = d[np.isfinite(d)]
     if limit is None:
         limit = default_limit(d)
-    summary = _summary(d, stats, tolerance)
-
-    # Fonts scale with the height, so the default size stays legible on a laptop screen.
-    scale = height / 560
-    f_title = _font(max(12, round(22 * scale)))
-    f_text = _font(max(10, round(16 * scale)))
-    f_small = _font(max(9, round(14 * scale)))
-
-    image = Image.new("RGB", (width, height), "white")
-    draw = ImageDraw.Draw(image)
-    draw.text((width // 2, round(12 * scale)), title, fill="black", font=f_title, anchor="mt")
-
-    # Layout: the plot on the left, the statistics in a panel on the right.
-    panel_w = round(min(300 * scale, 0.36 * width))
-    left, right = round(70 * scale), width - panel_w - round(20 * scale)
-    top, bottom = round(55 * scale), height - round(65 * scale)
-
-    a = np.abs(d)
-    extent = max(float(limit), float(np.percentile(a, 99)) if a.size else 0.0)
-    if tolerance is not None:
-        extent = max(extent, float(tolerance) * 1.2)
-    extent = _nice_ceil(extent) if extent > 0 else 1.0
-    # An odd number of bins puts one bar centred on 0, which reads as "no deviation".
-    n_bins = 2 * int(np.clip(math.sqrt(max(d.size, 1)) / 2, 7, 40)) + 1
-    edges = np.linspace(-extent, extent, n_bins + 1)
+    edges, extent = _bins(d, limit, tolerance)
     counts, _ = np.histogram(d, bins=edges)
-    outside = int(np.count_nonzero(a > extent))
-    y_max = max(int(counts.max()) if counts.size else 0, 1)
-    y_ticks = _nice_ticks(0, y_max * 1.05, target=5)
-    y_top = max(float(y_ticks[-1]), y_max * 1.05)
+    outside = int(np.count_nonzero(np.abs(d) > extent))
 
-    def px(x: np.ndarray | float) -> np.ndarray | float:
-        return left + (np.asarray(x) + extent) / (2 * extent) * (right - left)
-
-    def py(c: np.ndarray | float) -> np.ndarray | float:
-        return bottom - np.asarray(c) / y_top * (bottom - top)
-
+    fig, ax, panel, (text_size, small_size) = _histogram_figure(
+        width, height, title, f"signed distance ({unit})"
+    )
     if tolerance is not None:
-        x0, x1 = px(max(-tolerance, -extent)), px(min(tolerance, extent))
-        draw.rectangle([x0, top, x1, bottom], fill=(226, 240, 226))
-    # Grid lines under the bars.
-    for t in y_ticks:
-        draw.line([(left, py(t)), (right, py(t))], fill=(225, 225, 225), width=1)
-
-    colors = diverging_colors(0.5 * (edges[:-1] + edges[1:]), limit)
-    xs, ys = px(edges), py(counts)
-    for k in np.flatnonzero(counts):
-        draw.rectangle(
-            [xs[k], ys[k], xs[k + 1], bottom],
-            fill=tuple(int(c) for c in colors[k]),
-            outline=(90, 90, 90),
-        )
-    if tolerance is not None:
+        ax.axvspan(max(-tolerance, -extent), min(tolerance, extent), lw=0,
+                   color=_rgb(_TOLERANCE_BAND), zorder=0)
         for edge in (-tolerance, tolerance):
             if abs(edge) <= extent:
-                x = px(edge)
-                for y in range(top, bottom, 8):  # dashed
-                    draw.line([(x, y), (x, min(y + 4, bottom))], fill=(0, 120, 0), width=2)
+                ax.axvline(edge, color=_rgb(_TOLERANCE_LINE), lw=1.5, ls=(0, (3, 3)), zorder=3)
+    shown = counts > 0
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    ax.bar(centres[shown], counts[shown], width=np.diff(edges)[shown],
+           color=diverging_colors(centres[shown], limit) / 255, edgecolor=_rgb(_BAR_EDGE),
+           linewidth=0.75, zorder=2)
+    ax.set_xlim(-extent, extent)
+    ax.set_ylim(0, max(int(counts.max()) if counts.size else 0, 1) * 1.05)
+    ax.yaxis.set_major_locator(MaxNLocator(nbins=5, steps=[1, 2, 2.5, 5, 10], integer=True))
+    ax.xaxis.set_major_formatter(ScalarFormatter(useOffset=False))
+    ax.grid(axis="y", color=_rgb((225, 225, 225)), zorder=1)
+    ax.set_axisbelow(True)
+    ax.spines[["top", "right"]].set_visible(False)
+    ax.tick_params(labelsize=small_size, length=3, pad=2)
+    ax.set_ylabel("count", fontsize=small_size)
 
-    # Axes, ticks and labels.
-    draw.line([(left, bottom), (right, bottom)], fill="black", width=2)
-    draw.line([(left, top), (left, bottom)], fill="black", width=2)
-    tick = round(6 * scale)
-    for t in _nice_ticks(-extent, extent, target=6):
-        x = px(t)
-        draw.line([(x, bottom), (x, bottom + tick)], fill="black", width=1)
-        draw.text((x, bottom + tick + 2), _tick_label(t), fill="black", font=f_small, anchor="mt")
-    for t in y_ticks:
-        y = py(t)
-        draw.line([(left - tick, y), (left, y)], fill="black", width=1)
-        draw.text((left - tick - 3, y), f"{int(t):d}", fill="black", font=f_small, anchor="rm")
-    draw.text(
-        ((left + right) // 2, height - round(8 * scale)),
-        f"signed distance ({unit})",
-        fill="black",
-        font=f_text,
-        anchor="mb",
-    )
-    draw.text((left, top - round(6 * scale)), "count", fill="black", font=f_small, anchor="lb")
-
-    # Statistics panel.
-    lines: list[tuple[str, str]] = []
-    for key, label in _STAT_LABELS:
-        if key in summary:
-            lines.append((label, f"{summary[key]:.4g} {unit}"))
-    # reconstruct.compare.align names it overlap_fraction.
-    overlap = summary.get("overlap", summary.get("overlap_fraction"))
-    lines.append(("overlap", "n/a" if overlap is None else f"{100 * overlap:.1f} %"))
-    lines.append(("count", f"{int(summary['count']):,}"))
-    if tolerance is not None:
-        lines.append(("tolerance", f"±{tolerance:g} {unit}"))
-        within = summary.get("within_tolerance")
-        lines.append(("within", "n/a" if within is None else f"{100 * within:.1f} %"))
-    lines.append(("colour range", f"±{limit:g} {unit}"))
-    if outside:
-        lines.append(("beyond plot", f"{outside:,} (|d| > {extent:g})"))
-
-    x_label = width - panel_w
-    x_value = width - round(14 * scale)
-    line_h = round(27 * scale)
-    y = top
-    draw.text((x_label, y), "Statistics", fill="black", font=f_text, anchor="lt")
-    y += line_h + round(4 * scale)
-    for label, value in lines:
-        draw.text((x_label, y), label, fill=(60, 60, 60), font=f_text, anchor="lt")
-        draw.text((x_value, y), value, fill="black", font=f_text, anchor="rt")
-        y += line_h
-    y += round(6 * scale)
-    draw.text(
-        (x_label, y),
-        "blue: d < 0   red: d > 0",
-        fill=(60, 60, 60),
-        font=f_small,
-        anchor="lt",
-    )
-
+    lines = _stat_lines(_summary(d, stats, tolerance), unit, tolerance, limit, outside, extent)
+    panel.text(0, 0, "Statistics", va="top", fontsize=text_size)
+    for k, (label, value) in enumerate(lines):
+        y = 31 + 27 * k
+        panel.text(0, y, label, va="top", color=_rgb(_GREY_TEXT), fontsize=text_size)
+        panel.text(1, y, value, va="top", ha="right", fontsize=text_size)
+    panel.text(0, 37 + 27 * len(lines), "blue: d < 0   red: d > 0", va="top",
+               color=_rgb(_GREY_TEXT), fontsize=small_size)
     buffer = io.BytesIO()
-    image.save(buffer, format="PNG")
+    fig.savefig(buffer, format="png", dpi=_DPI)
     with atomic_write(path, "wb") as handle:
         handle.write(buffer.getvalue())
 
@@ -516,6 +457,24 @@ def distance_lookup_table(limit: float):
     lut.scalar_range = (-limit, limit)
     lut.nan_color = tuple(c / 255 for c in NAN_COLOR)
     return lut
+
+
+def _distances_on(
+    verts: np.ndarray, faces: np.ndarray, points: np.ndarray, dist: np.ndarray, on: str
+) -> str:
+    """Which object carries the distances ("reconstruction" or "scan"), shapes checked."""
+    if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError("reconstruction must be (V, 3) vertices and (F, 3) faces")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"scan_points must be (P, 3), not {points.shape}")
+    if on == "auto":
+        on = "reconstruction" if dist.shape == (len(verts),) else "scan"
+    expected = {"reconstruction": len(verts), "scan": len(points)}
+    if on not in expected:
+        raise ValueError(f"on must be 'auto', 'reconstruction' or 'scan', not {on!r}")
+    if dist.shape != (expected[on],):
+        raise ValueError(f"distances are {dist.shape}, the {on} has {expected[on]} points")
+    return on
 
 
 def write_overlay(
@@ -573,17 +532,7 @@ def write_overlay(
     faces = np.asarray(reconstruction_faces, dtype=np.int64)
     points = np.asarray(scan_points, dtype=np.float32)
     dist = np.asarray(distances, dtype=np.float64)
-    if verts.ndim != 2 or verts.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError("reconstruction must be (V, 3) vertices and (F, 3) faces")
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"scan_points must be (P, 3), not {points.shape}")
-    if on == "auto":
-        on = "reconstruction" if dist.shape == (len(verts),) else "scan"
-    expected = {"reconstruction": len(verts), "scan": len(points)}
-    if on not in expected:
-        raise ValueError(f"on must be 'auto', 'reconstruction' or 'scan', not {on!r}")
-    if dist.shape != (expected[on],):
-        raise ValueError(f"distances are {dist.shape}, the {on} has {expected[on]} points")
+    on = _distances_on(verts, faces, points, dist, on)
     limit = float(limit)
     if not (math.isfinite(limit) and limit > 0):
         raise ValueError(f"limit must be a positive number, not {limit}")
@@ -645,8 +594,4 @@ def write_overlay(
         plotter.reset_camera()
 
     image = rendering.render_image(draw, size, shape=(1, 2), border=False)
-
-    buffer = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image[..., :3])).save(buffer, format="PNG")
-    with atomic_write(path, "wb") as handle:
-        handle.write(buffer.getvalue())
+    write_png(path, np.ascontiguousarray(image[..., :3]))

@@ -99,6 +99,42 @@ def _as_rgb(texture: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return texture[..., :3]
 
 
+def _grid_faces(index: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Two triangles per cell of the sample grid, keeping those whose corners are all valid.
+
+    Parameters
+    ----------
+    index : numpy.ndarray
+        ``(h, w)`` vertex number of each sample (any value where not `valid`).
+    valid : numpy.ndarray
+        ``(h, w)`` bool, the samples that are vertices.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(F, 3)`` vertex indices of `index`'s dtype, cell by cell in row-major order; each
+        cell split along its top-left to bottom-right diagonal, counter-clockwise from +z.
+    """
+    # Cell corners: a top-left, b top-right, c bottom-left, d bottom-right. With y up,
+    # (a, c, d) and (a, d, b) are counter-clockwise seen from +z.
+    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
+    cells = (index.shape[0] - 1, index.shape[1] - 1)
+    faces = np.empty(cells + (2, 3), dtype=index.dtype)
+    for k, corner in enumerate((a, c, d)):
+        faces[:, :, 0, k] = corner
+    for k, corner in enumerate((a, d, b)):
+        faces[:, :, 1, k] = corner
+    if valid.all():
+        return faces.reshape(-1, 3)
+    va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
+    keep = np.empty(cells + (2,), dtype=bool)
+    np.logical_and(va, vd, out=keep[..., 0])
+    keep[..., 1] = keep[..., 0]
+    keep[..., 0] &= vc
+    keep[..., 1] &= vb
+    return _take(faces.reshape(cells[0], cells[1] * 2, 3), keep.reshape(cells[0], -1))
+
+
 def grid_mesh(
     height: np.ndarray,
     *,
@@ -192,29 +228,9 @@ def grid_mesh(
         # NaN, which most viewers render as black or reject.
         vertex_normals[~good] = (0.0, 0.0, 1.0)
 
-    # Cell corners: a top-left, b top-right, c bottom-left, d bottom-right. With y up,
-    # (a, c, d) and (a, d, b) are counter-clockwise seen from +z.
-    a, b, c, d = index[:-1, :-1], index[:-1, 1:], index[1:, :-1], index[1:, 1:]
-    cells = (grid[0] - 1, grid[1] - 1)
-    faces = np.empty(cells + (2, 3), dtype=index_dtype)
-    for k, corner in enumerate((a, c, d)):
-        faces[:, :, 0, k] = corner
-    for k, corner in enumerate((a, d, b)):
-        faces[:, :, 1, k] = corner
-    if n_valid < valid.size:
-        va, vb, vc, vd = valid[:-1, :-1], valid[:-1, 1:], valid[1:, :-1], valid[1:, 1:]
-        keep = np.empty(cells + (2,), dtype=bool)
-        np.logical_and(va, vd, out=keep[..., 0])
-        keep[..., 1] = keep[..., 0]
-        keep[..., 0] &= vc
-        keep[..., 1] &= vb
-        faces = _take(faces.reshape(cells[0], cells[1] * 2, 3), keep.reshape(cells[0], -1))
-    else:
-        faces = faces.reshape(-1, 3)
-
     return GridMesh(
         vertices=vertices,
-        faces=faces,
+        faces=_grid_faces(index, valid),
         uv=uv,
         colors=colors,
         normals=vertex_normals,

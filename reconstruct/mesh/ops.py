@@ -13,15 +13,20 @@ the mesh's unit (``"mm"`` or ``"pixel"``). Every file is written through
 from __future__ import annotations
 
 import os
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import open3d as o3d
 import trimesh
 from PIL import Image
 
 from ptmcore.atomic import atomic_write
 from reconstruct.mesh.grid import GridMesh, grid_mesh
+from reconstruct.mesh.topology import boundary_edges, edge_face_counts
+
+# open3d is imported inside the functions that decimate: it is slow to import, and solids,
+# STL and GLB (and the rest of the package) must work where it is not installed.
+if TYPE_CHECKING:
+    import open3d as o3d
 
 __all__ = ["decimate", "solid", "write_glb", "write_stl"]
 
@@ -41,6 +46,8 @@ _MIN_FACES = 4
 
 
 def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleMesh:
+    import open3d as o3d
+
     return o3d.geometry.TriangleMesh(
         o3d.utility.Vector3dVector(np.asarray(vertices, dtype=np.float64)),
         o3d.utility.Vector3iVector(np.asarray(faces, dtype=np.int32)),
@@ -49,6 +56,8 @@ def _o3d_mesh(vertices: np.ndarray, faces: np.ndarray) -> o3d.geometry.TriangleM
 
 def _scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.RaycastingScene:
     """A ray-casting scene (a BVH) for exact point-to-triangle distances."""
+    import open3d as o3d
+
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
@@ -59,6 +68,8 @@ def _scene(vertices: np.ndarray, faces: np.ndarray) -> o3d.t.geometry.Raycasting
 
 def _distances(scene: o3d.t.geometry.RaycastingScene, points: np.ndarray) -> np.ndarray:
     """Unsigned distances of `points` to the triangles of `scene`."""
+    import open3d as o3d
+
     query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
     return scene.compute_distance(query).numpy().astype(np.float64)
 
@@ -104,6 +115,8 @@ def _resample(
     original surface keeps them consistent with the geometry, and is exact for grid UVs,
     which are affine in x and y.
     """
+    import open3d as o3d
+
     query = o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32))
     closest = original_scene.compute_closest_points(query)
     tri = original.faces[closest["primitive_ids"].numpy().astype(np.int64)]
@@ -241,21 +254,6 @@ def decimate(
 # --------------------------------------------------------------------------------- solid
 
 
-def _edges(faces: np.ndarray) -> np.ndarray:
-    """``(3F, 2)`` directed edges of the faces, in winding order (face-major)."""
-    return faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
-
-
-def _boundary(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray]:
-    """Directed boundary edges (used by one face) and the count of faces per edge."""
-    directed = _edges(faces).astype(np.int64)
-    undirected = np.sort(directed, axis=1)
-    key = undirected[:, 0] * n_vertices + undirected[:, 1]
-    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
-    per_edge = counts[inverse]
-    return directed[per_edge == 1], per_edge
-
-
 def _fans(faces: np.ndarray, v: int) -> np.ndarray:
     """Label of the fan of each of `faces` (all containing `v`): faces sharing an edge from
     `v` are in the same fan. Labels are 0, 1, … (union-find over a handful of faces)."""
@@ -289,7 +287,7 @@ def _drop_pinches(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     a neighbour. Pinches are few (on the outline only), so the fans are found in Python.
     """
     while True:
-        boundary, _ = _boundary(faces, n_vertices)
+        boundary = boundary_edges(faces, n_vertices)
         pinched = np.flatnonzero(np.bincount(boundary.ravel(), minlength=n_vertices) > 2)
         if len(pinched) == 0:
             return faces
@@ -356,8 +354,7 @@ def solid(
     faces = np.asarray(mesh.faces, dtype=np.int64)
     if len(faces) == 0:
         raise ValueError("the relief has no faces")
-    _, per_edge = _boundary(faces, n)
-    if per_edge.max() > 2:
+    if edge_face_counts(faces, n).max() > 2:
         raise ValueError("the relief has edges shared by more than two faces")
     n_before = len(faces)
     faces = _drop_pinches(faces, n)
@@ -374,7 +371,7 @@ def solid(
     # A boundary edge a→b runs with the relief's winding; the wall runs b→a on top and
     # a'→b' at the bottom, and the reversed base b'→a', so every edge is used once in each
     # direction: watertight and consistently wound.
-    edges, _ = _boundary(faces, m)
+    edges = boundary_edges(faces, m)
     a, b = edges[:, 0], edges[:, 1]
     wall = np.concatenate(
         [np.stack([b, a, a + m], axis=1), np.stack([b, a + m, b + m], axis=1)]

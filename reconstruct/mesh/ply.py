@@ -1,4 +1,4 @@
-"""Binary PLY export of grid meshes: colours, texture coordinates, normals, comments.
+"""Binary PLY export: one general writer, and grid meshes with colours, UVs and normals.
 
 The writers are our own rather than trimesh's exporters: a trimesh mesh holds either UVs
 or vertex colours (its visuals are one or the other), its PLY exporter writes UVs as ``s t``
@@ -10,18 +10,25 @@ emit numpy records and text in bounded chunks instead. All files are written ato
 from __future__ import annotations
 
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 
 from ptmcore.atomic import atomic_write
 from reconstruct.mesh.grid import GridMesh
 
-__all__ = ["write_ply"]
+__all__ = ["write_binary_ply", "write_ply"]
 
 # Rows per chunk when writing: bounds the temporary copies (a few tens of MB) while keeping
 # the per-chunk Python overhead negligible.
 _CHUNK = 100_000
+
+# PLY's scalar types by numpy type (little-endian, as the files are written).
+_PLY_TYPES = {
+    "i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort",
+    "i4": "int", "u4": "uint", "f4": "float", "f8": "double",
+}
+_FACE_DTYPE = np.dtype([("count", "u1"), ("index", "<i4", (3,))])
 
 
 def _check_comment(text: str) -> str:
@@ -45,13 +52,85 @@ def _relative_name(target: str | os.PathLike, relative_to_file: str | os.PathLik
     return rel.replace(os.sep, "/")
 
 
-def _ply_vertex_fields(with_normals: bool) -> list[tuple[str, str, str]]:
-    """(name, numpy type, PLY type) of each vertex property, in file order."""
-    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if with_normals else [])
-    fields = [(n, "<f4", "float") for n in names]
-    fields += [(n, "u1", "uchar") for n in ("red", "green", "blue")]
-    fields += [(n, "<f4", "float") for n in ("texture_u", "texture_v")]
-    return fields
+def _vertex_dtype(vertex: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
+    """The packed little-endian record of the vertex properties, and the vertex count."""
+    lengths = {name: np.shape(values) for name, values in vertex.items()}
+    shapes = set(lengths.values())
+    if len(shapes) != 1 or len(next(iter(shapes))) != 1:
+        raise ValueError(f"vertex properties must be 1-D arrays of one length, not {lengths}")
+    fields = []
+    for name, values in vertex.items():
+        dtype = np.asarray(values).dtype.newbyteorder("<")
+        if dtype.str[1:] not in _PLY_TYPES:
+            raise ValueError(f"PLY has no type for property {name!r} of dtype {dtype}")
+        fields.append((name, dtype))
+    # A structured dtype without alignment is packed, like PLY's binary records.
+    return np.dtype(fields), next(iter(shapes))[0]
+
+
+def write_binary_ply(
+    path: str | os.PathLike,
+    vertex: Mapping[str, np.ndarray],
+    faces: np.ndarray | None = None,
+    *,
+    comments: Iterable[str] = (),
+) -> None:
+    """Write vertex properties and triangles as a binary little-endian PLY file.
+
+    The header is ``ply``, the format, one ``comment`` line per comment, the vertex element
+    with one property per entry of `vertex`, and, when `faces` is given (even empty), a
+    face element with ``property list uchar int vertex_indices``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Output file.
+    vertex : mapping of str to numpy.ndarray
+        Property name → ``(V,)`` values, in file order. Each property is written with its
+        array's type (float32 as ``float``, uint8 as ``uchar``, …): cast before to choose.
+    faces : numpy.ndarray, optional
+        ``(F, 3)`` vertex indices; None for a point cloud.
+    comments : iterable of str
+        Header comments, one line each, without the ``comment`` keyword.
+
+    Raises
+    ------
+    ValueError
+        For properties of different lengths or of a type PLY lacks, malformed or
+        out-of-range faces, more vertices than a PLY ``int`` index can address, or a
+        multi-line comment.
+    InputError
+        If the file cannot be written (see :func:`ptmcore.atomic.atomic_write`).
+    """
+    vertex_dtype, n_vertices = _vertex_dtype(vertex)
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment {_check_comment(c)}" for c in comments]
+    header.append(f"element vertex {n_vertices}")
+    header += [f"property {_PLY_TYPES[vertex_dtype[name].str[1:]]} {name}" for name in vertex]
+    if faces is not None:
+        faces = np.asarray(faces)
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"faces must be (F, 3), not {faces.shape}")
+        if faces.size and (faces.min() < 0 or faces.max() >= n_vertices):
+            raise ValueError("face indices out of range")
+        if n_vertices > np.iinfo(np.int32).max:
+            raise ValueError("too many vertices for PLY int32 indices")
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+    header.append("end_header")
+
+    with atomic_write(path, "wb") as handle:
+        handle.write(("\n".join(header) + "\n").encode("utf-8"))
+        for start in range(0, n_vertices, _CHUNK):
+            record = np.empty(min(_CHUNK, n_vertices - start), dtype=vertex_dtype)
+            for name, values in vertex.items():
+                record[name] = values[start : start + _CHUNK]
+            handle.write(record.tobytes())
+        for start in range(0, 0 if faces is None else len(faces), _CHUNK):
+            block = faces[start : start + _CHUNK]
+            record = np.empty(len(block), dtype=_FACE_DTYPE)
+            record["count"] = 3
+            record["index"] = block
+            handle.write(record.tobytes())
 
 
 def write_ply(
@@ -82,42 +161,16 @@ def write_ply(
     Raises
     ------
     InputError
-        If the file cannot be written (see :func:`reconstruct.atomic.atomic_write`).
+        If the file cannot be written (see :func:`ptmcore.atomic.atomic_write`).
     ValueError
         For a multi-line comment, or more vertices than a PLY ``int`` index can address.
     """
-    n_vertices = len(mesh.vertices)
-    if n_vertices > np.iinfo(np.int32).max:
-        raise ValueError("too many vertices for PLY int32 indices")
-    header = ["ply", "format binary_little_endian 1.0"]
-    if texture_file is not None:
-        header.append(f"comment TextureFile {_check_comment(_relative_name(texture_file, path))}")
-    header.append(f"comment unit {_check_comment(mesh.unit)}")
-    header += [f"comment {_check_comment(c)}" for c in comments]
-    fields = _ply_vertex_fields(mesh.normals is not None)
-    # A structured dtype without alignment is packed, like PLY's binary records.
-    vertex_dtype = np.dtype([(name, np_type) for name, np_type, _ in fields])
-    header.append(f"element vertex {n_vertices}")
-    header += [f"property {ply_type} {name}" for name, _, ply_type in fields]
-    header.append(f"element face {len(mesh.faces)}")
-    header.append("property list uchar int vertex_indices")
-    header.append("end_header")
-    face_dtype = np.dtype([("count", "u1"), ("index", "<i4", (3,))])
-
-    with atomic_write(path, "wb") as handle:
-        handle.write(("\n".join(header) + "\n").encode("utf-8"))
-        for start in range(0, n_vertices, _CHUNK):
-            sl = slice(start, start + _CHUNK)
-            record = np.empty(len(mesh.vertices[sl]), dtype=vertex_dtype)
-            record["x"], record["y"], record["z"] = mesh.vertices[sl].T
-            if mesh.normals is not None:
-                record["nx"], record["ny"], record["nz"] = mesh.normals[sl].T
-            record["red"], record["green"], record["blue"] = mesh.colors[sl].T
-            record["texture_u"], record["texture_v"] = mesh.uv[sl].T
-            handle.write(record.tobytes())
-        for start in range(0, len(mesh.faces), _CHUNK):
-            block = mesh.faces[start : start + _CHUNK]
-            record = np.empty(len(block), dtype=face_dtype)
-            record["count"] = 3
-            record["index"] = block
-            handle.write(record.tobytes())
+    header = [] if texture_file is None else [f"TextureFile {_relative_name(texture_file, path)}"]
+    header += [f"unit {mesh.unit}", *comments]
+    # Columns are views (no copies) unless a mesh array is not of its file type.
+    vertex = dict(zip(("x", "y", "z"), np.asarray(mesh.vertices, dtype=np.float32).T))
+    if mesh.normals is not None:
+        vertex.update(zip(("nx", "ny", "nz"), np.asarray(mesh.normals, dtype=np.float32).T))
+    vertex.update(zip(("red", "green", "blue"), np.asarray(mesh.colors, dtype=np.uint8).T))
+    vertex.update(zip(("texture_u", "texture_v"), np.asarray(mesh.uv, dtype=np.float32).T))
+    write_binary_ply(path, vertex, mesh.faces, comments=header)

@@ -1,59 +1,119 @@
-"""Per-stage wall time and peak memory, for ``report.json`` and the benchmarks."""
+"""Per-stage wall time and memory of a run, and its progress, for ``report.json``.
+
+Memory is the process's resident set size sampled while a stage runs (every 20 ms, and at the
+stage's start and end), not the kernel's high-water mark: resetting that mark is process-wide
+(two runs in one process, threads or a Dask worker, would reset each other's) and hides the
+true peak from ``/usr/bin/time``, ``wait4`` and cluster schedulers, which measure from outside.
+A sampled peak can miss a spike shorter than the interval; the whole-process peak from outside
+cannot.
+"""
 
 from __future__ import annotations
 
+import os
 import resource
 import sys
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 
+__all__ = ["ProgressFn", "StageTimer", "Stages", "current_rss_mb", "peak_rss_mb"]
 
-def _reset_peak_rss() -> bool:
-    # Writing 5 to clear_refs resets the kernel's high-water mark of this process's RSS
-    # (Linux ≥ 4.0), which is what makes a per-stage peak measurable.
+#: ``progress(stage, done, total)``, called as the work of a stage advances.
+ProgressFn = Callable[[str, int, int], None]
+
+_SAMPLE_SECONDS = 0.02
+_PAGE_MB = os.sysconf("SC_PAGE_SIZE") / 2**20 if hasattr(os, "sysconf") else 0.0
+
+
+def current_rss_mb() -> float | None:
+    """The process's resident memory now (MiB), or None where ``/proc`` is missing."""
     try:
-        with open("/proc/self/clear_refs", "w") as f:
-            f.write("5")
-        return True
-    except OSError:
-        return False
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * _PAGE_MB
+    except (OSError, ValueError, IndexError):
+        return None
 
 
 def peak_rss_mb() -> float:
-    """Peak resident memory (MiB) since the last reset, or since the process started."""
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) / 1024
-    except OSError:
-        pass
+    """The process's peak resident memory since it started (MiB)."""
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak / (1024 * 1024) if sys.platform == "darwin" else peak / 1024
 
 
+class _Sampler:
+    """Samples the resident memory in a daemon thread until stopped; keeps the largest."""
+
+    def __init__(self) -> None:
+        self.peak = current_rss_mb()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="rss-sampler")
+        if self.peak is not None:
+            self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(_SAMPLE_SECONDS):
+            self.peak = max(self.peak, current_rss_mb() or 0.0)
+
+    def stop(self) -> float | None:
+        if self.peak is None:
+            return None
+        self._stop.set()
+        self._thread.join()
+        return max(self.peak, current_rss_mb() or 0.0)
+
+
 @dataclass
 class StageTimer:
-    """Records the wall time and peak RSS of named stages.
+    """Records the wall time and the peak resident memory of named stages.
 
     Use ``with timer.stage("fit"): ...``; ``timer.stages`` then maps each name to
-    ``{"seconds": …, "peak_rss_mb": …}``.
+    ``{"seconds": …, "peak_rss_mb": …}``. Where the resident memory cannot be sampled (no
+    ``/proc``), the peak is the process's since it started, and :attr:`scope` says so.
     """
 
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
-    per_stage_peak: bool = True
+    scope: str = "per stage (sampled)"
 
     @contextmanager
     def stage(self, name: str) -> Iterator[None]:
-        if not _reset_peak_rss():
-            self.per_stage_peak = False
+        sampler = _Sampler()
         t0 = time.perf_counter()
         try:
             yield
         finally:
-            self.stages[name] = {
-                "seconds": round(time.perf_counter() - t0, 3),
-                "peak_rss_mb": round(peak_rss_mb(), 1),
-            }
+            peak = sampler.stop()
+            if peak is None:
+                peak, self.scope = peak_rss_mb(), "process since start"
+            self.stages[name] = {"seconds": round(time.perf_counter() - t0, 3), "peak_rss_mb": round(peak, 1)}
+
+
+class Stages:
+    """Times the stages of one run and reports their progress.
+
+    ``with stages("normals", total=h) as advance: ...`` times the stage and calls
+    ``progress("normals", done, total)`` as ``advance(k)`` is called; stages without steps of
+    their own show 0/1 then 1/1.
+    """
+
+    def __init__(self, progress: ProgressFn | None = None) -> None:
+        self.timer = StageTimer()
+        self.progress = progress
+
+    @contextmanager
+    def __call__(self, name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
+        done = [0]
+
+        def advance(k: int) -> None:
+            done[0] += k
+            if self.progress is not None:
+                self.progress(name, done[0], total)
+
+        if self.progress is not None:
+            self.progress(name, 0, total)
+        with self.timer.stage(name):
+            yield advance
+        if done[0] < total:
+            advance(total - done[0])

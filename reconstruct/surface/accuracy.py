@@ -37,7 +37,9 @@ def load_ground_truth(folder: str | os.PathLike) -> GroundTruth:
     try:
         normals = np.load(folder / "normals.npy").astype(np.float32)
     except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read ground-truth normals ({exc})", folder / "normals.npy") from None
+        raise InputError(
+            f"cannot read ground-truth normals ({exc})", folder / "normals.npy"
+        ) from None
     mask_file = folder / "mask.png"
     mask = read_image(mask_file) > 0 if mask_file.exists() else np.ones(normals.shape[:2], bool)
     if mask.ndim == 3:
@@ -50,7 +52,9 @@ def load_ground_truth(folder: str | os.PathLike) -> GroundTruth:
 def normal_accuracy(normals: np.ndarray, truth: GroundTruth) -> dict[str, float]:
     """Mean, median and 95th percentile of the angular error (degrees) inside the mask."""
     if normals.shape != truth.normals.shape:
-        raise InputError(f"ground truth is {truth.normals.shape[:2]} but the result is {normals.shape[:2]}")
+        raise InputError(
+            f"ground truth is {truth.normals.shape[:2]} but the result is {normals.shape[:2]}"
+        )
     err = angular_error(normals, truth.normals, truth.mask)
     return {
         "mean_deg": float(err.mean()),

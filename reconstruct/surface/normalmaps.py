@@ -64,7 +64,9 @@ def read_normal_map(path: str | os.PathLike) -> np.ndarray:
     return unit.astype(np.float32)
 
 
-def shaded(normals: np.ndarray, light: tuple[float, float, float] = (-0.4, 0.4, 0.82)) -> np.ndarray:
+def shaded(
+    normals: np.ndarray, light: tuple[float, float, float] = (-0.4, 0.4, 0.82)
+) -> np.ndarray:
     """A grey rendering ``max(0, n·l)`` as 8-bit RGB, for a texture when no colour is known.
 
     The default light comes from the upper left, as cartographers and most viewers shade

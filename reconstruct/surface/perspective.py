@@ -25,7 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from reconstruct.calibration.camera import Intrinsics
-from reconstruct.surface.integrate import masked_poisson, poisson_dct
+from reconstruct.surface.fourier import poisson_dct
+from reconstruct.surface.masked import masked_poisson
 
 __all__ = ["integrate_perspective", "perspective_gradients"]
 
@@ -68,8 +69,8 @@ def perspective_gradients(
     p, q : numpy.ndarray
         ``(H, W)`` float32 gradients of ζ = log d in the convention of the integrators
         (x right, y up, per pixel): p = ∂ζ/∂col = ∂ζ/∂u and q = −∂ζ/∂row = −∂ζ/∂v. Feeding
-        them to :func:`reconstruct.surface.integrate.poisson_dct` or
-        :func:`reconstruct.surface.integrate.masked_poisson` with ``pixel_size=1`` returns log-depth
+        them to :func:`reconstruct.surface.fourier.poisson_dct` or
+        :func:`reconstruct.surface.masked.masked_poisson` with ``pixel_size=1`` returns log-depth
         (up to a constant). Note that ζ grows *away* from the camera.
 
     Raises
@@ -128,8 +129,8 @@ def integrate_perspective(
         ``(H, W)`` bool, True for pixels of the object. Without one, pixels with a
         non-finite normal are treated as outside the object.
     method : {"masked", "dct"}
-        Solver for the log-depth: :func:`reconstruct.surface.integrate.masked_poisson` (default,
-        free boundary on the mask) or :func:`reconstruct.surface.integrate.poisson_dct` (whole
+        Solver for the log-depth: :func:`reconstruct.surface.masked.masked_poisson` (default,
+        free boundary on the mask) or :func:`reconstruct.surface.fourier.poisson_dct` (whole
         rectangle, zero gradient off the mask).
     distance : float, optional
         Depth along the optical axis, in mm, of the median-depth pixel of the object

@@ -1,0 +1,345 @@
+"""Loading a capture: its photographs, lights, mask, near lights and ground truth, checked.
+
+:func:`load_capture` is the first stage of a run. It accepts the three layouts a user may
+hand over and returns one :class:`Capture` whatever the layout:
+
+* a folder of photographs with one ``.lp`` light file (or the ``.lp`` file itself);
+* a photometric-stereo dataset folder (DiLiGenT's ``filenames.txt``, ``light_directions.txt``
+  and ``light_intensities.txt``, :mod:`ptmcore.psdataset`);
+* a folder of photographs with glossy spheres in view and no ``.lp``: the lights are read from
+  the spheres' highlights (:mod:`reconstruct.calibration`), near lights triangulated when two
+  or more spheres show them.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.errors import InputError
+from ptmcore.images import ImageStack, load_stack, read_image
+from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
+from ptmcore.lp import LightSet, read_lp
+from ptmcore.nearlight import read_light_positions
+from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
+from ptmcore.solvers import RankInfo, analyse_lights
+from reconstruct.pipeline.options import RunOptions
+from reconstruct.pipeline.profiling import Stages
+from reconstruct.surface.accuracy import GroundTruth, load_ground_truth
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "Capture",
+    "NearLights",
+    "capture_images",
+    "find_lp",
+    "load_capture",
+    "read_mask",
+]
+
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
+#: How report.json names each layout.
+LP_CAPTURE = "capture with .lp"
+PS_DATASET = "photometric-stereo dataset"
+SPHERE_CAPTURE = "capture with spheres (calibrated)"
+
+
+@dataclass
+class NearLights:
+    """Point lights of a capture: positions ``(N, 3)`` float64 in pixels (x = column,
+    y = −row, z above the base plane) and where they came from."""
+
+    positions: np.ndarray
+    source: str
+
+
+@dataclass
+class Capture:
+    """A loaded capture, ready for the normals and relighting stages.
+
+    Attributes
+    ----------
+    source : Path
+        The capture folder or ``.lp`` file as given.
+    layout : str
+        ``"capture with .lp"``, ``"photometric-stereo dataset"`` or
+        ``"capture with spheres (calibrated)"``.
+    stack : ImageStack
+        The photographs as linear luminance ``(N, H, W)`` uint16 with clip marks and per-pixel
+        chromaticity ``(H, W, 3)`` (:func:`ptmcore.images.load_stack`), divided by the light
+        intensities when they were given or estimated.
+    lights : LightSet
+        Each photograph's path and unit light direction ``(N, 3)`` (x right, y up, z towards
+        the camera); for near lights, the direction from the image centre.
+    lp_path : Path or None
+        The ``.lp`` file read, if any.
+    mask : ndarray or None
+        ``(H, W)`` bool, True on the object: from ``--mask FILE``, the dataset's own mask, and
+        the spheres left out. ``--mask auto`` is resolved later, from the normals.
+    near : NearLights or None
+        Light positions when the lights are near (each pixel then has its own directions).
+    truth : GroundTruth or None
+        Ground-truth normals (and heights) to measure accuracy against.
+    truth_source : str or None
+        Where the ground truth came from.
+    rank : RankInfo
+        Rank and conditioning of the PTM light matrix.
+    intensities : dict or None
+        ``{"source": …, "factors": (N,) or (N, 3)}`` when intensities were applied.
+    warnings : list of str
+        What a user should know about the capture (clipping, left-out photographs, ...).
+    """
+
+    source: Path
+    layout: str
+    stack: ImageStack
+    lights: LightSet
+    lp_path: Path | None = None
+    mask: np.ndarray | None = None
+    near: NearLights | None = None
+    truth: GroundTruth | None = None
+    truth_source: str | None = None
+    rank: RankInfo | None = None
+    intensities: dict | None = None
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)`` of the photographs."""
+        return self.stack.shape
+
+
+def find_lp(capture: Path, lp: Path | None = None) -> Path:
+    """The light file of a capture: ``lp`` if given, the capture itself if it is an ``.lp``
+    file, else the single ``.lp`` file in the capture folder."""
+    if lp is not None:
+        return Path(lp)
+    capture = Path(capture)
+    if capture.is_file():
+        if capture.suffix.lower() == ".lp":
+            return capture
+        raise InputError("not a capture folder or .lp file", capture)
+    if not capture.is_dir():
+        raise InputError("capture folder not found", capture)
+    found = sorted(p for p in capture.iterdir() if p.suffix.lower() == ".lp" and p.is_file())
+    if not found:
+        raise InputError("no .lp light file in the capture folder (give one with --lp)", capture)
+    if len(found) > 1:
+        names = ", ".join(p.name for p in found)
+        raise InputError(f"several .lp files ({names}); choose one with --lp", capture)
+    return found[0]
+
+
+def capture_images(folder: str | os.PathLike) -> list[Path]:
+    """The photographs of a capture folder, in name order."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("capture folder not found", folder)
+    paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if not paths:
+        raise InputError("no photographs (JPEG, PNG or TIFF) in the capture folder", folder)
+    return paths
+
+
+def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
+    """Read a mask image (non-zero = object) and check it matches the photographs."""
+    m = read_image(path)
+    if m.ndim == 3:
+        m = m.max(axis=2)
+    if m.shape != shape:
+        raise InputError(f"mask is {m.shape[1]}×{m.shape[0]} but the photographs are {shape[1]}×{shape[0]}", path)
+    m = m > 0
+    if not m.any():
+        raise InputError("mask is empty (no non-zero pixel)", path)
+    return m
+
+
+def _layout(capture: Path, opt: RunOptions) -> str:
+    """Which of the three layouts ``capture`` is."""
+    if opt.lp is None and capture.is_dir():
+        if is_ps_dataset(capture):
+            return PS_DATASET
+        if not any(p.suffix.lower() == ".lp" for p in capture.iterdir()):
+            return SPHERE_CAPTURE
+    return LP_CAPTURE
+
+
+def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) -> NearLights | None:
+    """Positions for the photographs of ``lights`` from a light-position file, if there is one.
+
+    With ``"auto"`` the file is ``light_positions.csv`` beside the ``.lp``; photographs are
+    matched by file name, and every photograph of the ``.lp`` needs a position.
+    """
+    if option == "none":
+        return None
+    path = lp_path.parent / "light_positions.csv" if option == "auto" else Path(option)
+    if option == "auto" and not path.is_file():
+        return None
+    names, positions = read_light_positions(path)
+    by_name = dict(zip(names, positions))
+    missing = [p.name for p in lights.paths if p.name not in by_name]
+    if missing:
+        raise InputError(f"no light position for {missing[0]}"
+                         + (f" and {len(missing) - 1} more photograph(s)" if len(missing) > 1 else ""), path)
+    return NearLights(np.array([by_name[p.name] for p in lights.paths]), str(path))
+
+
+def _sphere_mask(spheres, shape: tuple[int, int]) -> np.ndarray:
+    """True away from the spheres (and their dark rims, a few pixels wider)."""
+    rows, cols = np.ogrid[0 : shape[0], 0 : shape[1]]
+    keep = np.ones(shape, bool)
+    for cx, cy, r in spheres:
+        keep &= (cols - cx) ** 2 + (rows - cy) ** 2 > (r + 3) ** 2
+    return keep
+
+
+def _calibrate_from_spheres(stack: ImageStack, capture: Path, opt: RunOptions) -> Capture:
+    """Lights read from the glossy spheres of a decoded capture that has no .lp file.
+
+    The photographs without a usable light are left out; the spheres are masked out of the
+    reconstruction; with two or more spheres showing near lights, every triangulated
+    photograph is kept, even where the spheres' distant directions disagree, as they must
+    for a near light.
+    """
+    from reconstruct.calibration.calibrate import calibration_camera
+    from reconstruct.calibration.triangulate import sphere_lights
+
+    camera = calibration_camera(stack.paths[0], stack.shape, intrinsics=opt.intrinsics)
+    try:
+        found = sphere_lights(stack, intrinsics=camera, near=opt.light_positions == "auto")
+    except InputError as exc:
+        raise InputError(
+            f"no .lp light file (give one with --lp), and no light directions from spheres either: {exc.problem}",
+            capture,
+        ) from None
+    spheres = found.calibration.spheres
+    warnings = [f"{line}; left out" for line in found.left_out]
+    usable = found.usable
+    if usable.sum() < 3:
+        what = "a triangulated light position" if found.positions is not None else "a usable sphere highlight"
+        raise InputError(f"fewer than 3 photographs have {what}", capture)
+    stack = stack.select(usable)
+    near = None
+    counts = f"{int(usable.sum())} of {len(usable)} photographs"
+    if found.positions is not None:
+        near = NearLights(found.positions, f"triangulated from {len(spheres)} spheres")
+        warnings.append(f"no .lp file: near lights triangulated from {len(spheres)} spheres for {counts}; "
+                        "each pixel has its own light direction")
+    else:
+        warnings.append(f"no .lp file: light directions read from {len(spheres)} sphere(s) for {counts} "
+                        f"({found.calibration.view_model} view)")
+    return Capture(capture, SPHERE_CAPTURE, stack, LightSet(stack.paths, found.directions, None),
+                   mask=_sphere_mask(spheres, stack.shape), near=near, warnings=warnings)
+
+
+def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages) -> Capture:
+    """The photographs and lights of ``capture``, decoded."""
+    if layout == PS_DATASET:
+        if opt.light_positions not in ("auto", "none"):
+            raise InputError("light positions apply to captures with an .lp file or spheres, "
+                             "not to a photometric-stereo dataset", capture)
+        with stages("decode"):
+            ds = read_ps_dataset(capture, threads=opt.threads)
+        loaded = Capture(capture, layout, ds.stack, ds.lights, mask=ds.mask)
+        if ds.ground_truth_normals is not None:
+            gt_mask = ds.mask if ds.mask is not None else np.ones(ds.stack.shape, bool)
+            loaded.truth, loaded.truth_source = GroundTruth(ds.ground_truth_normals, gt_mask), str(capture)
+        return loaded
+    if layout == SPHERE_CAPTURE:
+        try:
+            photographs = capture_images(capture)
+        except InputError as exc:
+            raise InputError(f"no .lp light file, and {exc.problem}", capture) from None
+        with stages("decode", len(photographs)) as advance:
+            stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance)
+        return _calibrate_from_spheres(stack, capture, opt)
+    lp_path = find_lp(capture, opt.lp)
+    lights = read_lp(lp_path)
+    near = _near_lights_from_file(lights, lp_path, opt.light_positions)
+    with stages("decode", len(lights)) as advance:
+        stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
+    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near)
+
+
+def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
+    """``--ground-truth``, else ``CAPTURE/ground_truth`` when it holds normals."""
+    if opt.ground_truth is not None:
+        return opt.ground_truth
+    guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
+    return guess if (guess / "normals.npy").exists() else None
+
+
+def _check_exposure(loaded: Capture) -> None:
+    """Warn of a degenerate light layout and of photographs with many clipped pixels."""
+    loaded.rank = analyse_lights(loaded.lights.directions)
+    if loaded.rank.deficient:
+        loaded.warnings.append(f"the PTM light matrix has rank {loaded.rank.rank} of 6: " + "; ".join(loaded.rank.causes))
+    h, w = loaded.shape
+    saturated = loaded.stack.saturated / (h * w)
+    if saturated.max() > 0.01:
+        worst = int(np.argmax(saturated))
+        loaded.warnings.append(
+            f"{np.count_nonzero(saturated > 0.01)} photograph(s) have more than 1% clipped pixels "
+            f"(most: {loaded.stack.paths[worst].name}, {saturated[worst]:.1%}); clipped samples are left "
+            "out of photometric stereo"
+        )
+
+
+def load_capture(
+    source: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    progress: Callable[[str, int, int], None] | None = None,
+    stages: Stages | None = None,
+) -> Capture:
+    """Decode a capture and gather everything the later stages need.
+
+    Parameters
+    ----------
+    source : path
+        A capture folder (photographs and one ``.lp`` file), an ``.lp`` file, a
+        photometric-stereo dataset folder, or a folder of photographs with glossy spheres.
+    options : RunOptions, optional
+        Uses ``lp``, ``linearize``, ``threads``, ``mask`` (a file; ``"auto"`` is resolved by
+        :func:`reconstruct.pipeline.stages.estimate_normals`' caller), ``intensities``,
+        ``intrinsics`` (sphere calibration), ``light_positions`` and ``ground_truth``.
+    progress : callable, optional
+        ``progress(stage, done, total)`` while the photographs are decoded.
+    stages : Stages, optional
+        The run's stage log (times, memory, progress); a new one when not given.
+
+    Returns
+    -------
+    Capture
+
+    Raises
+    ------
+    InputError
+        For a missing or unreadable file, a malformed ``.lp``, mismatched sizes, or a capture
+        whose lights cannot be found.
+    """
+    opt = options or RunOptions()
+    stages = stages or Stages(progress)
+    capture = Path(source)
+    loaded = _decode(capture, _layout(capture, opt), opt, stages)
+    if opt.mask is not None and opt.mask != "auto":
+        given = read_mask(opt.mask, loaded.shape)
+        loaded.mask = given if loaded.mask is None or loaded.layout == PS_DATASET else given & loaded.mask
+    gt_dir = _ground_truth_folder(capture, opt)
+    if gt_dir is not None:
+        loaded.truth, loaded.truth_source = load_ground_truth(gt_dir), str(gt_dir)
+    if opt.intensities is not None:
+        directions = loaded.lights.directions
+        if opt.intensities == "estimate":
+            factors = estimate_intensities(loaded.stack, directions, mask=loaded.mask)
+        else:
+            factors = read_intensities(opt.intensities, len(loaded.lights))
+        loaded.stack = apply_intensities(loaded.stack, factors)
+        loaded.intensities = {"source": opt.intensities, "factors": factors}
+    _check_exposure(loaded)
+    return loaded

@@ -1,0 +1,168 @@
+"""``reconstruct compare`` (and ``run --scan``): a laser scan against a reconstruction, written out.
+
+The measurement itself is :mod:`reconstruct.compare` (loading, alignment, distances, figures);
+this module reads the inputs, writes ``comparison.json``, ``distances.ply``, ``histogram.png``,
+``overlay.png`` and ``report.html`` through a staged output folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.errors import InputError
+from reconstruct.pipeline.options import CompareOptions
+from reconstruct.pipeline.profiling import StageTimer
+from reconstruct.pipeline.report import json_safe, versions
+from reconstruct.pipeline.staging import StagedOutput, staged_output
+from reconstruct.report import outputs
+from reconstruct.report.html import write_report_html
+
+__all__ = ["CompareResult", "run_compare"]
+
+SIGN_CONVENTION = "positive: the scan lies on the camera side of the reconstruction"
+
+
+@dataclass
+class CompareResult:
+    """What :func:`run_compare` produced: folder, files, ``comparison.json``'s content, and
+    whether the tolerance test passed (None without a tolerance)."""
+
+    output: Path
+    files: dict[str, Path]
+    report: dict
+    passed: bool | None = None
+
+
+def _read_initial(path: Path) -> np.ndarray:
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the initial transform ({exc})", path) from None
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise InputError(f"the initial transform must be a 4×4 matrix of numbers, got shape {m.shape}", path)
+    return m
+
+
+def _reconstruction_mesh(path: Path) -> Path:
+    """The mesh to compare: ``path`` itself, or an output folder's mesh.ply, which must be in mm."""
+    if not path.is_dir():
+        return path
+    report_file = path / "report.json"
+    if report_file.exists():
+        unit = json.loads(report_file.read_text()).get("height_unit")
+        if unit != "mm":
+            raise InputError(f"this reconstruction's heights are in {unit}, not mm: run it with --pixel-size", path)
+    return path / "mesh.ply"
+
+
+def _write_figures(staged: StagedOutput, rec, result, tolerance: float | None, warnings: list[str]) -> list[str]:
+    """distances.ply, histogram.png and (where the machine can render) overlay.png."""
+    from reconstruct.compare import default_limit, write_distance_ply, write_histogram, write_overlay
+
+    d = result.signed[result.mask]
+    limit = default_limit(d)
+    on_scan = np.where(result.mask, result.signed, np.nan)
+    if rec.faces is not None and result.reverse is not None:
+        # The reconstruction's distance to the scan, with the scan's sign convention
+        # (positive: the scan lies on the camera side).
+        shown = np.where(result.reverse_mask, -result.reverse, np.nan)
+        write_distance_ply(staged / "distances.ply", rec.points, rec.faces, shown, limit)
+    else:
+        shown = on_scan
+        write_distance_ply(staged / "distances.ply", result.aligned_points, None, on_scan, limit)
+    write_histogram(staged / "histogram.png", d, result.stats, tolerance=tolerance)
+    names = ["distances.ply", "histogram.png"]
+    if rec.faces is None:
+        warnings.append("no overlay.png: the reconstruction is a point cloud")
+        return names
+    try:
+        write_overlay(staged / "overlay.png", rec.points, rec.faces, result.aligned_points, shown, limit)
+        names.append("overlay.png")
+    except RuntimeError as exc:
+        warnings.append(f"no overlay.png: {exc}")
+    return names
+
+
+def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignment, result, limit: float,
+                       fraction: float | None, passed: bool | None, warnings: list[str]) -> dict:
+    """comparison.json's content (its keys are part of the output interface)."""
+    return json_safe({
+        "reconstruction": str(rec_path.resolve()),
+        "scan": str(scan.resolve()),
+        "units": {"distances": "mm", "scan_input": opt.scan_units},
+        "parameters": {f.name: getattr(opt, f.name) for f in dataclasses.fields(opt)},
+        "alignment": {
+            "transform_scan_to_reconstruction": alignment.transform,
+            "scale": alignment.scale,
+            "fitness": alignment.fitness,
+            "inlier_rmse_mm": alignment.inlier_rmse,
+            "method": alignment.method,
+        },
+        "statistics_mm": result.stats,
+        "reverse_statistics_mm": result.reverse_stats,
+        "tolerance": None if fraction is None else {
+            "tolerance_mm": opt.tolerance, "fraction_within": fraction,
+            "min_fraction": opt.min_fraction, "passed": passed,
+        },
+        "colour_range_mm": [-limit, limit],
+        "sign_convention": SIGN_CONVENTION,
+        "stages": {},
+        "versions": versions(),
+        "warnings": warnings,
+    })
+
+
+def run_compare(
+    reconstruction: str | os.PathLike,
+    scan: str | os.PathLike,
+    output: str | os.PathLike,
+    options: CompareOptions | None = None,
+) -> CompareResult:
+    """Align a scan to a reconstruction, measure their distances and write the comparison.
+
+    ``reconstruction`` is a mesh or an output folder of ``reconstruct run`` (its mesh.ply,
+    which must be in millimetres). Writes ``comparison.json``, ``distances.ply`` (the
+    reconstruction coloured by its distance to the scan, or the scan points when the
+    reconstruction is a point cloud), ``histogram.png``, ``overlay.png`` (an off-screen
+    render; skipped with a warning where the machine cannot render) and ``report.html``
+    (with the reconstruction's own report when it is an output folder).
+    """
+    from reconstruct.compare import align, default_limit, distances, load_geometry, within_tolerance
+
+    opt = options or CompareOptions()
+    given = Path(reconstruction)
+    rec_path = _reconstruction_mesh(given)
+    rec = load_geometry(rec_path)
+    scan_geometry = load_geometry(scan, units=opt.scan_units)
+    initial = _read_initial(opt.initial) if opt.initial is not None else None
+    timer = StageTimer()
+    warnings: list[str] = []
+    with staged_output(output) as staged:
+        with timer.stage("align"):
+            alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align)
+        with timer.stage("distances"):
+            result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
+                               max_distance=opt.max_distance)
+        with timer.stage("write"):
+            names = _write_figures(staged, rec, result, opt.tolerance, warnings)
+        fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
+        passed = None if fraction is None else bool(fraction >= opt.min_fraction)
+        report = _comparison_report(rec_path, Path(scan), opt, alignment, result,
+                                    default_limit(result.signed[result.mask]), fraction, passed, warnings)
+        report["stages"] = timer.stages
+        # The page also shows the reconstruction's report when the comparison is written
+        # beside it (``run --scan``) or made from its output folder; comparison.json follows
+        # it, with its time.
+        with timer.stage("report"):
+            write_report_html(staged.staging, comparison=report,
+                              also=[staged.output, *([given] if given.is_dir() else [])])
+        report["stages"] = json_safe(timer.stages)
+        outputs.write_json(staged / "comparison.json", report)
+        files = staged.publish([*names, "comparison.json", "report.html"])
+    return CompareResult(staged.output, files, report, passed)

@@ -1,0 +1,291 @@
+"""Parameters of a run and of a scan comparison, checked when they are made.
+
+Every choice is a ``Literal`` type; :func:`choices` reads its values back, so the command line
+(``reconstruct.cli``) offers exactly the values the options accept, and takes its defaults from
+:func:`default`. An option that does not validate raises :class:`ptmcore.errors.InputError` at
+construction: a run never starts with a parameter it would reject halfway.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Union
+
+from ptmcore.errors import InputError
+
+__all__ = [
+    "CompareOptions",
+    "Fit",
+    "Flattening",
+    "Integrator",
+    "NormalMethod",
+    "PtmFormat",
+    "RunOptions",
+    "ScanUnit",
+    "Solver",
+    "choices",
+    "default",
+]
+
+#: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
+NormalMethod = Literal["ps", "ptm", "ptm-debiased"]
+#: Per-pixel fits; the default is the more accurate on the synthetic benchmark with specular
+#: highlights and shadows (BENCHMARKS.md), at about three times the plain fit's time.
+Fit = Literal["irls", "trimmed", "plain"]
+Integrator = Literal["auto", "dct", "fc", "masked", "bilateral"]
+PtmFormat = Literal["lrgb", "rgb"]
+Solver = Literal["pinv", "lstsq", "rohde"]
+Flattening = Literal["plane", "poly2", "poly3", "highpass"]
+ScanUnit = Literal["mm", "cm", "m", "in"]
+
+#: What each option is called in messages (the command line's spelling).
+_FLAGS = {"ptm_format": "--ptm-format", "flatten_cutoff": "--flatten-cutoff", "max_error": "--max-error",
+          "pixel_size": "--pixel-size", "scan_units": "--scan-units", "min_fraction": "--min-fraction",
+          "max_distance": "--max-distance"}
+
+
+def _flag(name: str) -> str:
+    return _FLAGS.get(name, "--" + name.replace("_", "-"))
+
+
+def _literal_values(hint: object) -> tuple | None:
+    """The values of a ``Literal`` type, or of ``Literal | None``; None for any other type
+    (``Path | Literal["auto"]`` takes any path, so it is no choice)."""
+    if typing.get_origin(hint) is Literal:
+        return typing.get_args(hint)
+    if typing.get_origin(hint) in (Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        if len(args) == 1 and typing.get_origin(args[0]) is Literal:
+            return typing.get_args(args[0])
+    return None
+
+
+def choices(options: type, name: str) -> tuple[str, ...]:
+    """The values option ``name`` of the dataclass ``options`` accepts (its ``Literal`` type).
+
+    >>> choices(RunOptions, "normals")
+    ('ps', 'ptm', 'ptm-debiased')
+    """
+    values = _literal_values(typing.get_type_hints(options)[name])
+    if values is None:
+        raise TypeError(f"{options.__name__}.{name} is not a choice")
+    return values
+
+
+def default(options: type, name: str) -> object:
+    """The default value of option ``name`` of the dataclass ``options``."""
+    return next(f.default for f in dataclasses.fields(options) if f.name == name)
+
+
+def _check_choices(options: object) -> None:
+    """Every ``Literal``-typed field of ``options`` holds one of its values."""
+    hints = typing.get_type_hints(type(options))
+    for f in dataclasses.fields(options):
+        values = _literal_values(hints[f.name])
+        value = getattr(options, f.name)
+        if values is not None and value is not None and value not in values:
+            raise InputError(f"{_flag(f.name)}: unknown value {value!r}; choose from {', '.join(values)}")
+
+
+def _positive(options: object, *names: str, unit: str = "") -> None:
+    """Each of ``names`` is None or a positive finite number."""
+    for name in names:
+        value = getattr(options, name)
+        if value is not None and not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise InputError(f"{_flag(name)} must be a positive number{unit}, got {value}")
+
+
+def _path_or_word(value: object, words: tuple[str, ...]) -> Path | str | None:
+    """A path option that also takes keywords (``"auto"``, ``"none"``): keywords stay strings."""
+    if value is None or (isinstance(value, str) and value in words):
+        return value
+    return Path(value)
+
+
+@dataclass
+class RunOptions:
+    """Parameters of :func:`reconstruct.pipeline.run_capture`; checked on construction.
+
+    Attributes
+    ----------
+    lp : Path or None
+        The light file; default: the single ``.lp`` file in the capture folder.
+    pixel_size : float or None
+        Millimetres per pixel; heights and meshes are in millimetres when given, else in pixels.
+    normals : {"ps", "ptm", "ptm-debiased"}
+        Photometric stereo; the maximum of each pixel's PTM polynomial (closed form, or on the
+        unit circle where it has no interior maximum); or that maximum read through the fit's
+        own model of the hemisphere, which removes the PTM's bias towards the view direction.
+    integrator : {"auto", "dct", "fc", "masked", "bilateral"}
+        Least squares on the mask only ("masked", conjugate gradients preconditioned by the
+        bounding box's DCT solver), the same with bilateral weights that keep steps sharp
+        ("bilateral"), Poisson with Neumann boundary by DCT on the whole frame ("dct"), or
+        Frankot–Chellappa. "auto": masked when a mask is known, else dct.
+    step : int or None
+        Mesh subsampling; None picks the smallest step that keeps the mesh under
+        :data:`reconstruct.pipeline.stages.AUTO_MESH_VERTICES` vertices.
+    linearize : bool
+        Take 8-bit photographs as sRGB and linearise them (for the normals; the ``.ptm`` file
+        is always fitted to the photographs as they are encoded, as viewers expect).
+    ptm_format : {"lrgb", "rgb"}
+        Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
+        one polynomial per channel.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
+        least-squares, minimum-norm fit.
+    loo : bool
+        Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
+        photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
+    fit : {"irls", "trimmed", "plain"}
+        How each pixel's samples are weighted: robustly (Tukey IRLS, or 0/1 trimming, leaving
+        out shadowed, clipped and specular samples) or by plain least squares.
+    hsh : bool
+        Also write ``coefficients.rti``: hemispherical harmonics of order 3, RTIViewer's HSH
+        format, fitted per channel to the photographs as encoded.
+    flatten : {"plane", "poly2", "poly3", "highpass"} or None
+        Remove low-frequency bending of the height map (from errors in the light directions):
+        a plane, a polynomial of order 2 or 3, or wavelengths above ``flatten_cutoff`` pixels.
+    decimate, max_error : int or float, optional
+        Reduce the meshes by quadric edge collapse to this many triangles, or to the fewest
+        whose geometric error stays under ``max_error`` (in the height unit); the error
+        reached goes into report.json.
+    solid : float, optional
+        Also write ``solid.stl``: the relief on a base this thick (height unit), closed by
+        walls, watertight, for 3D printing.
+    glb : bool
+        Also write ``mesh.glb`` (binary glTF with the texture) for the web and Blender.
+    intrinsics : str, optional
+        A perspective (pinhole) camera, ``"fx,fy,cx,cy"`` in pixels, for short lenses; the
+        default is orthographic. Heights are then in millimetres when ``distance`` (the camera's
+        distance to the object, mm) is given, else relative to the object's median depth.
+    distance : float, optional
+        See ``intrinsics``.
+    flatten_cutoff : float
+        For ``flatten="highpass"``: the wavelength in pixels that keeps half its amplitude.
+    intensities : str or None
+        Per-photograph light intensities: a file (one value or ``r g b`` per photograph, in
+        ``.lp`` order) or ``"estimate"`` to estimate them from the photographs; each
+        photograph is divided by its light's intensity before the normals are estimated.
+    mask : Path, "auto" or None
+        Image whose non-zero pixels are the object, or ``"auto"`` to segment the object from
+        its albedo and normals (:func:`reconstruct.surface.foreground_mask`); height and mesh
+        are restricted to it.
+    threads : int or None
+        Decoding threads (default: all CPUs).
+    ground_truth : Path or None
+        Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
+        default: ``CAPTURE/ground_truth`` when it exists.
+    light_positions : Path, "auto" or "none"
+        Near (point) lights: a light-position file (``name,x,y,z`` in pixels,
+        :func:`ptmcore.nearlight.read_light_positions`) whose positions give every pixel its
+        own light direction and inverse-square falloff. ``"auto"``: the file
+        ``light_positions.csv`` beside the ``.lp`` when there is one, or, for a capture
+        calibrated from two or more spheres, the lights triangulated from their highlights
+        when they are near (:func:`reconstruct.calibration.lights_are_near`). ``"none"``:
+        distant lights, one direction per photograph.
+
+    Raises
+    ------
+    InputError
+        On construction (and on :func:`dataclasses.replace`), for a value the run would reject.
+    """
+
+    lp: Path | None = None
+    pixel_size: float | None = None
+    normals: NormalMethod = "ps"
+    integrator: Integrator = "auto"
+    step: int | None = None
+    linearize: bool = True
+    ptm_format: PtmFormat = "lrgb"
+    solver: Solver = "pinv"
+    loo: bool = False
+    fit: Fit = "irls"
+    hsh: bool = False
+    flatten: Flattening | None = None
+    decimate: int | None = None
+    max_error: float | None = None
+    solid: float | None = None
+    glb: bool = False
+    intrinsics: str | None = None
+    distance: float | None = None
+    flatten_cutoff: float = 200.0
+    intensities: str | None = None
+    mask: Path | Literal["auto"] | None = None
+    threads: int | None = None
+    ground_truth: Path | None = None
+    light_positions: Path | Literal["auto", "none"] = "auto"
+
+    def __post_init__(self) -> None:
+        _check_choices(self)
+        _positive(self, "pixel_size", "distance", unit=" of millimetres")
+        _positive(self, "solid", "flatten_cutoff", "max_error")
+        for name in ("step", "decimate", "threads"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, int) and value >= 1):
+                raise InputError(f"{_flag(name)} must be a whole number of at least 1, got {value}")
+        if self.decimate is not None and self.max_error is not None:
+            raise InputError("give either a triangle count to decimate to or a maximum error, not both")
+        if self.intrinsics is not None:
+            from reconstruct.calibration.camera import parse_intrinsics
+
+            try:
+                parse_intrinsics(self.intrinsics)
+            except ValueError as exc:
+                raise InputError(f"--intrinsics: {exc}") from None
+        self.lp = _path_or_word(self.lp, ())
+        self.ground_truth = _path_or_word(self.ground_truth, ())
+        self.mask = _path_or_word(self.mask, ("auto",))
+        self.light_positions = _path_or_word(self.light_positions, ("auto", "none"))
+
+
+@dataclass
+class CompareOptions:
+    """Parameters of :func:`reconstruct.pipeline.run_compare` (``reconstruct compare``).
+
+    Attributes
+    ----------
+    scan_units : {"mm", "cm", "m", "in"}
+        Unit of the scan's coordinates.
+    scale : bool
+        Also estimate a global scale (photometric heights can carry a scale error).
+    initial : Path or None
+        A 4×4 matrix (text) taking the scan near the reconstruction, to start from.
+    no_align : bool
+        The two are already aligned.
+    tolerance : float or None
+        Acceptance tolerance in mm: the share of scan points within it is reported, and
+        :attr:`CompareResult.passed` says whether it reaches ``min_fraction``.
+    min_fraction : float
+        Share of points within tolerance needed to pass.
+    reverse : bool
+        Also measure the reconstruction's distances to the scan.
+    max_distance : float or None
+        Points farther than this (mm) from the reconstruction are outside the overlap
+        (default: from the alignment's residual).
+
+    Raises
+    ------
+    InputError
+        On construction, for a value the comparison would reject.
+    """
+
+    scan_units: ScanUnit = "mm"
+    scale: bool = False
+    initial: Path | None = None
+    no_align: bool = False
+    tolerance: float | None = None
+    min_fraction: float = 0.95
+    reverse: bool = False
+    max_distance: float | None = None
+
+    def __post_init__(self) -> None:
+        _check_choices(self)
+        _positive(self, "tolerance", "max_distance", unit=" of millimetres")
+        if not (isinstance(self.min_fraction, (int, float)) and 0 < self.min_fraction <= 1):
+            raise InputError(f"the fraction needed within tolerance must be in (0, 1], got {self.min_fraction}")
+        self.initial = _path_or_word(self.initial, ())

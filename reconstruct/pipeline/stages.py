@@ -1,0 +1,358 @@
+"""The stages of a run, each a plain function: normals, relighting files, height, mesh, files.
+
+:func:`reconstruct.pipeline.run_capture` calls them in this order; a notebook user can call
+them one by one (``docs/tutorial.md``)::
+
+    capture = load_capture("tablet/", options)             # photographs, lights, mask
+    result = estimate_normals(capture, options)            # normals (H, W, 3), albedo (H, W)
+    albedo_rgb = capture.stack.chroma * result.albedo[..., None]
+    mask = resolve_mask(options, capture.mask, albedo_rgb, result.normals)
+    surface = integrate_surface(result.normals, mask, options)   # height (H, W)
+    mesh, step, decimation = make_mesh(surface, texture, result.normals, options)
+
+``fit_relighting`` writes the files viewers open (``coefficients.ptm``, ``web/``, ``.rti``),
+``leave_one_out`` measures the relighting bases, ``write_surface_files`` writes the maps and
+meshes.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError
+from ptmcore.fit import fit_ptm
+from ptmcore.images import write_png
+from ptmcore.lp import LightSet
+from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
+from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+from ptmcore import (
+    debiased_normals,
+    fit_ptm_encoded,
+    fit_ptm_rgb_encoded,
+    hemisphere_coefficients,
+    robust_photometric_stereo,
+    robust_ptm,
+    write_ptm,
+)
+from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
+from reconstruct.calibration.camera import parse_intrinsics
+from reconstruct.mesh.grid import GridMesh, grid_mesh
+from reconstruct.mesh.obj import write_obj
+from reconstruct.mesh.ply import write_ply
+from reconstruct.pipeline.capture import Capture, NearLights
+from reconstruct.pipeline.options import RunOptions
+from reconstruct.pipeline.report import LightModel, PtmSummary
+from reconstruct.report import outputs
+from reconstruct.report.web import export_openlime
+from reconstruct.surface.flatten import flatten
+from reconstruct.surface.integrate import integrate
+from reconstruct.surface.perspective import integrate_perspective
+from reconstruct.surface.segment import foreground_mask
+
+__all__ = [
+    "AUTO_MESH_VERTICES",
+    "NormalsResult",
+    "Relighting",
+    "Surface",
+    "auto_step",
+    "estimate_normals",
+    "fit_relighting",
+    "integrate_surface",
+    "leave_one_out",
+    "light_model",
+    "make_mesh",
+    "resolve_mask",
+    "write_surface_files",
+]
+
+#: The automatic mesh step keeps meshes at about this many vertices or fewer, which MeshLab,
+#: Blender and CloudCompare handle comfortably; the texture keeps full resolution.
+AUTO_MESH_VERTICES = 4_000_000
+
+Advance = Callable[[int], None]
+
+
+@dataclass
+class NormalsResult:
+    """Unit normals ``(H, W, 3)`` float32, luminance albedo ``(H, W)`` float32 (linear light),
+    and how many pixels had too few usable photographs to determine a normal."""
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    undetermined: int = 0
+
+
+def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: Advance | None) -> NormalsResult:
+    """Near lights: every pixel has its own directions and falloff."""
+    if opt.normals == "ptm-debiased":
+        raise InputError("--normals ptm-debiased assumes distant lights; with near lights "
+                         "use ps or ptm (or --light-positions none)")
+    if opt.normals == "ptm":
+        coefficients = fit_ptm_near(capture.stack, near.positions, threads=opt.threads, progress=advance).coefficients
+        normals = normals_from_ptm(coefficients)
+        return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads))
+    ps = near_photometric_stereo(capture.stack, near.positions, threads=opt.threads, progress=advance)
+    return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()))
+
+
+def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
+                     progress: Advance | None = None) -> NormalsResult:
+    """Normals and albedo of a capture, by ``options.normals`` and ``options.fit``.
+
+    Every fit here works on linear light, where a Lambertian surface's shading is n·l; the
+    PTM written for viewers is fitted separately (:func:`fit_relighting`), to the photographs
+    as encoded.
+
+    Parameters
+    ----------
+    capture : Capture
+        From :func:`reconstruct.pipeline.load_capture`.
+    options : RunOptions, optional
+        ``normals`` (ps, ptm, ptm-debiased), ``fit`` (irls, trimmed, plain), ``solver``,
+        ``threads``.
+    progress : callable, optional
+        ``progress(rows)`` as bands of rows are done (H in all).
+
+    Returns
+    -------
+    NormalsResult
+    """
+    opt = options or RunOptions()
+    if capture.near is not None:
+        return _near_normals(capture, capture.near, opt, progress)
+    stack, directions = capture.stack, capture.lights.directions
+    if opt.normals == "ps":
+        if opt.fit == "plain":
+            ps = photometric_stereo(stack, directions, threads=opt.threads, progress=progress)
+        else:
+            ps = robust_photometric_stereo(stack, directions, method=opt.fit, threads=opt.threads, progress=progress)
+        return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()))
+    if opt.fit == "plain":
+        coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
+        if opt.normals == "ptm":
+            normals = normals_from_ptm(coefficients)
+        else:
+            normals = debiased_normals(coefficients, hemisphere_coefficients(directions))
+    else:
+        fitted = robust_ptm(stack, directions, method=opt.fit, threads=opt.threads, progress=progress)
+        normals = normals_from_ptm(fitted.ptm.coefficients) if opt.normals == "ptm" else fitted.normals
+    return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads))
+
+
+def resolve_mask(option: Path | str | None, known: np.ndarray | None, albedo_rgb: np.ndarray,
+                 normals: np.ndarray, warnings: list[str] | None = None) -> np.ndarray | None:
+    """The mask to integrate on: ``known`` (from the capture), or with ``option == "auto"``
+    the object found against its background (:func:`reconstruct.surface.foreground_mask`);
+    None (the whole frame) with a warning appended to ``warnings`` where that fails."""
+    if option != "auto":
+        return known
+    try:
+        return foreground_mask(albedo_rgb, normals)
+    except ValueError as exc:
+        if warnings is not None:
+            warnings.append(f"no automatic mask: {exc}")
+        return None
+
+
+@dataclass
+class Relighting:
+    """The relighting files written, and what report.json says of them."""
+
+    names: list[str]
+    summary: PtmSummary
+    warnings: list[str] = field(default_factory=list)
+
+
+def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathLike, *,
+                   bit_depth: int = 8, progress: Advance | None = None) -> Relighting:
+    """Write ``coefficients.ptm``, ``web/`` (LRGB only) and, with ``options.hsh``, ``coefficients.rti``.
+
+    A second pass over the photographs, as they are encoded: the fit HP's PTMfitter makes (its
+    files are reproduced byte for byte), streamed so that memory stays bounded. With near
+    lights these files use each photograph's direction from the image centre.
+
+    Parameters
+    ----------
+    lights : LightSet
+        The photographs and their light directions (``Capture.lights``).
+    options : RunOptions
+        ``ptm_format``, ``solver``, ``hsh``, ``pixel_size`` (for the web viewer's scale), ``threads``.
+    folder : path
+        Where to write the files.
+    bit_depth : int
+        Of the photographs (``Capture.stack.bit_depth``): 8-bit ones are sRGB-encoded, deeper
+        ones linear, and report.json says which the PTM holds.
+    progress : callable, optional
+        ``progress(k)`` as photographs are read (N in all).
+    """
+    folder = Path(folder)
+    paths, directions = lights.paths, lights.directions
+    kw = {"solver": options.solver, "threads": options.threads, "progress": progress}
+    if options.ptm_format == "lrgb":
+        coef8, rgb8 = fit_ptm_encoded(paths, directions, **kw)
+    else:
+        coef8, rgb8 = fit_ptm_rgb_encoded(paths, directions, **kw), None
+    written = write_ptm(folder / "coefficients.ptm", coef8, rgb8)
+    result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, bit_depth))
+    if rgb8 is not None:
+        result.names += _web_export(folder, coef8, rgb8, options.pixel_size)
+    else:
+        result.warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
+    del coef8, rgb8
+    if options.hsh:
+        hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads)
+        result.summary = PtmSummary.from_written(
+            written, bit_depth, hsh=write_rti_hsh(folder / "coefficients.rti", hsh, order=3))
+        result.names.append("coefficients.rti")
+    return result
+
+
+def _web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None) -> list[str]:
+    """Write the OpenLIME web viewer's files under ``web/``; return their names."""
+    written = export_openlime(folder / "web", coefficients, rgb, pixel_size_mm=pixel_size)
+    return [f"web/{p.name}" for p in written]
+
+
+def leave_one_out(capture: Capture, mask: np.ndarray | None, folder: str | os.PathLike, *,
+                  threads: int | None = None, progress: Advance | None = None) -> dict:
+    """Leave-one-out relighting error of PTM and HSH bases: ``loo_<basis>.tif`` maps written
+    into ``folder``, their RMS returned.
+
+    Errors are in 8-bit sRGB levels, which is how the differences would look on screen.
+    """
+    import tifffile
+
+    from ptmcore.images import linear_to_srgb
+    from ptmcore.loo import loo_hsh, loo_ptm
+
+    def levels(v: np.ndarray) -> np.ndarray:
+        return 255.0 * linear_to_srgb(v)
+
+    stack, directions = capture.stack, capture.lights.directions
+    bases = {"ptm": lambda **kw: loo_ptm(stack, directions, **kw)}
+    for order in (2, 3):
+        bases[f"hsh{order}"] = lambda order=order, **kw: loo_hsh(stack, directions, order, **kw)
+    result = {}
+    for name, compute in bases.items():
+        rms_map, rms = compute(mask=mask, transform=levels, threads=threads, progress=progress)
+        with atomic_write(Path(folder) / f"loo_{name}.tif", "wb") as f:
+            tifffile.imwrite(f, rms_map.astype(np.float32), metadata={"unit": "8-bit sRGB levels"})
+        result[name] = float(rms)
+    return {"rms_levels": result, "best": min(result, key=result.get), "unit": "8-bit sRGB levels"}
+
+
+def light_model(near: NearLights | None, shape: tuple[int, int], options: RunOptions) -> LightModel:
+    """What report.json says of the light model: distant directions or near point lights."""
+    if near is None:
+        return LightModel("distant", detail="one light direction per photograph")
+    method = "PTM maximum of a per-pixel fit" if options.normals == "ptm" else "photometric stereo, plain fit"
+    return LightModel(
+        "near", near.source, typical_distance(near.positions, shape),
+        f"each pixel has its own light direction and inverse-square falloff ({method}); "
+        "coefficients.ptm and the other relighting files use the direction from the image centre",
+    )
+
+
+@dataclass
+class Surface:
+    """A height map ``(H, W)`` float32 (NaN outside the mask), its unit, and how it was integrated."""
+
+    height: np.ndarray
+    unit: str
+    integrator: str
+    reason: str
+
+
+def _integrator(choice: str, mask: np.ndarray | None) -> tuple[str, str]:
+    """The integrator to use and why (``auto`` decides by whether the object's outline is known)."""
+    if choice != "auto":
+        return choice, "chosen"
+    if mask is not None:
+        return "masked", "a mask is known: least squares on the object only, so its outline does not bend it"
+    return "dct", "no mask: least squares on the whole frame with a free boundary"
+
+
+def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: RunOptions) -> Surface:
+    """Integrate normals ``(H, W, 3)`` into a height map, then flatten it if asked.
+
+    Orthographic by default (heights in mm with ``options.pixel_size``, else pixels); with
+    ``options.intrinsics`` a pinhole camera (mm with ``options.distance``, else depth relative
+    to the object's median).
+    """
+    method, why = _integrator(options.integrator, mask)
+    if options.intrinsics is not None:
+        if method not in ("masked", "dct"):
+            raise InputError(f"a perspective camera integrates with masked or dct, not {method}")
+        camera = parse_intrinsics(options.intrinsics)
+        height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance)
+        unit = "mm" if options.distance else "relative depth"
+    else:
+        height = integrate(normals, method, mask=mask, pixel_size=options.pixel_size or 1.0)
+        unit = "mm" if options.pixel_size else "pixel"
+    if options.flatten is not None:
+        extra = {"cutoff_px": options.flatten_cutoff} if options.flatten == "highpass" else {}
+        height = flatten(height, options.flatten, mask=mask, **extra)
+    return Surface(height, unit, method, why)
+
+
+def auto_step(shape: tuple[int, int], max_vertices: int = AUTO_MESH_VERTICES) -> int:
+    """Smallest grid step whose mesh has at most ``max_vertices`` vertices."""
+    return max(1, math.ceil(math.sqrt(shape[0] * shape[1] / max_vertices)))
+
+
+def make_mesh(surface: Surface, texture: np.ndarray, normals: np.ndarray,
+              options: RunOptions) -> tuple[GridMesh, int, dict | None]:
+    """The textured grid mesh of a surface (``options.step``, else :func:`auto_step`), decimated
+    when ``options.decimate`` or ``options.max_error`` asks; returns it, its step, and what the
+    decimation reached (None without one)."""
+    from reconstruct.mesh.ops import decimate
+
+    step = options.step or auto_step(surface.height.shape)
+    mesh = grid_mesh(surface.height, texture=texture, step=step, pixel_size=options.pixel_size, normals=normals)
+    decimation = None
+    if options.decimate is not None or options.max_error is not None:
+        mesh, decimation = decimate(mesh, target_faces=options.decimate, max_error=options.max_error)
+    return mesh, step, decimation
+
+
+def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, texture: np.ndarray,
+                        surface: Surface, mesh: GridMesh, mask: np.ndarray | None,
+                        options: RunOptions) -> list[str]:
+    """Write the maps and meshes every run has (README, "Output folder"); return their names.
+
+    ``albedo.png``, ``normals.png``, ``normals.npy``, ``height.tif``, ``mesh.ply``,
+    ``mesh.obj`` (with ``mesh.mtl`` and ``mesh_texture.png``), ``mask.png`` when there is a
+    mask, ``mesh.glb`` with ``options.glb``, ``solid.stl`` with ``options.solid``.
+    """
+    from reconstruct.mesh.ops import solid, write_glb, write_stl
+
+    folder = Path(folder)
+    write_png(folder / "albedo.png", texture)
+    jobs: dict[str, Callable[[], None]] = {
+        # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
+        # writes release it and proceed alongside.
+        "mesh.obj": lambda: write_obj(folder / "mesh.obj", mesh, folder / "albedo.png"),
+        "normals.png": lambda: write_png(folder / "normals.png", outputs.normals_to_rgb16(normals)),
+        "mesh.ply": lambda: write_ply(folder / "mesh.ply", mesh, texture_file="mesh_texture.png"),
+        "normals.npy": lambda: outputs.write_npy(folder / "normals.npy", normals),
+        "height.tif": lambda: outputs.write_height_tiff(folder / "height.tif", surface.height, surface.unit,
+                                                        options.pixel_size),
+    }
+    if mask is not None:
+        jobs["mask.png"] = lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+    if options.glb:
+        jobs["mesh.glb"] = lambda: write_glb(folder / "mesh.glb", mesh, texture)
+    if options.solid is not None:
+        jobs["solid.stl"] = lambda: write_stl(folder / "solid.stl", solid(mesh, options.solid))
+    with ThreadPoolExecutor(max_workers=options.threads or os.cpu_count() or 1) as pool:
+        for future in [pool.submit(job) for job in jobs.values()]:
+            future.result()
+    return ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]

@@ -1,0 +1,151 @@
+"""The pipeline's public API: options that validate themselves, the CLI's choices derived from
+them, staged output, re-entrant runs, and the stages composing to what ``run_capture`` gives."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from data_synthetic import write_capture
+from ptmcore.errors import InputError
+from reconstruct.cli.parser import build_parser
+from reconstruct.pipeline import (
+    CompareOptions,
+    RunOptions,
+    choices,
+    default,
+    estimate_normals,
+    integrate_surface,
+    load_capture,
+    resolve_mask,
+    run_capture,
+    staged_output,
+)
+from reconstruct.pipeline.staging import STAGING_PREFIX
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("cap") / "capture"
+    write_capture(folder, shape=(48, 64), n_lights=16, seed=3)
+    return folder
+
+
+@pytest.mark.parametrize("field, value", [
+    ("normals", "magic"), ("fit", "l1"), ("integrator", "poisson"), ("ptm_format", "rgba"),
+    ("solver", "svd"), ("flatten", "poly9"), ("pixel_size", 0.0), ("pixel_size", float("nan")),
+    ("step", 0), ("decimate", -3), ("solid", -1.0), ("distance", float("inf")),
+    ("intrinsics", "1,2,3"), ("flatten_cutoff", 0.0), ("threads", 0),
+])
+def test_run_options_reject_bad_values_on_construction(field, value):
+    with pytest.raises(InputError):
+        RunOptions(**{field: value})
+
+
+def test_run_options_reject_both_decimations_and_keep_keywords():
+    with pytest.raises(InputError, match="not both"):
+        RunOptions(decimate=100, max_error=0.1)
+    opt = RunOptions(mask="auto", light_positions="none", lp="a/b.lp")
+    assert opt.mask == "auto" and opt.light_positions == "none" and opt.lp == Path("a/b.lp")
+    assert RunOptions(mask="m.png").mask == Path("m.png")
+    with pytest.raises(InputError):
+        dataclasses.replace(opt, normals="bogus")  # replace validates too
+
+
+def test_compare_options_validate():
+    with pytest.raises(InputError):
+        CompareOptions(scan_units="furlong")
+    with pytest.raises(InputError):
+        CompareOptions(min_fraction=1.5)
+    with pytest.raises(InputError):
+        CompareOptions(tolerance=-1.0)
+
+
+def test_cli_choices_and_defaults_come_from_the_options():
+    parser = build_parser()
+    run = parser._subparsers._group_actions[0].choices["run"]
+    actions = {a.dest: a for a in run._actions}
+    for name in ("normals", "fit", "integrator", "ptm_format", "solver", "flatten"):
+        assert tuple(actions[name].choices) == choices(RunOptions, name)
+        assert actions[name].default == default(RunOptions, name)
+    assert tuple(actions["scan_units"].choices) == choices(CompareOptions, "scan_units")
+    # Every option the CLI gives RunOptions is one of its fields, so none is lost on the way.
+    args = parser.parse_args(["run", "cap", "-o", "out"])
+    fields = {f.name for f in dataclasses.fields(RunOptions)}
+    assert fields <= set(vars(args)), fields - set(vars(args))
+
+
+def test_staged_output_is_unique_and_cleaned(tmp_path):
+    with staged_output(tmp_path / "out") as a, staged_output(tmp_path / "out") as b:
+        assert a.staging != b.staging and a.staging.name.startswith(STAGING_PREFIX)
+        (a / "x.txt").write_text("x")
+        a.publish(["x.txt"])
+        (b / "y.txt").write_text("y")  # never published
+    assert (tmp_path / "out" / "x.txt").read_text() == "x"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x.txt"]
+    with pytest.raises(RuntimeError), staged_output(tmp_path / "out") as c:
+        (c / "z.txt").write_text("z")
+        raise RuntimeError("a stage failed")
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x.txt"]
+    (tmp_path / "file").write_text("")
+    with pytest.raises(InputError, match="not a folder"), staged_output(tmp_path / "file"):
+        pass
+
+
+def test_two_runs_in_two_threads_of_one_process(capture, tmp_path):
+    results, errors = {}, []
+
+    def work(name: str) -> None:
+        try:
+            results[name] = run_capture(capture, tmp_path / name, RunOptions(pixel_size=0.05))
+        except BaseException as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(n,)) for n in ("a", "b")]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    a, b = (np.load(tmp_path / n / "normals.npy") for n in ("a", "b"))
+    np.testing.assert_array_equal(a, b)
+    for n in ("a", "b"):
+        names = {p.name for p in (tmp_path / n).iterdir()}
+        assert {"mesh.ply", "mesh.obj", "coefficients.ptm", "report.json", "report.html"} <= names
+        assert not any(name.startswith(STAGING_PREFIX) for name in names)
+        report = json.loads((tmp_path / n / "report.json").read_text())
+        assert report["stages"]["normals"]["peak_rss_mb"] > 0
+
+
+def test_stages_reproduce_run_capture(capture, tmp_path):
+    opt = RunOptions(pixel_size=0.05, mask="auto")
+    result = run_capture(capture, tmp_path / "out", opt)
+    loaded = load_capture(capture, opt)
+    found = estimate_normals(loaded, opt)
+    np.testing.assert_array_equal(found.normals, np.load(tmp_path / "out" / "normals.npy"))
+    albedo_rgb = loaded.stack.chroma * found.albedo[..., None]
+    mask = resolve_mask(opt.mask, loaded.mask, albedo_rgb, found.normals)
+    surface = integrate_surface(found.normals, mask, opt)
+    import tifffile
+
+    np.testing.assert_array_equal(surface.height, tifffile.imread(tmp_path / "out" / "height.tif"))
+    assert result.report.mesh.integrator == surface.integrator
+    assert result.report.to_dict()["inputs"]["layout"] == loaded.layout
+
+
+def test_report_json_keys(capture, tmp_path):
+    run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert list(report) == ["inputs", "parameters", "height_unit", "albedo_scale", "lights", "light_model",
+                            "intensities", "ptm", "leave_one_out", "accuracy", "mesh", "stages",
+                            "peak_rss_scope", "versions", "warnings"]
+    assert report["accuracy"]["ground_truth"].endswith("ground_truth")
+    assert set(report["mesh"]) == {"vertices", "faces", "unit", "step", "integrator", "integrator_reason",
+                                   "decimation"}
+    assert report["parameters"]["step"] == report["mesh"]["step"]
+    assert report["light_model"] == {"type": "distant", "detail": "one light direction per photograph"}
