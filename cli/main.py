@@ -20,19 +20,19 @@ EXIT_BAD_INPUT = 2
 
 
 def _compare_summary(result) -> None:
-    stats = result.report["statistics_mm"]
-    al = result.report["alignment"]
+    """What a comparison found, in a few lines."""
+    report = result.report
+    stats, al = report.statistics_mm, report.alignment
     print(f"Comparison in {result.output}/: {stats['count']:,} scan points in the overlap "
-          f"({stats['overlap_fraction']:.0%}), alignment fitness {al['fitness']:.2f}, "
-          f"residual {al['inlier_rmse_mm']:.4f} mm" + (f", scale {al['scale']:.4f}" if abs(al["scale"] - 1) > 1e-9 else ""))
+          f"({stats['overlap_fraction']:.0%}), alignment fitness {al.fitness:.2f}, "
+          f"residual {al.inlier_rmse_mm:.4f} mm" + (f", scale {al.scale:.4f}" if abs(al.scale - 1) > 1e-9 else ""))
     print(f"  distances (mm): mean {stats['mean']:+.4f}, std {stats['std']:.4f}, RMS {stats['rms']:.4f}, "
           f"median |d| {stats['median_abs']:.4f}, 95% |d| {stats['p95_abs']:.4f}, max |d| {stats['max_abs']:.4f}")
-    tol = result.report.get("tolerance")
+    tol = report.tolerance
     if tol:
-        verdict = "PASS" if tol["passed"] else "FAIL"
-        print(f"  {tol['fraction_within']:.1%} within ±{tol['tolerance_mm']} mm "
-              f"(needed {tol['min_fraction']:.0%}): {verdict}")
-    for w in result.report["warnings"]:
+        verdict = "PASS" if tol.passed else "FAIL"
+        print(f"  {tol.fraction_within:.1%} within ±{tol.tolerance_mm} mm (needed {tol.min_fraction:.0%}): {verdict}")
+    for w in report.warnings:
         print(f"  warning: {w}")
 
 

@@ -2,67 +2,22 @@
 sphere detection, highlights, the reflection geometry, near-light triangulation from several
 spheres, and checks of a light layout before any photograph is taken.
 
-The functions :func:`calibrate` and :func:`triangulate` hide their modules as attributes of this
-package; use ``importlib.import_module("reconstruct.calibration.calibrate")`` for a module.
+The functions :func:`calibrate` and :func:`triangulate` share their modules' names: the
+package's attribute is the function (``from reconstruct.calibration.triangulate import …``
+still reaches the module's other names). The names are loaded on first use.
 """
 
-from reconstruct.calibration.calibrate import (
-    Calibration,
-    calibrate,
-    calibrate_stack,
-    calibration_camera,
-    write_calibration_lp,
-    write_diagnostic,
-)
-from reconstruct.calibration.camera import Intrinsics, intrinsics_from_exif, parse_intrinsics
-from reconstruct.calibration.highlights import find_highlight, find_highlights
-from reconstruct.calibration.lightcheck import (
-    LightReport,
-    check_lights,
-    plot_positions,
-    report_text,
-    write_polar_plot,
-)
-from reconstruct.calibration.reflection import Sphere, light_from_highlight
-from reconstruct.calibration.spheres import detect_spheres, fit_circle, refine_circle, stack_statistics
-from reconstruct.calibration.triangulate import (
-    SphereLights,
-    Triangulation,
-    lights_are_near,
-    near_lights,
-    sphere_lights,
-    triangulate,
-    write_near_light_files,
-)
+import lazy_loader
 
-__all__ = [
-    "Calibration",
-    "Intrinsics",
-    "LightReport",
-    "Sphere",
-    "SphereLights",
-    "Triangulation",
-    "calibrate",
-    "calibrate_stack",
-    "calibration_camera",
-    "check_lights",
-    "detect_spheres",
-    "find_highlight",
-    "find_highlights",
-    "fit_circle",
-    "intrinsics_from_exif",
-    "light_from_highlight",
-    "lights_are_near",
-    "near_lights",
-    "parse_intrinsics",
-    "plot_positions",
-    "refine_circle",
-    "report_text",
-    "sphere_lights",
-    "stack_statistics",
-    "triangulate",
-    "write_calibration_lp",
-    "write_diagnostic",
-    "write_near_light_files",
-    "write_polar_plot",
-]
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "calibrate": ["Calibration", "calibrate", "calibrate_stack", "calibration_camera", "write_calibration_lp", "write_diagnostic"],
+        "camera": ["Intrinsics", "intrinsics_from_exif", "parse_intrinsics"],
+        "highlights": ["find_highlight", "find_highlights"],
+        "lightcheck": ["LightReport", "check_lights", "plot_positions", "report_text", "write_polar_plot"],
+        "reflection": ["Sphere", "light_from_highlight"],
+        "spheres": ["detect_spheres", "fit_circle", "refine_circle", "stack_statistics"],
+        "triangulate": ["SphereLights", "Triangulation", "lights_are_near", "near_lights", "sphere_lights", "triangulate", "write_near_light_files"],
+    },
+)

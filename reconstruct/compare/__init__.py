@@ -6,35 +6,14 @@ to the reconstruction (:mod:`.registration`), their signed distances and statist
 open3d and pyvista are imported only by the functions that use them.
 """
 
-from reconstruct.compare.figures import (
-    DEFAULT_SIGN_CONVENTION,
-    NAN_COLOR,
-    default_limit,
-    distance_lookup_table,
-    diverging_colors,
-    write_distance_ply,
-    write_histogram,
-    write_overlay,
-)
-from reconstruct.compare.geometry import UNITS, Geometry, load_geometry
-from reconstruct.compare.registration import Alignment, align
-from reconstruct.compare.signed_distance import DistanceResult, distances, within_tolerance
+import lazy_loader
 
-__all__ = [
-    "DEFAULT_SIGN_CONVENTION",
-    "NAN_COLOR",
-    "UNITS",
-    "Alignment",
-    "DistanceResult",
-    "Geometry",
-    "align",
-    "default_limit",
-    "distance_lookup_table",
-    "distances",
-    "diverging_colors",
-    "load_geometry",
-    "within_tolerance",
-    "write_distance_ply",
-    "write_histogram",
-    "write_overlay",
-]
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "figures": ["DEFAULT_SIGN_CONVENTION", "NAN_COLOR", "default_limit", "distance_lookup_table", "diverging_colors", "write_distance_ply", "write_histogram", "write_overlay"],
+        "geometry": ["Geometry", "UNITS", "load_geometry"],
+        "registration": ["Alignment", "align"],
+        "signed_distance": ["DistanceResult", "distances", "within_tolerance"],
+    },
+)

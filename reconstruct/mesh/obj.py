@@ -1,10 +1,9 @@
 """OBJ export of grid meshes, with their material and texture files.
 
-The writers are our own rather than trimesh's exporters: a trimesh mesh holds either UVs
-or vertex colours (its visuals are one or the other), its PLY exporter writes UVs as ``s t``
-with neither a ``comment TextureFile`` (what MeshLab uses to find the texture) nor our own
-comments, and converting to a trimesh object first would copy every array. These writers
-emit numpy records and text in bounded chunks instead. All files are written atomically.
+The numbers are formatted by :mod:`reconstruct.mesh.textfmt` (whole columns at a time with
+NumPy) in parallel threads, a chunk of rows at a time, rather than by trimesh's exporter or
+NumPy's text output, which format each number with Python (``benchmarks/obj_export.py``).
+All files are written atomically.
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ from __future__ import annotations
 import io
 import os
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import IO
@@ -25,7 +24,7 @@ from ptmcore.errors import InputError
 from ptmcore.images import encode_png
 from reconstruct.mesh import textfmt
 from reconstruct.mesh.grid import GridMesh, _as_rgb
-from reconstruct.mesh.ply import _check_comment, _relative_name
+from reconstruct.mesh.ply import _check_comment
 
 __all__ = ["write_obj"]
 
@@ -37,8 +36,6 @@ _TEXT_CHUNK = 50_000
 # bounds the memory they hold.
 _WORKERS = min(4, os.cpu_count() or 1)
 _AHEAD = 2 * _WORKERS
-
-_DEFAULT_COLOR = 255  # untextured meshes are white, the neutral colour for shaded viewing
 
 # OBJ numbers are written with six decimals (trailing zeros dropped): 1 nm in millimetres,
 # 10⁻⁶ pixel, and finer than a float32 carries for coordinates above about 10.
@@ -130,7 +127,8 @@ def write_obj(
 
     Numbers are written with six decimals, correctly rounded, without trailing zeros
     (``0.05``, ``-12.345678``, ``1``), never in exponent notation. The text is formatted
-    in parallel threads, a chunk of rows at a time (:mod:`reconstruct.mesh.textfmt`).
+    in parallel threads, a chunk of rows at a time (:mod:`reconstruct.mesh.textfmt`):
+    26× faster than trimesh's OBJ export on a 4 M-vertex mesh (6× NumPy's ``%``), BENCHMARKS.md.
 
     Parameters
     ----------

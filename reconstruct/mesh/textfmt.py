@@ -3,7 +3,8 @@
 Formatting millions of numbers with Python's ``%`` operator costs a few hundred nanoseconds
 each, which made OBJ export take tens of seconds. These functions format whole columns of
 numbers with a few NumPy operations each, and :func:`join` concatenates the columns row by
-row into variable-width text without per-row Python work.
+row into variable-width text without per-row Python work. OBJ export with them is 26×
+faster than trimesh's on a 4 M-vertex mesh (6× NumPy's ``%``), BENCHMARKS.md.
 
 A :class:`Column` holds one short text per row, right-aligned in little-endian 64-bit
 "lanes": viewed as bytes, row ``i`` is ``lanes[i]`` with its text in the last

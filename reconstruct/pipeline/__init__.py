@@ -17,7 +17,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "compare_run": ["CompareResult", "run_compare"],
         "options": ["CompareOptions", "RunOptions", "choices", "default"],
         "profiling": ["Stages"],
-        "report": ["RunReport"],
+        "report": ["CompareReport", "RunReport"],
         "run": ["RunResult", "run", "run_capture", "run_normals", "run_ptm"],
         "staging": ["StagedOutput", "staged_output"],
         "stages": ["AUTO_MESH_VERTICES", "NormalsResult", "Relighting", "Surface", "auto_step",

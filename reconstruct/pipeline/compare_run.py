@@ -18,7 +18,7 @@ import numpy as np
 from ptmcore.errors import InputError
 from reconstruct.pipeline.options import CompareOptions
 from reconstruct.pipeline.profiling import StageTimer
-from reconstruct.pipeline.report import json_safe, versions
+from reconstruct.pipeline.report import AlignmentSummary, CompareReport, ToleranceTest, json_safe
 from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.report import outputs
 from reconstruct.report.html import write_report_html
@@ -30,13 +30,16 @@ SIGN_CONVENTION = "positive: the scan lies on the camera side of the reconstruct
 
 @dataclass
 class CompareResult:
-    """What :func:`run_compare` produced: folder, files, ``comparison.json``'s content, and
-    whether the tolerance test passed (None without a tolerance)."""
+    """What :func:`run_compare` produced: the folder, its files and the report."""
 
     output: Path
     files: dict[str, Path]
-    report: dict
-    passed: bool | None = None
+    report: CompareReport
+
+    @property
+    def passed(self) -> bool | None:
+        """Whether the tolerance test passed; None without a tolerance."""
+        return self.report.passed
 
 
 def _read_initial(path: Path) -> np.ndarray:
@@ -89,33 +92,17 @@ def _write_figures(staged: StagedOutput, rec, result, tolerance: float | None, w
     return names
 
 
-def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignment, result, limit: float,
-                       fraction: float | None, passed: bool | None, warnings: list[str]) -> dict:
-    """comparison.json's content (its keys are part of the output interface)."""
-    return json_safe({
-        "reconstruction": str(rec_path.resolve()),
-        "scan": str(scan.resolve()),
-        "units": {"distances": "mm", "scan_input": opt.scan_units},
-        "parameters": {f.name: getattr(opt, f.name) for f in dataclasses.fields(opt)},
-        "alignment": {
-            "transform_scan_to_reconstruction": alignment.transform,
-            "scale": alignment.scale,
-            "fitness": alignment.fitness,
-            "inlier_rmse_mm": alignment.inlier_rmse,
-            "method": alignment.method,
-        },
-        "statistics_mm": result.stats,
-        "reverse_statistics_mm": result.reverse_stats,
-        "tolerance": None if fraction is None else {
-            "tolerance_mm": opt.tolerance, "fraction_within": fraction,
-            "min_fraction": opt.min_fraction, "passed": passed,
-        },
-        "colour_range_mm": [-limit, limit],
-        "sign_convention": SIGN_CONVENTION,
-        "stages": {},
-        "versions": versions(),
-        "warnings": warnings,
-    })
+def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignment, result,
+                       limit: float, fraction: float | None, warnings: list[str]) -> CompareReport:
+    """What comparison.json says."""
+    tolerance = None if fraction is None else ToleranceTest(
+        opt.tolerance, fraction, opt.min_fraction, bool(fraction >= opt.min_fraction))
+    return CompareReport(
+        str(rec_path.resolve()), str(scan.resolve()), {"distances": "mm", "scan_input": opt.scan_units},
+        json_safe({f.name: getattr(opt, f.name) for f in dataclasses.fields(opt)}),
+        AlignmentSummary.from_alignment(alignment), json_safe(result.stats), json_safe(result.reverse_stats),
+        tolerance, [-limit, limit], SIGN_CONVENTION, warnings=warnings,
+    )
 
 
 def run_compare(
@@ -152,17 +139,15 @@ def run_compare(
         with timer.stage("write"):
             names = _write_figures(staged, rec, result, opt.tolerance, warnings)
         fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
-        passed = None if fraction is None else bool(fraction >= opt.min_fraction)
         report = _comparison_report(rec_path, Path(scan), opt, alignment, result,
-                                    default_limit(result.signed[result.mask]), fraction, passed, warnings)
-        report["stages"] = timer.stages
+                                    default_limit(result.signed[result.mask]), fraction, warnings)
+        report.stages = timer.stages  # the same dict: the page's own time joins it
         # The page also shows the reconstruction's report when the comparison is written
         # beside it (``run --scan``) or made from its output folder; comparison.json follows
         # it, with its time.
         with timer.stage("report"):
-            write_report_html(staged.staging, comparison=report,
+            write_report_html(staged.staging, comparison=report.to_dict(),
                               also=[staged.output, *([given] if given.is_dir() else [])])
-        report["stages"] = json_safe(timer.stages)
-        outputs.write_json(staged / "comparison.json", report)
+        outputs.write_json(staged / "comparison.json", report.to_dict())
         files = staged.publish([*names, "comparison.json", "report.html"])
-    return CompareResult(staged.output, files, report, passed)
+    return CompareResult(staged.output, files, report)

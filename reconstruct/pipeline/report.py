@@ -217,3 +217,58 @@ class RunReport:
             keys += ["albedo_scale", "lights", "light_model", "intensities", "ptm", "leave_one_out"]
         keys += ["accuracy", "mesh", "stages", "peak_rss_scope", "versions", "warnings"]
         return {k: json_safe(getattr(self, k)) for k in keys}
+
+
+@dataclass
+class AlignmentSummary:
+    """How the scan was brought onto the reconstruction (:class:`reconstruct.compare.Alignment`)."""
+
+    transform_scan_to_reconstruction: list[list[float]]
+    scale: float
+    fitness: float
+    inlier_rmse_mm: float
+    method: list[str]
+
+    @classmethod
+    def from_alignment(cls, alignment) -> AlignmentSummary:
+        return cls(np.asarray(alignment.transform, dtype=float).tolist(), float(alignment.scale),
+                   float(alignment.fitness), float(alignment.inlier_rmse), list(alignment.method))
+
+
+@dataclass
+class ToleranceTest:
+    """The share of scan points within a tolerance, and whether it is enough."""
+
+    tolerance_mm: float
+    fraction_within: float
+    min_fraction: float
+    passed: bool
+
+
+@dataclass
+class CompareReport:
+    """Everything ``comparison.json`` says of a scan comparison (keys: README, "Comparing with
+    a laser scan")."""
+
+    reconstruction: str
+    scan: str
+    units: dict[str, str]
+    parameters: dict[str, Any]
+    alignment: AlignmentSummary
+    statistics_mm: dict[str, float]
+    reverse_statistics_mm: dict[str, float] | None
+    tolerance: ToleranceTest | None
+    colour_range_mm: list[float]
+    sign_convention: str
+    stages: dict[str, dict[str, float]] = field(default_factory=dict)
+    versions: dict[str, str] = field(default_factory=versions)
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def passed(self) -> bool | None:
+        """Whether the tolerance test passed; None without one."""
+        return None if self.tolerance is None else self.tolerance.passed
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``comparison.json`` document."""
+        return json_safe(self)

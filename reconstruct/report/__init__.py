@@ -1,0 +1,16 @@
+"""What a run shows a person: the raster outputs (normal maps, albedo, height), the figures and
+the self-contained ``report.html``, the OpenLIME web-viewer export, and the off-screen 3D
+renders they use (pyvista, imported only when a render is made).
+"""
+
+import lazy_loader
+
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "html": ["report_html", "write_report_html"],
+        "outputs": ["albedo_to_srgb8", "normals_to_rgb16", "write_height_tiff", "write_json", "write_npy"],
+        "rendering": ["plotter", "render_image"],
+        "web": ["export_openlime", "lrgb_planes"],
+    },
+)

@@ -1,0 +1,15 @@
+"""Looking at a result: the pyvista preview window (live relighting, view modes, measuring and
+profiles, off-screen screenshots), the scene it shows, and ``reconstruct relight``'s renderings
+of a PTM or HSH file under any light (RTIViewer's modes).
+"""
+
+import lazy_loader
+
+__getattr__, __dir__, __all__ = lazy_loader.attach(
+    __name__,
+    submod_attrs={
+        "preview": ["PreviewWindow", "build_plotter", "has_display", "render_screenshot"],
+        "relighting": ["load_source", "render", "sweep_lights", "write_gif", "write_image"],
+        "scene": ["PreviewScene", "load_scene", "mode_colors", "profile", "relit_texture"],
+    },
+)
