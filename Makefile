@@ -32,7 +32,9 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/normals_table.py
 	$(BIN)/python benchmarks/relight_loo.py
 	$(BIN)/python benchmarks/integration.py
+	$(BIN)/python benchmarks/cg_solver.py
 	$(BIN)/python benchmarks/decimation.py
+	$(BIN)/python benchmarks/obj_export.py
 	$(BIN)/python benchmarks/compare_speed.py
 	$(BIN)/python benchmarks/nearlight.py
 	$(BIN)/python benchmarks/calibration.py

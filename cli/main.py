@@ -112,6 +112,7 @@ def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None]
         "ptm": "Writing the .ptm",
         "loo": "Leave-one-out check",
         "normals": "Estimating normals",
+        "albedo": "Albedo and mask",
         "integrate": "Integrating heights",
         "mesh": "Writing meshes",
         "write": "Writing images",

@@ -202,10 +202,11 @@ def run_capture(
         if found.undetermined:
             warnings.append(f"{found.undetermined} pixels ({found.undetermined / (h * w):.2%}) had too few lit, "
                             "unsaturated photographs to determine a normal; their normal is set to (0, 0, 1)")
-        albedo_rgb = loaded.stack.chroma * found.albedo[..., None]
-        mask = resolve_mask(opt.mask, loaded.mask, albedo_rgb, found.normals, warnings)
-        texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
-        del albedo_rgb
+        with stages("albedo"):
+            albedo_rgb = loaded.stack.chroma * found.albedo[..., None]
+            mask = resolve_mask(opt.mask, loaded.mask, albedo_rgb, found.normals, warnings)
+            texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
+            del albedo_rgb
         loo = None
         if opt.loo:
             with stages("loo", 3 * h) as advance:
