@@ -305,8 +305,8 @@ def load_capture(
         A capture folder (photographs and one ``.lp`` file), an ``.lp`` file, a
         photometric-stereo dataset folder, or a folder of photographs with glossy spheres.
     options : RunOptions, optional
-        Uses ``lp``, ``linearize``, ``threads``, ``mask`` (a file; ``"auto"`` is resolved by
-        :func:`reconstruct.pipeline.stages.estimate_normals`' caller), ``intensities``,
+        Uses ``lp``, ``linearize``, ``threads``, ``mask`` (a file; ``"auto"`` needs the normals
+        and is resolved by :func:`reconstruct.pipeline.resolve_mask`), ``intensities``,
         ``intrinsics`` (sphere calibration), ``light_positions`` and ``ground_truth``.
     progress : callable, optional
         ``progress(stage, done, total)`` while the photographs are decoded.

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -78,7 +78,6 @@ class RunResult:
     output: Path
     files: dict[str, Path]
     report: RunReport
-    warnings: list[str] = field(default_factory=list)
 
 
 def _parameters(opt: RunOptions, step: int) -> dict:
@@ -230,7 +229,7 @@ def run_capture(
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
         files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)))
-    return RunResult(staged.output, files, report, warnings)
+    return RunResult(staged.output, files, report)
 
 
 def _evaluate(coefficients: np.ndarray, lu: np.ndarray, lv: np.ndarray) -> np.ndarray:
@@ -293,7 +292,7 @@ def run_ptm(
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
         files = _finish(staged, report, stages, [*web, *names], page=report_page)
-    return RunResult(staged.output, files, report, warnings)
+    return RunResult(staged.output, files, report)
 
 
 def run_normals(
@@ -331,4 +330,4 @@ def run_normals(
         report = RunReport(NormalMapInputs(str(path.resolve()), w, h, source), _parameters(opt, mesh.step),
                            mesh.unit, mesh, {}, "", warnings)
         files = _finish(staged, report, stages, names)
-    return RunResult(staged.output, files, report, warnings)
+    return RunResult(staged.output, files, report)
