@@ -240,6 +240,50 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_batch(args: argparse.Namespace) -> int:
+    from reconstruct.batch import run_batch
+    from reconstruct.pipeline import RunOptions
+
+    if args.scan is not None:
+        raise InputError("--scan is one scan for one object: give each object's scan in the manifest's scan column")
+    if not args.sources and args.manifest is None:
+        raise InputError("give capture folders, .ptm files or --manifest")
+    options = _options(RunOptions, args)
+    with _batch_progress(not args.quiet and sys.stderr.isatty()) as progress:
+        rows = run_batch(args.sources, args.output, options, manifest=args.manifest, scheduler=args.scheduler,
+                         workers=args.workers, force=args.force, progress=progress, echo=print)
+    counts = {s: sum(r.status == s for r in rows) for s in ("done", "skipped", "failed")}
+    print(f"Batch in {args.output}/: {counts['done']} done, {counts['skipped']} skipped, {counts['failed']} failed "
+          f"of {len(rows)}; gallery: {args.output / 'index.html'}")
+    for row in rows:
+        if row.status == "failed":
+            print(f"  failed: {row.name}: {row.error}")
+    return 1 if counts["failed"] else 0
+
+
+@contextmanager
+def _batch_progress(enabled: bool) -> Iterator[Callable | None]:
+    """One bar over the objects: done, failed, remaining and the time left."""
+    if not enabled:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    failed = [0]
+    with Progress(TextColumn("objects"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[failed]} failed"),
+                  TimeRemainingColumn(), console=_stderr_console()) as bar:
+        task = None
+
+        def update(row, done: int, total: int) -> None:
+            nonlocal task
+            if task is None:
+                task = bar.add_task("objects", total=total, failed=0)
+            failed[0] += row.status == "failed"
+            bar.update(task, completed=done, failed=failed[0])
+
+        yield update
+
+
 def _cmd_integrate(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import RunOptions, run_normals
 
@@ -344,7 +388,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return EXIT_BAD_INPUT
     try:
-        commands = {"run": _cmd_run, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
+        commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                     "calibrate": _cmd_calibrate, "preview": _cmd_preview,
                     "lights": _cmd_lights, "demo": _cmd_demo}
         return commands[args.command](args)

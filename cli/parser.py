@@ -88,6 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"reconstruct (ptm-reconstruct) {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _add_run_command(sub)
+    _add_batch_command(sub)
     _add_relight_command(sub)
     _add_calibrate_command(sub)
     _add_compare_command(sub)
@@ -112,6 +113,48 @@ def _add_run_command(sub: argparse._SubParsersAction) -> None:
                      "photometric-stereo dataset folder (filenames.txt, light_directions.txt, ...)")
     run.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
     _add_run_options(run)
+
+
+BATCH_EPILOG = """\
+outputs (in the -o folder):
+  NAME/                      one folder per object, exactly as `reconstruct run` writes it
+  batch.csv, batch.json      one row per object: status (done, skipped, failed), error, time,
+                             memory, size, height range, accuracy, scan RMS, warnings
+  index.html                 a gallery: failures first, then a card per object
+  thumbnails/                the gallery's small relit images and height maps
+
+Running the same command again skips the objects whose output is complete and whose
+photographs, .lp and options have not changed (--force redoes them).
+
+manifest (--manifest objects.csv): a header row, then one row per object; columns `capture`
+(path relative to the CSV), `name`, `scan`, `scan_units`, and any run option by its long name
+with underscores (pixel_size, mask, lp, normals, integrator, intrinsics, distance, ...).
+
+exit status: 0 when every object is done or skipped, 1 when any failed, 2 for bad arguments.
+See docs/cluster.md to run a batch on several machines.
+"""
+
+
+def _add_batch_command(sub: argparse._SubParsersAction) -> None:
+    batch = sub.add_parser(
+        "batch",
+        help="reconstruct a whole collection, on a local Dask cluster or an existing one",
+        description="Reconstruct many captures: capture folders, .lp or .ptm files, or parent folders "
+        "whose sub-folders and .ptm files are captures, and/or the rows of a manifest. Each object is "
+        "one task on Dask's distributed scheduler; a failure is reported and the others go on.",
+        epilog=BATCH_EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    batch.add_argument("sources", nargs="*", type=Path, metavar="SOURCE",
+                       help="capture folder, .lp or .ptm file, or a folder of captures")
+    batch.add_argument("-o", "--output", type=Path, required=True, help="the batch's output folder")
+    batch.add_argument("--manifest", type=Path, metavar="CSV", help="one row per object, overriding options")
+    batch.add_argument("--workers", type=_positive_int, metavar="N",
+                       help="workers of the local cluster (default: as many as cores and memory allow)")
+    batch.add_argument("--scheduler", metavar="ADDRESS",
+                       help="run on an existing Dask cluster (tcp://host:8786); workers need the same paths")
+    batch.add_argument("--force", action="store_true", help="redo objects that are complete and unchanged")
+    _add_run_options(batch)
 
 
 def _add_relight_command(sub: argparse._SubParsersAction) -> None:

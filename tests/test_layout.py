@@ -15,7 +15,7 @@ def test_ptmcore_imports_without_3d_libraries():
 
 # Subpackages of reconstruct, lowest first: each may import only those before it (and ptmcore),
 # as docs/architecture.md draws them.
-LAYERS = ["calibration", "mesh", "surface", "report", "compare", "viewer", "pipeline", "cli"]
+LAYERS = ["calibration", "mesh", "surface", "report", "compare", "viewer", "pipeline", "batch", "cli"]
 
 
 def _imports(path):

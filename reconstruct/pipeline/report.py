@@ -209,13 +209,20 @@ class RunReport:
     ptm: PtmSummary | None = None
     leave_one_out: dict | None = None
     versions: dict[str, str] = field(default_factory=versions)
+    fingerprint: str | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The ``report.json`` document, keys in their documented order."""
+        """The ``report.json`` document, keys in their documented order.
+
+        ``fingerprint`` (of the inputs and options, :func:`reconstruct.batch.fingerprint`) is
+        written last, and only by a batch, which uses it to skip finished objects.
+        """
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
             keys += ["albedo_scale", "lights", "light_model", "intensities", "ptm", "leave_one_out"]
         keys += ["accuracy", "mesh", "stages", "peak_rss_scope", "versions", "warnings"]
+        if self.fingerprint is not None:
+            keys.append("fingerprint")
         return {k: json_safe(getattr(self, k)) for k in keys}
 
 

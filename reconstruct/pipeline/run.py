@@ -130,16 +130,18 @@ def run(
     *,
     progress: ProgressFn | None = None,
     report_page: bool = True,
+    fingerprint: str | None = None,
 ) -> RunResult:
     """Reconstruct a capture folder, an ``.lp`` file or an existing ``.ptm`` file.
 
     See :func:`run_capture` and :func:`run_ptm`. ``report_page=False`` leaves report.html
     to a step that follows (``run --scan``: :func:`reconstruct.pipeline.run_compare` writes it
-    with the comparison).
+    with the comparison). ``fingerprint`` is written into report.json (a batch's, to resume).
     """
+    kw = {"progress": progress, "report_page": report_page, "fingerprint": fingerprint}
     if Path(source).suffix.lower() == ".ptm" and Path(source).is_file():
-        return run_ptm(source, output, options, progress=progress, report_page=report_page)
-    return run_capture(source, output, options, progress=progress, report_page=report_page)
+        return run_ptm(source, output, options, **kw)
+    return run_capture(source, output, options, **kw)
 
 
 def _accuracy(capture: Capture, normals: np.ndarray, height: np.ndarray, opt: RunOptions) -> Accuracy | None:
@@ -164,6 +166,7 @@ def run_capture(
     *,
     progress: ProgressFn | None = None,
     report_page: bool = True,
+    fingerprint: str | None = None,
 ) -> RunResult:
     """Reconstruct one capture and write the output folder.
 
@@ -181,6 +184,8 @@ def run_capture(
         ``progress(stage, done, total)`` as work advances.
     report_page : bool
         Write report.html (False when a step that follows writes it, as ``run --scan`` does).
+    fingerprint : str, optional
+        Written into report.json: a batch's fingerprint of the inputs and options.
 
     Returns
     -------
@@ -221,6 +226,7 @@ def run_capture(
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
             lights=LightLayout.from_rank(loaded.rank), light_model=light_model(loaded.near, (h, w), opt),
             intensities=json_safe(loaded.intensities), ptm=relit.summary, leave_one_out=loo,
+            fingerprint=fingerprint,
         )
         if loaded.near is not None:
             write_light_positions(staged / "light_positions.csv", [p.name for p in loaded.lights.paths],
@@ -262,6 +268,7 @@ def run_ptm(
     *,
     progress: ProgressFn | None = None,
     report_page: bool = True,
+    fingerprint: str | None = None,
 ) -> RunResult:
     """Normals, height and meshes from an existing ``.ptm`` file (no photographs needed).
 
@@ -289,7 +296,8 @@ def run_ptm(
                    export_openlime(staged / "web", ptm.coefficients, ptm.rgb, pixel_size_mm=opt.pixel_size)]
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staged, stages)
         inputs = PtmInputs(str(ptm_path.resolve()), ptm.format, w, h, _mask_source(opt.mask, mask))
-        report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings)
+        report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
+                           fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
         files = _finish(staged, report, stages, [*web, *names], page=report_page)
     return RunResult(staged.output, files, report)

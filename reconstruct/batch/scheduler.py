@@ -1,0 +1,236 @@
+"""A batch on Dask's distributed scheduler: the cluster, the lock, the tasks and their rows.
+
+:func:`run_batch` is what ``reconstruct batch`` calls. Without a client or a scheduler address
+it starts a local cluster of worker processes sized for this machine (:func:`choose_workers`):
+a worker killed by the operating system, for memory say, is replaced and its object retried
+once by Dask, then reported as failed.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from ptmcore.errors import InputError
+from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
+from reconstruct.batch.runner import choose_workers, run_object
+from reconstruct.batch.sources import discover, read_manifest
+from reconstruct.pipeline.options import RunOptions
+
+__all__ = ["LOCK_NAME", "batch_lock", "collect_items", "run_batch"]
+
+LOCK_NAME = ".batch.lock"
+#: Tries of an object whose worker died, after the first (the local cluster's setting; an
+#: existing scheduler has its own, distributed.scheduler.allowed-failures).
+RETRIES = 1
+
+
+@contextmanager
+def batch_lock(out: Path) -> Iterator[None]:
+    """Hold ``out/.batch.lock`` for the batch; a second batch on ``out`` gets an InputError.
+
+    An advisory lock (``flock``) on an open file: the kernel releases it when the process
+    ends, however it ends, so a killed batch never leaves a stale lock.
+    """
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        handle = open(out / LOCK_NAME, "a+")
+    except OSError as exc:
+        raise InputError(f"cannot write the output folder ({exc.strerror})", out) from None
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError("another batch is writing into this folder (it holds .batch.lock); "
+                             "wait for it or choose another output folder", out) from None
+        yield
+    finally:
+        handle.close()
+
+
+def collect_items(sources: list[str | os.PathLike], options: RunOptions, manifest: str | os.PathLike | None,
+                  echo: Callable[[str], None] = lambda line: None) -> list[BatchItem]:
+    """The batch's objects from SOURCEs and/or a manifest, checked; says what was skipped."""
+    items: list[BatchItem] = []
+    if sources:
+        found, skipped = discover(sources, options)
+        items += found
+        echo(f"found {len(found)} capture(s)" + (f", skipped {len(skipped)}:" if skipped else ""))
+        for path, why in skipped:
+            echo(f"  skipped {path}: {why}")
+    if manifest is not None:
+        rows = read_manifest(manifest, options)
+        echo(f"manifest {manifest}: {len(rows)} object(s)")
+        items += rows
+    if not items:
+        raise InputError("nothing to do: give capture folders, .ptm files or --manifest")
+    names = [i.name.lower() for i in items]
+    repeated = sorted({n for n in names if names.count(n) > 1})
+    if repeated:
+        raise InputError(f"two objects would be written to the same folder: {', '.join(repeated)}; "
+                         "give them names in the manifest")
+    return items
+
+
+def _available_mb() -> float:
+    import psutil
+
+    return psutil.virtual_memory().available / 2**20
+
+
+def _wait_for_a_worker(client, timeout: float = 60.0) -> None:
+    """An existing cluster may still be starting its workers (a Slurm job in the queue)."""
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except TimeoutError:
+        raise InputError(f"no Dask worker joined the scheduler within {timeout:.0f} s") from None
+
+
+@contextmanager
+def _client(client, scheduler: str | None, items: list[BatchItem], workers: int | None,
+            echo: Callable[[str], None]):
+    """The Dask client to use, and the threads each object may take: the caller's client, one
+    connected to ``scheduler``, or a local cluster's."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    # On an existing cluster a worker may run several objects at once (its --nthreads): each
+    # object then takes one thread unless --threads says otherwise (docs/cluster.md).
+    if client is not None:
+        _wait_for_a_worker(client)
+        yield client, 1
+        return
+    if scheduler is not None:
+        try:
+            remote = Client(scheduler, timeout="20s")
+        except OSError as exc:
+            raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
+        with remote:
+            echo(f"Dask scheduler {scheduler}; dashboard: {remote.dashboard_link}")
+            _wait_for_a_worker(remote)
+            yield remote, 1
+        return
+    cores = os.cpu_count() or 1
+    n = workers or choose_workers(items, cores, _available_mb())
+    threads = max(1, cores // n)
+    # Worker processes isolate crashes and memory; the nanny restarts a worker the operating
+    # system killed. One Dask thread each: an object's own threads do the parallel work.
+    # A worker's death counts against its task: after RETRIES more, the object is failed
+    # (Dask's default would run an object that exhausts the memory four times).
+    with dask.config.set({"distributed.scheduler.allowed-failures": RETRIES}), \
+            LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
+                         memory_limit=0, silence_logs=40) as cluster, Client(cluster) as local:
+        echo(f"{n} worker(s) × {threads} thread(s); Dask dashboard: {local.dashboard_link}")
+        yield local, threads
+
+
+def _check_shared_paths(client, out: Path, items: list[BatchItem]) -> None:
+    """Every worker must see the captures and the output folder at the same paths."""
+    paths = [str(out), *{str(i.source) for i in items}]
+
+    def missing(paths: list[str]) -> list[str]:
+        return [p for p in paths if not os.path.exists(p)]
+
+    for worker, lost in client.run(missing, paths).items():
+        if lost:
+            raise InputError(f"the Dask worker {worker} cannot see {lost[0]}"
+                             + (f" (and {len(lost) - 1} more)" if len(lost) > 1 else "")
+                             + ": workers need the captures and the output folder on shared storage "
+                             "at the same paths (docs/cluster.md)")
+
+
+def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads: int,
+                progress: Callable[[BatchRow, int, int], None] | None) -> list[BatchRow]:
+    """One task per object; rows in the items' order, each reported as it finishes."""
+    from distributed import as_completed
+
+    futures = {client.submit(run_object, item, out, force=force, threads=threads, pure=False,
+                             retries=RETRIES, key=f"reconstruct-{k}-{item.name}"): k
+               for k, item in enumerate(items)}
+    rows: list[BatchRow | None] = [None] * len(items)
+    for done, future in enumerate(as_completed(futures), 1):
+        k = futures[future]
+        try:
+            rows[k] = future.result()
+        except Exception as exc:  # noqa: BLE001 - a dead worker (KilledWorker) or a lost task
+            rows[k] = BatchRow(items[k].name, str(items[k].source), FAILED,
+                               "the worker running it died, also when retried (killed by the operating "
+                               f"system, perhaps for memory): {type(exc).__name__}: {exc}")
+        if progress is not None:
+            progress(rows[k], done, len(items))
+    return rows
+
+
+def run_batch(
+    sources: list[str | os.PathLike] | None,
+    out: str | os.PathLike,
+    options: RunOptions | None = None,
+    *,
+    manifest: str | os.PathLike | None = None,
+    client=None,
+    scheduler: str | None = None,
+    workers: int | None = None,
+    force: bool = False,
+    progress: Callable[[BatchRow, int, int], None] | None = None,
+    echo: Callable[[str], None] = lambda line: None,
+) -> list[BatchRow]:
+    """Reconstruct many objects, one Dask task each; write ``batch.csv``, ``batch.json`` and
+    ``index.html`` into ``out``.
+
+    Parameters
+    ----------
+    sources : list of path or None
+        Capture folders, ``.lp`` or ``.ptm`` files, or parent folders of captures.
+    out : path
+        The batch's folder: ``out/<name>/`` per object, exactly as ``reconstruct run`` writes it.
+    options : RunOptions, optional
+        Every object's options (a manifest row overrides them).
+    manifest : path, optional
+        A CSV with one row per object (:func:`reconstruct.batch.read_manifest`).
+    client : distributed.Client, optional
+        An existing Dask client; else ``scheduler`` or a local cluster.
+    scheduler : str, optional
+        Address of a running Dask scheduler (``tcp://host:8786``); its workers must see the
+        same paths.
+    workers : int, optional
+        Workers of the local cluster (default: as many as cores and memory allow).
+    force : bool
+        Redo objects whose output is complete and unchanged (default: skip them).
+    progress : callable, optional
+        ``progress(row, done, total)`` as each object finishes.
+    echo : callable, optional
+        Receives lines worth telling a user (what was found and skipped, the dashboard).
+
+    Returns
+    -------
+    list of BatchRow
+        In the order of the objects.
+
+    Raises
+    ------
+    InputError
+        For bad batch arguments (a source or manifest row, a scheduler that cannot be reached,
+        paths the workers cannot see, another batch on ``out``), before any object runs.
+    """
+    from reconstruct.batch.gallery import write_index
+
+    out = Path(out)
+    opt = options or RunOptions()
+    items = collect_items(list(sources or []), opt, manifest, echo)
+    with batch_lock(out), _client(client, scheduler, items, workers, echo) as (dask, threads):
+        _check_shared_paths(dask, out.resolve(), items)
+        threads = opt.threads or threads
+        items = [i if i.options.threads else _with_threads(i, threads) for i in items]
+        rows = _submit_all(dask, items, out.resolve(), force, threads, progress)
+        write_rows(out, rows)
+        write_index(out, rows, title=f"Batch: {out.resolve().name}")
+    return rows
+
+
+def _with_threads(item: BatchItem, threads: int) -> BatchItem:
+    import dataclasses
+
+    return dataclasses.replace(item, options=dataclasses.replace(item.options, threads=threads))

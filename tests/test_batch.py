@@ -1,0 +1,217 @@
+"""reconstruct batch: sources and manifests, failures isolated, resume, the lock, Dask clusters."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from data_synthetic import write_capture
+from ptmcore.errors import InputError
+from reconstruct.batch import batch_lock, read_manifest, run_batch
+from reconstruct.batch.sources import discover
+from reconstruct.pipeline import RunOptions
+from helpers import run_cli
+
+distributed = pytest.importorskip("distributed")
+
+OPT = RunOptions(pixel_size=0.05)
+
+
+@pytest.fixture(scope="module")
+def collection(tmp_path_factory) -> Path:
+    """Two good captures, one with a corrupt photograph, one folder that is no capture."""
+    root = tmp_path_factory.mktemp("collection")
+    for k, name in enumerate(("tablet_a", "tablet_b", "broken")):
+        write_capture(root / name, shape=(40, 56), n_lights=12, seed=k)
+    (root / "broken" / "img_003.tif").write_bytes(b"not a TIFF")
+    (root / "notes").mkdir()
+    (root / "notes" / "readme.txt").write_text("field notes")
+    return root
+
+
+@pytest.fixture(scope="module")
+def client():
+    """An in-process local cluster (threads), quick to start."""
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                                  dashboard_address=":0", silence_logs=40) as cluster:
+        with distributed.Client(cluster) as c:
+            yield c
+
+
+def _copy(collection: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / "collection"
+    shutil.copytree(collection, dst)
+    return dst
+
+
+def test_discover_takes_sub_folders_and_says_what_it_skipped(collection):
+    items, skipped = discover([collection], OPT)
+    assert sorted(i.name for i in items) == ["broken", "tablet_a", "tablet_b"]
+    assert [p.name for p, _ in skipped] == ["notes"]
+    items, _ = discover([collection / "tablet_a", collection / "tablet_a" / "lights.lp"], OPT)
+    assert [i.name for i in items] == ["tablet_a", "tablet_a-2"]
+    with pytest.raises(InputError, match="no such"):
+        discover([collection / "missing"], OPT)
+
+
+def test_a_bad_capture_fails_alone_and_the_rest_completes(collection, client, tmp_path):
+    out = tmp_path / "out"
+    seen = []
+    rows = run_batch([collection], out, OPT, client=client, progress=lambda row, done, total: seen.append(done))
+    status = {r.name: r.status for r in rows}
+    assert status == {"broken": "failed", "tablet_a": "done", "tablet_b": "done"}
+    broken = next(r for r in rows if r.name == "broken")
+    assert "img_003.tif" in broken.error
+    assert sorted(seen) == [1, 2, 3]
+    for name in ("tablet_a", "tablet_b"):
+        assert (out / name / "mesh.ply").is_file() and (out / name / "report.html").is_file()
+        assert json.loads((out / name / "report.json").read_text())["fingerprint"]
+    table = list(csv.DictReader((out / "batch.csv").open()))
+    assert [r["name"] for r in table] == [r.name for r in rows]
+    done = next(r for r in table if r["name"] == "tablet_a")
+    assert done["photographs"] == "12" and done["width"] == "56" and done["height_unit"] == "mm"
+    assert float(done["accuracy_mean_deg"]) < 5 and float(done["height_max"]) > float(done["height_min"])
+    assert len(json.loads((out / "batch.json").read_text())) == 3
+    page = (out / "index.html").read_text()
+    assert page.index("broken") < page.index("tablet_a")  # failures first
+
+
+def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collection, client, tmp_path):
+    captures = _copy(collection, tmp_path)
+    out = tmp_path / "out"
+    run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client)
+    # A killed object: its staging folder left behind, its report.json not yet published.
+    (out / "tablet_b" / "report.json").unlink()
+    (out / "tablet_b" / ".partial-dead").mkdir()
+    (out / "tablet_b" / ".partial-dead" / "mesh.ply").write_text("half")
+    t0 = time.perf_counter()
+    rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client)
+    assert {r.name: r.status for r in rows} == {"tablet_a": "skipped", "tablet_b": "done"}
+    assert not list((out / "tablet_b").glob(".partial-*"))
+    assert time.perf_counter() - t0 < 30
+    # A photograph changed: only that object runs again; --force redoes all.
+    photo = captures / "tablet_a" / "img_000.tif"
+    os.utime(photo, ns=(photo.stat().st_atime_ns, photo.stat().st_mtime_ns + 10**9))
+    rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client)
+    assert {r.name: r.status for r in rows} == {"tablet_a": "done", "tablet_b": "skipped"}
+    rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client, force=True)
+    assert {r.status for r in rows} == {"done"}
+
+
+def test_manifest_overrides_and_names(collection, client, tmp_path):
+    manifest = tmp_path / "objects.csv"
+    rel = os.path.relpath(collection, tmp_path)
+    manifest.write_text("capture,name,pixel_size,normals,integrator\n"
+                        f"{rel}/tablet_a,K.1234,0.1,ptm,\n"
+                        f"{rel}/tablet_b,,,,dct\n")
+    items = read_manifest(manifest, OPT)
+    assert [i.name for i in items] == ["K.1234", "tablet_b"]
+    assert items[0].options.pixel_size == 0.1 and items[0].options.normals == "ptm"
+    assert items[1].options.pixel_size == 0.05 and items[1].options.integrator == "dct"
+    rows = run_batch(None, tmp_path / "out", OPT, manifest=manifest, client=client)
+    assert [r.status for r in rows] == ["done", "done"] and rows[0].normals == "ptm"
+    report = json.loads((tmp_path / "out" / "K.1234" / "report.json").read_text())
+    assert report["parameters"]["pixel_size"] == 0.1
+
+
+@pytest.mark.parametrize("body, message", [
+    ("capture,pixelsize\ntablet_a,0.1\n", "unknown column"),
+    ("name\nx\n", "no capture column"),
+    ("capture,pixel_size\ntablet_a,0.1\nmissing,0.1\n", "row 2: capture not found"),
+    ("capture,pixel_size\ntablet_a,-1\n", "row 1: --pixel-size"),
+    ("capture,normals\ntablet_a,magic\n", "row 1: --normals"),
+    ("capture,glb\ntablet_a,perhaps\n", "row 1: glb"),
+    ("capture,scan\ntablet_a,scan.ply\n", "row 1: scan not found"),
+])
+def test_manifest_errors_name_the_row_and_nothing_runs(collection, tmp_path, body, message, capsys):
+    manifest = collection / f"bad_{abs(hash(body))}.csv"
+    manifest.write_text(body)
+    try:
+        with pytest.raises(InputError, match=message):
+            read_manifest(manifest, OPT)
+        code, _, err = run_cli(["batch", "--manifest", manifest, "-o", tmp_path / "out"], capsys)
+        assert code == 2 and ("row" in err or "column" in err)
+        assert not (tmp_path / "out").exists()
+    finally:
+        manifest.unlink()
+
+
+def test_a_second_batch_on_the_same_folder_refuses(collection, client, tmp_path):
+    out = tmp_path / "out"
+    with batch_lock(out):
+        with pytest.raises(InputError, match="another batch"):
+            run_batch([collection / "tablet_a"], out, OPT, client=client)
+    # Released: the next one runs.
+    assert run_batch([collection / "tablet_a"], out, OPT, client=client)[0].status == "done"
+
+
+def _kill_once(marker: str) -> None:
+    """Make this worker process die the first time any worker starts an object."""
+    import reconstruct.batch.runner as runner
+
+    original = runner._reconstruct
+
+    def dying(*args, **kwargs):
+        try:
+            fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+        except FileExistsError:
+            return original(*args, **kwargs)
+        os.close(fd)
+        os._exit(1)
+
+    runner._reconstruct = dying
+
+
+def test_an_object_whose_worker_dies_is_retried(collection, tmp_path):
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                  dashboard_address=":0", silence_logs=50) as cluster:
+        with distributed.Client(cluster) as c:
+            c.run(_kill_once, str(tmp_path / "killed"))
+            rows = run_batch([collection / "tablet_a"], tmp_path / "out", OPT, client=c)
+    assert (tmp_path / "killed").exists()
+    assert rows[0].status == "done", rows[0].error
+
+
+def test_cli_batch_on_a_separate_scheduler_and_worker(collection, tmp_path, capsys):
+    bin_dir = Path(sys.executable).parent
+    info = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([str(bin_dir / "dask"), "scheduler", "--port", "0", "--dashboard-address", ":0",
+                               "--scheduler-file", str(info)], stderr=subprocess.DEVNULL)]
+    try:
+        for _ in range(300):
+            if info.exists() and info.read_text().strip():
+                break
+            time.sleep(0.1)
+        address = json.loads(info.read_text())["address"]
+        procs.append(subprocess.Popen([str(bin_dir / "dask"), "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                       "--no-dashboard"], stderr=subprocess.DEVNULL))
+        with distributed.Client(address) as c:
+            c.wait_for_workers(1, timeout=60)
+        code, out, err = run_cli(["batch", collection / "tablet_a", collection / "broken", "-o", tmp_path / "out",
+                                  "--scheduler", address, "--pixel-size", "0.05"], capsys)
+        assert code == 1, err
+        assert "1 done" in out and "1 failed" in out and "broken" in out
+        assert (tmp_path / "out" / "tablet_a" / "mesh.obj").is_file()
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(timeout=30)
+
+
+def test_cli_refuses_bad_batch_arguments(collection, tmp_path, capsys):
+    code, _, err = run_cli(["batch", tmp_path / "nothing", "-o", tmp_path / "out"], capsys)
+    assert code == 2 and "no such" in err
+    code, _, err = run_cli(["batch", "-o", tmp_path / "out"], capsys)
+    assert code == 2 and "--manifest" in err
+    code, _, err = run_cli(["batch", collection / "tablet_a", "-o", tmp_path / "out",
+                            "--scheduler", "tcp://127.0.0.1:9"], capsys)
+    assert code == 2 and "cannot reach the Dask scheduler" in err
