@@ -29,6 +29,7 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/decoders.py
 	$(BIN)/python benchmarks/ptm_io.py
 	$(BIN)/python benchmarks/speed.py
+	$(BIN)/python benchmarks/batch.py
 	$(BIN)/python benchmarks/normals_table.py
 	$(BIN)/python benchmarks/relight_loo.py
 	$(BIN)/python benchmarks/integration.py
