@@ -215,3 +215,15 @@ def test_cli_refuses_bad_batch_arguments(collection, tmp_path, capsys):
     code, _, err = run_cli(["batch", collection / "tablet_a", "-o", tmp_path / "out",
                             "--scheduler", "tcp://127.0.0.1:9"], capsys)
     assert code == 2 and "cannot reach the Dask scheduler" in err
+
+
+def test_local_cluster_size_follows_memory_and_cores(collection):
+    from reconstruct.batch import choose_workers, estimate_peak_mb
+
+    items, _ = discover([collection], OPT)
+    peak = max(estimate_peak_mb(i) for i in items)
+    assert 400 < peak < 500  # 12 photographs of 56×40: the interpreter and libraries dominate
+    assert choose_workers(items, cores=16, available_mb=100 * peak) == len(items)  # never more than objects
+    assert choose_workers(items, cores=2, available_mb=100 * peak) == 2  # never more than cores
+    assert choose_workers(items, cores=16, available_mb=2.5 * peak) == 2  # what memory allows
+    assert choose_workers(items, cores=16, available_mb=0.5 * peak) == 1  # at least one

@@ -213,7 +213,7 @@ def _height(folder: Path, max_side: int) -> bytes | None:
     return figures.encode(image, "PNG")
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
+def image_size(path: Path) -> tuple[int, int] | None:
     """``(width, height)`` from the file's header, or None if it is missing or unreadable."""
     from PIL import Image
 
@@ -225,7 +225,7 @@ def _image_size(path: Path) -> tuple[int, int] | None:
 
 
 def _thumbnail(out: Path, rel: str | None, alt: str) -> str:
-    size = _image_size(out / rel) if rel else None
+    size = image_size(out / rel) if rel else None
     if size is None:
         return "<span>no picture</span>"
     return (f'<img loading="lazy" src="{_url(rel)}" width="{size[0]}" height="{size[1]}" '

@@ -159,14 +159,22 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     return _row_from_folder(item, folder, DONE, time.perf_counter() - t0, timer.stages["object"]["peak_rss_mb"])
 
 
-def _image_size(path: Path) -> tuple[int, int] | None:
-    from PIL import Image
+def _photograph_size(path: Path) -> tuple[int, int] | None:
+    """``(width, height)`` from a photograph's header: Pillow's, or tifffile's for the 16-bit
+    RGB TIFFs Pillow does not open."""
+    from reconstruct.batch.gallery import image_size
 
-    try:
-        with Image.open(path) as image:
-            return image.size
-    except (OSError, ValueError):
-        return None
+    size = image_size(path)
+    if size is None and path.suffix.lower() in (".tif", ".tiff"):
+        import tifffile
+
+        try:
+            with tifffile.TiffFile(path) as tif:
+                page = tif.pages[0]
+                size = (page.imagewidth, page.imagelength)
+        except (OSError, ValueError, tifffile.TiffFileError):
+            return None
+    return size
 
 
 def estimate_peak_mb(item: BatchItem) -> float:
@@ -178,11 +186,12 @@ def estimate_peak_mb(item: BatchItem) -> float:
     source = item.source
     if source.is_file() and source.suffix.lower() == ".ptm":
         return 400 + source.stat().st_size * 12 / 2**20
-    folder = source if source.is_dir() else source.parent
     from reconstruct.pipeline.capture import IMAGE_SUFFIXES
 
-    images = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
-    size = _image_size(images[0]) if images else None
+    folder = source if source.is_dir() else source.parent
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    # The first photograph whose header reads (a corrupt one fails its object, not this).
+    size = next(filter(None, map(_photograph_size, images[:5])), None)
     if size is None:
         return 1024.0
     pixels = size[0] * size[1]
