@@ -92,10 +92,15 @@ def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collect
     (out / "tablet_b" / "report.json").unlink()
     (out / "tablet_b" / ".partial-dead").mkdir()
     (out / "tablet_b" / ".partial-dead" / "mesh.ply").write_text("half")
+    # Killed between the two renames that swap a new result in: the old one is put back.
+    os.rename(out / "tablet_a", out / ".replaced-tablet_a")
+    (out / ".running-tablet_a").mkdir()
+    (out / ".running-tablet_a" / "mesh.ply").write_text("half")
     t0 = time.perf_counter()
     rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client)
     assert {r.name: r.status for r in rows} == {"tablet_a": "skipped", "tablet_b": "done"}
     assert not list((out / "tablet_b").glob(".partial-*"))
+    assert not list(out.glob(".running-*")) and not list(out.glob(".replaced-*"))
     assert time.perf_counter() - t0 < 30
     # A photograph changed: only that object runs again; --force redoes all.
     photo = captures / "tablet_a" / "img_000.tif"
@@ -104,6 +109,13 @@ def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collect
     assert {r.name: r.status for r in rows} == {"tablet_a": "done", "tablet_b": "skipped"}
     rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client, force=True)
     assert {r.status for r in rows} == {"done"}
+    # A photograph spoilt since: the object fails and its earlier result stays whole.
+    before = (out / "tablet_b" / "mesh.ply").read_bytes()
+    (captures / "tablet_b" / "img_005.tif").write_bytes(b"spoilt")
+    rows = run_batch([captures / "tablet_b"], out, OPT, client=client)
+    assert rows[0].status == "failed" and "img_005.tif" in rows[0].error
+    assert (out / "tablet_b" / "mesh.ply").read_bytes() == before
+    assert (out / "tablet_b" / "report.json").is_file() and not list(out.glob(".running-*"))
 
 
 def test_manifest_overrides_and_names(collection, client, tmp_path):

@@ -115,13 +115,44 @@ def _limit_threads(stack: ExitStack, threads: int) -> None:
     stack.callback(cv2.setNumThreads, previous)
 
 
-def _reconstruct(item: BatchItem, folder: Path, print_: str) -> None:
-    """``reconstruct run`` of one object (and ``compare`` with its scan) into ``folder``."""
+def _reconstruct(item: BatchItem, work: Path, folder: Path, print_: str) -> None:
+    """``reconstruct run`` of one object into ``work``, swapped in as ``folder``, then the
+    comparison with its scan written into ``folder`` (which it names in comparison.json)."""
     from reconstruct.pipeline import CompareOptions, run, run_compare
 
-    run(item.source, folder, item.options, report_page=item.scan is None, fingerprint=print_)
+    run(item.source, work, item.options, report_page=item.scan is None, fingerprint=print_)
+    _swap_in(work, folder)
     if item.scan is not None:
         run_compare(folder, item.scan, folder, CompareOptions(scan_units=item.scan_units))
+
+
+def _recover(out: Path, name: str) -> None:
+    """Undo what a batch killed in the middle of this object left behind.
+
+    An object is made in ``.running-<name>`` and swapped in place of ``<name>`` at the end; a
+    kill between the two renames leaves the earlier result as ``.replaced-<name>``, which is put
+    back (never lost), and a kill before them leaves a ``.running-<name>``, which goes.
+    """
+    folder, replaced = out / name, out / f".replaced-{name}"
+    if replaced.exists():
+        if folder.exists():
+            shutil.rmtree(replaced, ignore_errors=True)
+        else:
+            os.rename(replaced, folder)
+    shutil.rmtree(out / f".running-{name}", ignore_errors=True)
+    if folder.is_dir():
+        for stale in folder.glob(STAGING_PREFIX + "*"):  # a ``reconstruct run`` killed in it
+            shutil.rmtree(stale, ignore_errors=True)
+
+
+def _swap_in(work: Path, folder: Path) -> None:
+    """Put the finished ``work`` folder in place of ``folder``: two renames, so that a reader (or
+    a kill) sees the old result or the new one, never a mixture."""
+    replaced = folder.with_name(f".replaced-{folder.name}")
+    if folder.exists():
+        os.rename(folder, replaced)
+    os.rename(work, folder)
+    shutil.rmtree(replaced, ignore_errors=True)
 
 
 def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
@@ -129,32 +160,31 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     """Reconstruct one object of a batch into ``out/<name>/``; what a Dask task runs.
 
     Never raises for the object's own problems: a bad capture or a failing stage is a
-    ``failed`` row with the message. Leftover staging folders of a killed earlier attempt are
-    removed first (the batch's lock says no one else is writing there).
+    ``failed`` row with the message, and an earlier result of the object stays as it was. The
+    object is made in a hidden folder beside its own and swapped in when complete, so a batch
+    killed at any moment leaves each object's folder whole (old or new); the batch's lock says
+    no one else is writing there.
     """
     from reconstruct.batch.gallery import write_thumbnails
     from reconstruct.pipeline.profiling import StageTimer
 
     out = Path(out)
-    folder = out / item.name
+    folder, work = out / item.name, out / f".running-{item.name}"
     print_ = fingerprint(item)
-    if folder.is_dir():
-        for stale in folder.glob(STAGING_PREFIX + "*"):
-            shutil.rmtree(stale, ignore_errors=True)
-        if not force and is_complete(folder, item, print_):
-            return _row_from_folder(item, folder, SKIPPED)
+    _recover(out, item.name)
+    if not force and is_complete(folder, item, print_):
+        return _row_from_folder(item, folder, SKIPPED)
     timer = StageTimer()
     t0 = time.perf_counter()
     try:
         with ExitStack() as stack:
             _limit_threads(stack, threads)
             stack.enter_context(timer.stage("object"))
-            _reconstruct(item, folder, print_)
-    except InputError as exc:
-        return BatchRow(item.name, str(item.source), FAILED, str(exc), round(time.perf_counter() - t0, 3))
+            _reconstruct(item, work, folder, print_)
     except Exception as exc:  # noqa: BLE001 - a stage's bug must not stop the other objects
-        return BatchRow(item.name, str(item.source), FAILED, f"{type(exc).__name__}: {exc}",
-                        round(time.perf_counter() - t0, 3))
+        shutil.rmtree(work, ignore_errors=True)
+        message = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
+        return BatchRow(item.name, str(item.source), FAILED, message, round(time.perf_counter() - t0, 3))
     write_thumbnails(folder, out / "thumbnails", item.name)
     return _row_from_folder(item, folder, DONE, time.perf_counter() - t0, timer.stages["object"]["peak_rss_mb"])
 
