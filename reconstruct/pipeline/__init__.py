@@ -20,7 +20,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "report": ["CompareReport", "RunReport"],
         "run": ["RunResult", "run", "run_capture", "run_normals", "run_ptm"],
         "staging": ["StagedOutput", "staged_output"],
-        "stages": ["AUTO_MESH_VERTICES", "NormalsResult", "Relighting", "Surface", "auto_step",
+        "stages": ["AUTO_MESH_VERTICES", "NormalsResult", "Relighting", "Surface", "auto_step", "web_export",
                    "estimate_normals", "fit_relighting", "integrate_surface", "leave_one_out",
                    "light_model", "make_mesh", "resolve_mask", "write_surface_files"],
     },

@@ -18,7 +18,7 @@ import numpy as np
 from ptmcore.errors import InputError
 from reconstruct.pipeline.options import CompareOptions
 from reconstruct.pipeline.profiling import StageTimer
-from reconstruct.pipeline.report import AlignmentSummary, CompareReport, ToleranceTest, json_safe
+from reconstruct.pipeline.report import AlignmentSummary, CompareReport, ToleranceTest
 from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.report import outputs
 from reconstruct.report.html import write_report_html
@@ -64,8 +64,10 @@ def _reconstruction_mesh(path: Path) -> Path:
     return path / "mesh.ply"
 
 
-def _write_figures(staged: StagedOutput, rec, result, tolerance: float | None, warnings: list[str]) -> list[str]:
-    """distances.ply, histogram.png and (where the machine can render) overlay.png."""
+def _write_figures(staged: StagedOutput, rec, result, tolerance: float | None,
+                   warnings: list[str]) -> tuple[list[str], float]:
+    """distances.ply, histogram.png and (where the machine can render) overlay.png; returns
+    their names and the colour range (± mm) they share."""
     from reconstruct.compare import default_limit, write_distance_ply, write_histogram, write_overlay
 
     d = result.signed[result.mask]
@@ -83,13 +85,13 @@ def _write_figures(staged: StagedOutput, rec, result, tolerance: float | None, w
     names = ["distances.ply", "histogram.png"]
     if rec.faces is None:
         warnings.append("no overlay.png: the reconstruction is a point cloud")
-        return names
+        return names, limit
     try:
         write_overlay(staged / "overlay.png", rec.points, rec.faces, result.aligned_points, shown, limit)
         names.append("overlay.png")
     except RuntimeError as exc:
         warnings.append(f"no overlay.png: {exc}")
-    return names
+    return names, limit
 
 
 def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignment, result,
@@ -99,8 +101,8 @@ def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignmen
         opt.tolerance, fraction, opt.min_fraction, bool(fraction >= opt.min_fraction))
     return CompareReport(
         str(rec_path.resolve()), str(scan.resolve()), {"distances": "mm", "scan_input": opt.scan_units},
-        json_safe({f.name: getattr(opt, f.name) for f in dataclasses.fields(opt)}),
-        AlignmentSummary.from_alignment(alignment), json_safe(result.stats), json_safe(result.reverse_stats),
+        {f.name: getattr(opt, f.name) for f in dataclasses.fields(opt)},
+        AlignmentSummary.from_alignment(alignment), result.stats, result.reverse_stats,
         tolerance, [-limit, limit], SIGN_CONVENTION, warnings=warnings,
     )
 
@@ -120,7 +122,7 @@ def run_compare(
     render; skipped with a warning where the machine cannot render) and ``report.html``
     (with the reconstruction's own report when it is an output folder).
     """
-    from reconstruct.compare import align, default_limit, distances, load_geometry, within_tolerance
+    from reconstruct.compare import align, distances, load_geometry, within_tolerance
 
     opt = options or CompareOptions()
     given = Path(reconstruction)
@@ -137,10 +139,10 @@ def run_compare(
             result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
                                max_distance=opt.max_distance)
         with timer.stage("write"):
-            names = _write_figures(staged, rec, result, opt.tolerance, warnings)
+            names, limit = _write_figures(staged, rec, result, opt.tolerance, warnings)
         fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
         report = _comparison_report(rec_path, Path(scan), opt, alignment, result,
-                                    default_limit(result.signed[result.mask]), fraction, warnings)
+                                    limit, fraction, warnings)
         report.stages = timer.stages  # the same dict: the page's own time joins it
         # The page also shows the reconstruction's report when the comparison is written
         # beside it (``run --scan``) or made from its output folder; comparison.json follows

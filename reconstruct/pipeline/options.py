@@ -43,14 +43,9 @@ Solver = Literal["pinv", "lstsq", "rohde"]
 Flattening = Literal["plane", "poly2", "poly3", "highpass"]
 ScanUnit = Literal["mm", "cm", "m", "in"]
 
-#: What each option is called in messages (the command line's spelling).
-_FLAGS = {"ptm_format": "--ptm-format", "flatten_cutoff": "--flatten-cutoff", "max_error": "--max-error",
-          "pixel_size": "--pixel-size", "scan_units": "--scan-units", "min_fraction": "--min-fraction",
-          "max_distance": "--max-distance"}
-
-
 def _flag(name: str) -> str:
-    return _FLAGS.get(name, "--" + name.replace("_", "-"))
+    """What an option is called in messages: its command-line spelling."""
+    return "--" + name.replace("_", "-")
 
 
 def _literal_values(hint: object) -> tuple | None:

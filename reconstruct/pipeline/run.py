@@ -61,6 +61,7 @@ from reconstruct.pipeline.stages import (
     light_model,
     make_mesh,
     resolve_mask,
+    web_export,
     write_surface_files,
 )
 from reconstruct.report import outputs
@@ -288,12 +289,7 @@ def run_ptm(
         with stages("normals", h):
             normals, texture = _ptm_normals_and_texture(ptm)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
-        web = []
-        if ptm.rgb is not None:
-            from reconstruct.report.web import export_openlime
-
-            web = [f"web/{p.name}" for p in
-                   export_openlime(staged / "web", ptm.coefficients, ptm.rgb, pixel_size_mm=opt.pixel_size)]
+        web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size)
         height, mesh, names = _surface_and_files(normals, texture, mask, opt, staged, stages)
         inputs = PtmInputs(str(ptm_path.resolve()), ptm.format, w, h, _mask_source(opt.mask, mask))
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,

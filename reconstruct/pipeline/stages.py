@@ -70,6 +70,7 @@ __all__ = [
     "light_model",
     "make_mesh",
     "resolve_mask",
+    "web_export",
     "write_surface_files",
 ]
 
@@ -203,7 +204,7 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     written = write_ptm(folder / "coefficients.ptm", coef8, rgb8)
     result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, bit_depth))
     if rgb8 is not None:
-        result.names += _web_export(folder, coef8, rgb8, options.pixel_size)
+        result.names += web_export(folder, coef8, rgb8, options.pixel_size)
     else:
         result.warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
     del coef8, rgb8
@@ -215,8 +216,9 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     return result
 
 
-def _web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None) -> list[str]:
-    """Write the OpenLIME web viewer's files under ``web/``; return their names."""
+def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None) -> list[str]:
+    """Write the OpenLIME web viewer's files of an LRGB PTM under ``folder/web/``; return their
+    names relative to ``folder``."""
     written = export_openlime(folder / "web", coefficients, rgb, pixel_size_mm=pixel_size)
     return [f"web/{p.name}" for p in written]
 
