@@ -7,6 +7,13 @@ runs in a fresh process, which reports its wall time and the peak RSS above what
 take. The folder has no ``coefficients.ptm``: relighting uses the normals and albedo (a PTM
 would be relit from a subsample decoded by ``read_ptm(path, max_side=480)``).
 
+Two ways of calling it are measured: ``files``, the page made from the folder alone (the maps
+read through memory maps, the photographs decoded for the contact sheet), and ``arrays``, as a
+pipeline that holds the maps and the decoded photographs can call it: ``previews`` of the maps
+and ``thumbnails`` from the stack (``figures.stack_thumbnail``), both made inside the timing.
+Each is also timed with the imports of matplotlib and pyvista and the first OpenGL context
+inside the timing (``seconds_cold``), as the first page of a process costs.
+
 Run: ``.venv/bin/python benchmarks/report_html.py [--size 6000x4000]``
 Prints the numbers and writes ``benchmarks/results/report_html.json``.
 """
@@ -36,16 +43,29 @@ from reconstruct.pipeline.stages import auto_step
 _MEASURE = """
 import json, sys, time
 sys.path.insert(0, {root!r})
+from pathlib import Path
 from reconstruct.pipeline.profiling import StageTimer, current_rss_mb
-from reconstruct.report import html as report_html
-import matplotlib.figure, pyvista  # the imports' memory is not the report's
+from reconstruct.report import figures, html as report_html
 import numpy as np
-photos = json.loads({photos!r})
+if not {cold!r}:
+    import matplotlib.figure, pyvista  # the imports' memory is not the report's
+photos = [(p, np.array(d)) for p, d in json.loads({photos!r})]
+folder = Path({folder!r})
+if {mode!r} == "arrays":  # what the pipeline holds when it writes the page
+    import tifffile
+    from ptmcore.images import load_stack, read_image
+    maps = {{"normals": np.load(folder / "normals.npy"), "height": tifffile.imread(folder / "height.tif"),
+             "albedo": read_image(folder / "albedo.png")}}
+    stack = load_stack([p for p, _ in photos], min_photographs=1)
 base = current_rss_mb()
 timer = StageTimer()
 t0 = time.perf_counter()
 with timer.stage("report"):  # resident memory sampled every 20 ms while the page is made
-    report_html.write_report_html({folder!r}, photographs=[(p, np.array(d)) for p, d in photos])
+    kw = {{}}
+    if {mode!r} == "arrays":
+        kw = {{"previews": figures.previews(**maps),
+               "thumbnails": {{k: figures.stack_thumbnail(stack, k) for k in report_html.contact_sheet_picks(len(photos))}}}}
+    report_html.write_report_html(folder, photographs=photos, **kw)
 print(json.dumps({{"seconds": time.perf_counter() - t0, "peak_rss_mb_above_imports": timer.stages["report"]["peak_rss_mb"] - base}}))
 """
 
@@ -95,9 +115,18 @@ def main() -> None:
         t0 = time.perf_counter()
         photos = make_folder(folder, (h, w))
         made = time.perf_counter() - t0
-        code = _MEASURE.format(root=str(ROOT), folder=str(folder), photos=json.dumps(photos))
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-        result = json.loads(out.stdout.strip().splitlines()[-1])
+        result = {}
+        for mode in ("files", "arrays"):
+            for cold in (False, True):
+                code = _MEASURE.format(root=str(ROOT), folder=str(folder), photos=json.dumps(photos), mode=mode,
+                                       cold=cold)
+                out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+                measured = json.loads(out.stdout.strip().splitlines()[-1])
+                if cold:
+                    result[mode]["seconds_cold"] = round(measured["seconds"], 3)
+                else:
+                    result[mode] = {"seconds": round(measured["seconds"], 3),
+                                    "peak_rss_mb_above_imports": round(measured["peak_rss_mb_above_imports"])}
         size_kb = (folder / "report.html").stat().st_size / 1024
         page = (folder / "report.html").read_text()
     result.update({"size": args.size, "mesh_step": auto_step((h, w)), "report_kib": round(size_kb),

@@ -1,13 +1,17 @@
 """Reading photographs and holding a capture's stack in bounded memory.
 
 A capture of 50 photographs of 50 megapixels is 7.5 GB as 8-bit RGB and 30 GB as float32, so the
-stack is never held like that. Each photograph is decoded (in parallel threads: JPEG decoding,
-not arithmetic, dominates the run time of real captures), converted to linear RGB a band of rows
-at a time, and reduced to what the later stages need:
+stack is never held like that. Each photograph is decoded once (in parallel threads) and reduced,
+in one compiled pass over its pixels (:mod:`ptmcore.reduce`), to what the later stages need:
 
 * its linear luminance as ``uint16`` (value × 65534; 65535 marks a sample where a channel
-  clipped), which is finer than an 8-bit sRGB step everywhere and half the size of float32;
-* a running per-pixel sum of its linear RGB, which becomes the pixel's colour (chromaticity).
+  clipped), which is finer than an 8-bit sRGB step everywhere and half the size of float32; or,
+  with ``storage="auto"`` and 8-bit photographs, as an 8-bit sRGB code (255 marks a clip);
+* a running per-pixel sum of its linear RGB, which becomes the pixel's colour (chromaticity);
+* with :func:`load_stack_and_fits`, the sums of the fits viewers' files need
+  (:class:`ptmcore.ptmencoded.EncodedFit`), so the photographs are not read a second time.
+
+Whatever the storage, :attr:`ImageStack.table` maps a stored code to linear luminance.
 
 Decoders: JPEG with simplejpeg (libjpeg-turbo without Pillow's extra copy: 1.6× faster than
 Pillow and 1.5× faster than OpenCV on a 24-megapixel photograph, see benchmarks/decoders.py),
@@ -18,22 +22,31 @@ TIFF with tifffile.
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
 from .atomic import atomic_write
 from .errors import InputError
 
+if TYPE_CHECKING:
+    from .ptmencoded import EncodedFit, EncodedFits
+
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 LUMA_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
 #: Code of a stored luminance sample that was clipped in some channel.
 SATURATED = np.uint16(65535)
 _LUM_SCALE = 65534.0
+#: The uint16 stack's code → linear luminance: code / 65534, and 1 for the clip mark 65535
+#: (read-only; shared by every uint16 stack).
+UINT16_TABLE = np.minimum(np.arange(65536, dtype=np.float32) * np.float32(1.0 / _LUM_SCALE), np.float32(1.0))
+UINT16_TABLE.flags.writeable = False
+#: How :func:`load_stack` stores the luminance: always uint16, or 8-bit where that loses nothing
+#: the photographs had (8-bit sRGB photographs, no channel gains).
+Storage = Literal["uint16", "auto"]
 
 
 def _float(v: np.ndarray) -> np.ndarray:
@@ -61,16 +74,18 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.0031308, v * 12.92, curve).astype(v.dtype, copy=False)
 
 
-def _decode_jpeg(data: bytes, path: Path) -> np.ndarray:
+def _decode_jpeg(data: bytes, path: Path, buffer: np.ndarray | None = None) -> np.ndarray:
     try:
         import simplejpeg
     except ImportError:  # pragma: no cover - simplejpeg is a dependency; Pillow still works
         simplejpeg = None
     if simplejpeg is not None:
         try:
-            header = simplejpeg.decode_jpeg_header(data)
-            gray = header[2] == "Gray"
-            img = simplejpeg.decode_jpeg(data, colorspace="GRAY" if gray else "RGB")
+            height, width, colorspace, _ = simplejpeg.decode_jpeg_header(data)
+            gray = colorspace == "Gray"
+            need = height * width * (1 if gray else 3)
+            out = buffer[:need] if buffer is not None and buffer.nbytes >= need else None
+            img = simplejpeg.decode_jpeg(data, colorspace="GRAY" if gray else "RGB", buffer=out)
             return img[..., 0] if gray else img
         except ValueError:
             pass  # CMYK and other rarities: let Pillow try
@@ -112,13 +127,17 @@ def _decode_tiff(path: Path) -> np.ndarray:
     return img
 
 
-def read_image(path: str | os.PathLike) -> np.ndarray:
+def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None) -> np.ndarray:
     """Read a photograph as it is stored.
 
     Parameters
     ----------
     path : str or PathLike
         JPEG, PNG or TIFF file; 8 or 16 bit (TIFF may also be float); grey or RGB(A).
+    buffer : ndarray of uint8, optional
+        A JPEG is decoded into it when it is large enough, and the result is a view of it.
+        Reusing one buffer saves a fresh array's page faults for every photograph, which on
+        some (virtual) machines cost as much time as decoding.
 
     Returns
     -------
@@ -141,7 +160,7 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     if not data:
         raise InputError("image file is empty", path)
     if data[:3] == b"\xff\xd8\xff":
-        img = _decode_jpeg(data, path)
+        img = _decode_jpeg(data, path, buffer)
     elif data[:8] == b"\x89PNG\r\n\x1a\n":
         img = _decode_png(data, path)
     elif data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
@@ -173,8 +192,10 @@ class ImageStack:
 
     Attributes
     ----------
-    luminance : ndarray, shape (N, H, W), uint16
-        Linear luminance × 65534 per photograph; :data:`SATURATED` where a channel clipped.
+    luminance : ndarray, shape (N, H, W), uint16 or uint8
+        Each photograph's linear luminance as a code: ``value × 65534`` (uint16), or
+        ``round(255 · sRGB_encode(value))`` (uint8, ``load_stack(storage="auto")``). The last
+        code (65535 or 255, :attr:`saturated_code`) marks a sample where a channel clipped.
     chroma : ndarray, shape (H, W, 3), float32
         Per-pixel colour of unit luminance (Σ RGB / Σ luminance over the photographs; neutral
         grey where all were black): multiplying it by a luminance gives linear RGB.
@@ -186,6 +207,10 @@ class ImageStack:
         Whether 8-bit sRGB values were decoded to linear light.
     saturated : ndarray, shape (N,), int64
         Number of clipped pixels in each photograph.
+    table : ndarray, float32
+        Code → linear luminance in [0, 1], one entry per code (65536 or 256); the last code
+        (the clip mark) reads as 1. Compiled kernels read the stack through it. Default: the
+        table of the codes' type (:data:`UINT16_TABLE`, or sRGB decoding for uint8).
     """
 
     luminance: np.ndarray
@@ -194,11 +219,24 @@ class ImageStack:
     bit_depth: int
     linearized: bool
     saturated: np.ndarray
+    table: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.table is None:
+            self.table = default_table(self.luminance.dtype)
+        if self.table.dtype != np.float32 or self.table.shape != (np.iinfo(self.luminance.dtype).max + 1,):
+            raise ValueError(f"a {self.luminance.dtype} stack needs a float32 table of "
+                             f"{np.iinfo(self.luminance.dtype).max + 1} entries, not {self.table.dtype} {self.table.shape}")
 
     @property
     def shape(self) -> tuple[int, int]:
         """Image height and width."""
         return self.luminance.shape[1], self.luminance.shape[2]
+
+    @property
+    def saturated_code(self) -> int:
+        """The code that marks a clipped sample: the last one of the codes' type."""
+        return int(np.iinfo(self.luminance.dtype).max)
 
     def __len__(self) -> int:
         return self.luminance.shape[0]
@@ -209,7 +247,7 @@ class ImageStack:
         if keep.all():
             return self
         return ImageStack(self.luminance[keep], self.chroma, [p for p, k in zip(self.paths, keep) if k],
-                          self.bit_depth, self.linearized, self.saturated[keep])
+                          self.bit_depth, self.linearized, self.saturated[keep], self.table)
 
     def band(self, r0: int, r1: int, c0: int | None = None, c1: int | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
@@ -220,79 +258,24 @@ class ImageStack:
         Returns
         -------
         values : ndarray, shape (N, r1 - r0, c1 - c0), float32
-            Luminance in [0, 1]; clipped samples read as 1.
+            Luminance in [0, 1] (:attr:`table`); clipped samples read as 1.
         saturated : ndarray, shape (N, r1 - r0, c1 - c0), bool
             Where a channel clipped.
         """
         raw = self.luminance[:, r0:r1, c0:c1]
-        saturated = raw == SATURATED
-        values = raw.astype(np.float32)
-        values *= np.float32(1.0 / _LUM_SCALE)
-        np.minimum(values, 1.0, out=values)
-        return values, saturated
+        saturated = raw == self.saturated_code
+        return self.table[raw], saturated
 
 
-def _channel_table(dtype: np.dtype, linearize: bool, weights: np.ndarray) -> np.ndarray | None:
-    """256-entry table of each channel's contribution to luminance, × 65534, for 8-bit input."""
-    if dtype != np.uint8:
-        return None
-    v = np.arange(256, dtype=np.float32) / np.float32(255.0)
-    lin = srgb_to_linear(v) if linearize else v
-    return np.round(lin[None, :, None] * weights * _LUM_SCALE).astype(np.uint16)  # (1, 256, 3)
-
-
-def _reduce_into(
-    img: np.ndarray,
-    lum_out: np.ndarray,
-    channel_sum: np.ndarray,
-    lock: threading.Lock,
-    linearize: bool,
-    gains: np.ndarray | None = None,
-) -> int:
-    """Write one photograph's luminance into ``lum_out`` and add its channels to ``channel_sum``.
-
-    Returns the number of clipped pixels. ``gains`` (3,) multiply the linear channels first (a
-    light's intensity divided out); clipping is judged on the stored values.
-
-    Integer images go through OpenCV's vectorised kernels (a table look-up for 8-bit sRGB,
-    a channel transform, a saturating sum): in NumPy this reduction took several times longer
-    than decoding the JPEG. Each channel is first mapped to its luminance contribution
-    ``w_c · linear_c · 65534`` as uint16, so their saturating sum is the luminance and clipped
-    samples can be marked without a float image.
-    """
-    import cv2
-
-    h, w = img.shape[:2]
-    grey = img.ndim == 2
-    weights = LUMA_WEIGHTS if gains is None else (LUMA_WEIGHTS * gains).astype(np.float32)
-    table = _channel_table(img.dtype, linearize, weights)
-    top = 254 if img.dtype == np.uint8 else 65534
-    weights16 = weights * np.float32(_LUM_SCALE / 65535.0)  # for 16-bit input
-    step = max(1, (1 << 20) // w)
-    clipped_count = 0
-    for r0 in range(0, h, step):
-        block = np.ascontiguousarray(img[r0 : r0 + step])
-        if block.dtype == np.float32:
-            lin = np.clip(block, 0.0, 1.0)
-            contrib = (lin[..., None] if grey else lin) * (weights * np.float32(_LUM_SCALE))
-            contrib = np.round(contrib).astype(np.uint16)
-            clipped = (block >= 1.0) if grey else (block >= 1.0).any(axis=2)
-        else:
-            if grey:
-                block = cv2.merge([block, block, block])
-            if table is not None:
-                contrib = cv2.LUT(block, table)
-            else:
-                contrib = cv2.transform(block, np.diag(weights16))
-            clipped = cv2.inRange(block, (0, 0, 0), (top, top, top)) == 0
-        lum = cv2.transform(contrib, np.ones((1, 3), np.float32))
-        np.minimum(lum, np.uint16(_LUM_SCALE), out=lum)
-        np.copyto(lum, SATURATED, where=clipped)
-        clipped_count += int(np.count_nonzero(clipped))
-        lum_out[r0 : r0 + step] = lum
-        with lock:
-            cv2.accumulate(contrib, channel_sum[r0 : r0 + step])
-    return clipped_count
+def default_table(dtype: np.dtype) -> np.ndarray:
+    """The code → linear luminance table of a stack stored as ``dtype`` (uint16 or uint8)."""
+    if np.dtype(dtype) == np.uint16:
+        return UINT16_TABLE
+    if np.dtype(dtype) == np.uint8:
+        table = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
+        table[255] = 1.0
+        return table
+    raise ValueError(f"a stack is stored as uint16 or uint8, not {np.dtype(dtype)}")
 
 
 def _chroma_in_place(channel_sum: np.ndarray) -> np.ndarray:
@@ -321,6 +304,7 @@ def load_stack(
     min_photographs: int = 3,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    storage: Storage = "uint16",
 ) -> ImageStack:
     """Decode a capture's photographs into an :class:`ImageStack`.
 
@@ -339,7 +323,11 @@ def load_stack(
     threads : int, optional
         Decoding threads; default: the number of CPUs.
     progress : callable, optional
-        Called with 1 after each photograph.
+        Called with 1 for each photograph.
+    storage : {"uint16", "auto"}
+        ``"uint16"``: luminance × 65534. ``"auto"``: 8-bit sRGB codes (half the memory) when the
+        first photograph is 8-bit, ``linearize`` is true and there are no channel gains, else
+        uint16; a later photograph of more than 8 bits is then stored at 8 bits too.
 
     Returns
     -------
@@ -350,6 +338,51 @@ def load_stack(
     InputError
         If fewer than three photographs are given, one cannot be read, or sizes differ.
     """
+    return load_stack_and_fits(paths, linearize=linearize, channel_gains=channel_gains,
+                               min_photographs=min_photographs, threads=threads, progress=progress,
+                               storage=storage)[0]
+
+
+def load_stack_and_fits(
+    paths: Sequence[str | os.PathLike],
+    *,
+    fit: EncodedFit | None = None,
+    linearize: bool = True,
+    channel_gains: np.ndarray | None = None,
+    min_photographs: int = 3,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+    storage: Storage = "uint16",
+) -> tuple[ImageStack, EncodedFits | None]:
+    """:func:`load_stack`, and in the same decoding pass the fits viewers' files need.
+
+    Parameters
+    ----------
+    paths : sequence of path
+        The photographs, all of the same size.
+    fit : EncodedFit, optional
+        The PTM (LRGB or RGB format) and HSH to fit to the photographs as encoded, with their
+        light directions (one per photograph). Each photograph is decoded once for the stack
+        and these fits: the results equal :func:`ptmcore.ptmencoded.fit_ptm_encoded`,
+        :func:`~ptmcore.ptmencoded.fit_ptm_rgb_encoded` and :func:`ptmcore.rtifile.fit_rti_hsh`
+        of the files, bit for bit.
+    linearize, channel_gains, min_photographs, threads, progress, storage
+        As :func:`load_stack`.
+
+    Returns
+    -------
+    stack : ImageStack
+    fits : EncodedFits or None
+        None without ``fit``.
+
+    Raises
+    ------
+    InputError
+        As :func:`load_stack`.
+    """
+    from .ptmencoded import EncodedFits, finish_lrgb
+    from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
+
     paths = [Path(p) for p in paths]
     if not paths:
         raise InputError("no photographs given")
@@ -357,47 +390,26 @@ def load_stack(
         raise InputError(
             f"{len(paths)} photograph(s) given; at least {min_photographs} are needed to recover normals"
         )
+    if storage not in ("uint16", "auto"):
+        raise ValueError(f"storage must be 'uint16' or 'auto', not {storage!r}")
     if channel_gains is not None:
         channel_gains = np.asarray(channel_gains, dtype=np.float32).reshape(len(paths), 3)
         if not (np.all(np.isfinite(channel_gains)) and np.all(channel_gains > 0) and channel_gains.max() <= 1):
             raise ValueError("channel gains must be finite, positive and at most 1")
-    first = read_image(paths[0])
-    h, w = first.shape[:2]
-    n = len(paths)
-    luminance = np.empty((n, h, w), dtype=np.uint16)
-    channel_sum = np.zeros((h, w, 3), dtype=np.float32)
-    lock = threading.Lock()
-    depths: list[int] = [0] * n
-    saturated = np.zeros(n, dtype=np.int64)
-
-    def work(k: int, img: np.ndarray | None = None) -> None:
-        if img is None:
-            img = read_image(paths[k])
-        if img.shape[:2] != (h, w):
-            raise InputError(
-                f"image is {img.shape[1]}×{img.shape[0]} but {paths[0].name} is {w}×{h}; "
-                "all photographs of a capture must have the same size",
-                paths[k],
-            )
-        depths[k] = img.dtype.itemsize * 8
-        gains = None if channel_gains is None else channel_gains[k]
-        saturated[k] = _reduce_into(img, luminance[k], channel_sum, lock, linearize, gains)
-        if progress is not None:
-            progress(1)
-
-    work(0, first)
-    del first
-    workers = threads or os.cpu_count() or 1
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(work, k) for k in range(1, n)]
-        try:
-            for f in futures:
-                f.result()
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
-    return ImageStack(luminance, _chroma_in_place(channel_sum), paths, max(depths), linearize, saturated)
+    if fit is not None:
+        fit.matrices(len(paths))  # bad directions fail before any photograph is decoded
+    done = reduce_photographs(paths, linearize=linearize, channel_gains=channel_gains, storage=storage,
+                              fit=fit, threads=threads, progress=progress)
+    stack = ImageStack(done.luminance, done.chroma, paths, int(done.depths.max()), linearize, done.saturated,
+                       done.table)
+    if fit is None:
+        return stack, None
+    fits = EncodedFits(paths, fit, hsh=done.hsh)
+    if done.ptm_sums is not None:
+        fits.coefficients, fits.rgb = finish_lrgb(done.ptm_sums, done.ptm_aux)
+    else:
+        fits.coefficients = done.channel_sums
+    return stack, fits
 
 
 def encode_png(image: np.ndarray) -> bytes:

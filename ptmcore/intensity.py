@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError, read_input_text
-from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack
+from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack, linear_to_srgb
 from .lp import as_directions
 
 #: Samples with ``n·l`` below this are left out: dim, and the most sensitive to the normal's
@@ -163,9 +163,12 @@ def _sample_pixels(
     if candidates.size > max_pixels:
         candidates = candidates[np.linspace(0, candidates.size - 1, max_pixels).astype(np.int64)]
     rows, cols = np.divmod(candidates, w)
-    raw = stack.luminance[:, rows, cols]  # (N, P) uint16
-    usable = raw != SATURATED
-    values = raw.astype(np.float64) / _LUM_SCALE
+    raw = stack.luminance[:, rows, cols]  # (N, P) codes
+    usable = raw != stack.saturated_code
+    if raw.dtype == np.uint16:
+        values = raw.astype(np.float64) / _LUM_SCALE  # exact, unlike the float32 table
+    else:
+        values = stack.table[raw].astype(np.float64)
     # Background (dark in every usable photograph) says nothing about the lights.
     lit = np.where(usable, values, 0.0).max(axis=0) > 2e-3
     return values[:, lit], usable[:, lit]
@@ -400,12 +403,33 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
         inv = np.float32(1.0 / f[k])
         for r0 in range(0, h, rows):
             src = stack.luminance[k, r0 : r0 + rows]
-            clipped = src == SATURATED
-            scaled = src.astype(np.float32) * inv
-            clipped |= scaled > _LUM_SCALE + 0.5
             dst = out[k, r0 : r0 + rows]
-            np.rint(np.minimum(scaled, _LUM_SCALE), out=scaled)
-            dst[...] = scaled.astype(np.uint16)
-            dst[clipped] = SATURATED
+            if src.dtype == np.uint16:
+                clipped = _divide_uint16(src, inv, dst)
+            else:
+                clipped = _divide_codes(src, stack.table, inv, dst)
             saturated[k] += int(np.count_nonzero(clipped))
     return replace(stack, luminance=out, saturated=saturated)
+
+
+def _divide_uint16(src: np.ndarray, inv: np.float32, dst: np.ndarray) -> np.ndarray:
+    """uint16 codes × ``inv`` into ``dst``; returns where they are clipped."""
+    clipped = src == SATURATED
+    scaled = src.astype(np.float32) * inv
+    clipped |= scaled > _LUM_SCALE + 0.5
+    np.rint(np.minimum(scaled, _LUM_SCALE), out=scaled)
+    dst[...] = scaled.astype(np.uint16)
+    dst[clipped] = SATURATED
+    return clipped
+
+
+def _divide_codes(src: np.ndarray, table: np.ndarray, inv: np.float32, dst: np.ndarray) -> np.ndarray:
+    """8-bit sRGB codes (``load_stack(storage="auto")``): decoded through ``table``, scaled by
+    ``inv`` and encoded again, 255 kept for clipped samples and for values beyond 1."""
+    mark = np.iinfo(src.dtype).max
+    scaled = table[src] * inv
+    clipped = (src == mark) | (scaled > 1.0)
+    code = np.rint(np.float32(255.0) * linear_to_srgb(scaled))
+    dst[...] = np.minimum(code, mark - 1).astype(src.dtype)
+    dst[clipped] = mark
+    return clipped

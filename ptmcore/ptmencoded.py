@@ -22,28 +22,163 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
 from .fit import fit_matrix
 from .lp import as_directions
-from .streaming import accumulate_photographs, fit_channels
 
-__all__ = ["HP_LUMA_WEIGHTS", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
+__all__ = ["HP_LUMA_WEIGHTS", "EncodedFit", "EncodedFits", "finish_lrgb", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
 
 #: Luma weights HP's PTMfitter applies to the photographs' R, G, B bytes (see the module notes).
 HP_LUMA_WEIGHTS = np.array([0.2125, 0.7154, 0.0721])
 
 
-def _fit_setup(images: Sequence | np.ndarray, directions: np.ndarray, solver: str) -> tuple[int, np.ndarray]:
-    n = len(images)
+@dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value
+class EncodedFit:
+    """The fits to make to the photographs as encoded, for the files viewers open.
+
+    Passed to :func:`ptmcore.images.load_stack_and_fits`, they are added up in the pass that
+    decodes the photographs for the stack, so the files are made without reading them again.
+
+    Attributes
+    ----------
+    directions : ndarray, shape (N, 3)
+        Unit light directions, one per photograph.
+    ptm_format : {"lrgb", "rgb"} or None
+        The PTM to fit (:func:`fit_ptm_encoded`, :func:`fit_ptm_rgb_encoded`), or none.
+    solver : {"pinv", "lstsq", "rohde"}
+        The {1}-inverse of the PTM light matrix (:func:`ptmcore.fit.fit_matrix`).
+    hsh_order : {2, 3} or None
+        Also fit an HSH of this order (:func:`ptmcore.rtifile.fit_rti_hsh`).
+    """
+
+    directions: np.ndarray
+    ptm_format: str | None = "lrgb"
+    solver: str = "pinv"
+    hsh_order: int | None = None
+
+    def __post_init__(self) -> None:
+        if self.ptm_format not in ("lrgb", "rgb", None):
+            raise ValueError(f"PTM format must be 'lrgb', 'rgb' or None, not {self.ptm_format!r}")
+        # A copy: the fits are matched against the directions a later stage uses.
+        object.__setattr__(self, "directions", np.array(self.directions, dtype=np.float64))
+
+    def matrices(self, n: int) -> tuple[np.ndarray, np.ndarray | None]:
+        """The PTM's (6, N) and the HSH's (K, N) float32 matrices for ``n`` photographs.
+
+        The PTM's is empty (0, 0) without a PTM; the HSH's is None without an HSH. Photographs
+        enter the fits in 0..255 units, so the HSH's (fitted in 0..1) is divided by 255 here.
+        """
+        directions = as_directions(self.directions, n)
+        ptm = (fit_matrix(directions, self.solver).astype(np.float32) if self.ptm_format is not None
+               else np.zeros((0, 0), np.float32))
+        if self.hsh_order is None:
+            return ptm, None
+        from .hsh import ORDERS, hsh_fit_matrix
+
+        if self.hsh_order not in ORDERS:
+            raise ValueError(f"HSH order must be one of {ORDERS}, got {self.hsh_order!r}")
+        return ptm, (hsh_fit_matrix(directions, self.hsh_order) / 255.0).astype(np.float32)
+
+
+@dataclass
+class EncodedFits:
+    """The fits of :class:`EncodedFit`, made in the decoding pass.
+
+    Attributes
+    ----------
+    paths : list of Path
+        The photographs they were fitted to, in order.
+    fit : EncodedFit
+        What was fitted, and to which light directions.
+    coefficients : ndarray or None
+        The PTM: LRGB ``(H, W, 6)`` float32 with its colour ``rgb`` ``(H, W, 3)`` uint8, or
+        RGB format ``(H, W, 3, 6)`` float32 (0..255 units); as :func:`fit_ptm_encoded` and
+        :func:`fit_ptm_rgb_encoded` return them.
+    rgb : ndarray or None
+    hsh : ndarray or None
+        ``(H, W, 3, order²)`` float32, as :func:`ptmcore.rtifile.fit_rti_hsh` returns it.
+    """
+
+    paths: list[Path]
+    fit: EncodedFit
+    coefficients: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+    hsh: np.ndarray | None = None
+
+    def matches(self, paths: Sequence[str | os.PathLike], directions: np.ndarray, solver: str) -> bool:
+        """Whether these fits are of ``paths`` (in order) lit from ``directions``, by ``solver``.
+
+        False when photographs were dropped or lights changed after decoding (e.g. a sphere
+        calibration): the caller then fits again from the files.
+        """
+        d = np.asarray(directions, dtype=np.float64)
+        return (
+            [Path(p) for p in paths] == self.paths
+            and d.shape == self.fit.directions.shape
+            and bool(np.array_equal(d, self.fit.directions))
+            and solver == self.fit.solver
+        )
+
+    def take_ptm(self, ptm_format: str) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """The PTM's coefficients and colour (None for RGB format), handed over and forgotten
+        here so that their memory goes with the caller's last reference; None if this PTM
+        (format) was not fitted."""
+        if self.fit.ptm_format != ptm_format or self.coefficients is None:
+            return None
+        out = (self.coefficients, self.rgb)
+        self.coefficients = self.rgb = None
+        return out
+
+    def take_hsh(self, order: int) -> np.ndarray | None:
+        """The HSH coefficients, handed over as :meth:`take_ptm` does; None if not fitted."""
+        if self.fit.hsh_order != order or self.hsh is None:
+            return None
+        out, self.hsh = self.hsh, None
+        return out
+
+
+def finish_lrgb(sums: np.ndarray, aux: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """HP's LRGB coefficients and colour from the per-pixel sums of the encoded fit.
+
+    Parameters
+    ----------
+    sums : ndarray, shape (H, W, 6), float32
+        Σ_n pinv[j, n] · Y_n; turned into the coefficients in place (their memory is reused).
+    aux : ndarray, shape (H, W, 5), float32
+        The peak ``max_n Y_n``, Σ C·Y for R, G, B, and Σ Y².
+
+    Returns
+    -------
+    coefficients : ndarray, shape (H, W, 6), float32
+        ``sums`` itself: L in 0..255 units (``255 · Y / peak``).
+    rgb : ndarray, shape (H, W, 3), uint8
+        ``peak · Σ C·Y / Σ Y²``, truncated.
+    """
+    h, w = sums.shape[:2]
+    rgb = np.empty((h, w, 3), dtype=np.uint8)
+    step = max(1, (1 << 18) // w)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for r0 in range(0, h, step):
+            band = slice(r0, r0 + step)
+            p = aux[band, :, 0]
+            # A pixel black in every photograph keeps L = 0 and colour 0.
+            norm = np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
+            sums[band] *= norm
+            colour = np.floor(p[..., None] * aux[band, :, 1:4] / aux[band, :, 4:5])
+            rgb[band] = np.clip(np.nan_to_num(colour, nan=0.0, posinf=255.0), 0, 255).astype(np.uint8)
+    return sums, rgb
+
+
+def _fit_setup(images: Sequence | np.ndarray) -> None:
     # Fewer than six photographs leave the six coefficients underdetermined; the
     # pseudoinverse then gives the minimum-norm fit, and the caller warns about it.
-    if n < 1:
+    if len(images) < 1:
         raise InputError("no photographs given")
-    pinv = fit_matrix(as_directions(directions, n), solver).astype(np.float32)
-    return n, pinv
 
 
 def fit_ptm_encoded(
@@ -63,9 +198,11 @@ def fit_ptm_encoded(
     ``C ≈ rgb · L / 255``, truncated to bytes. Written with :func:`ptmcore.ptmfile.write_ptm` this reproduces
     PTMfitter's file byte for byte on the shared fixture (see the module notes).
 
-    The photographs are streamed: one is decoded (in background threads) and added to running
-    per-pixel sums at a time, so memory is 11 float32 per pixel (the six coefficient sums, the
-    peak luma, Σ C·Y and Σ Y²) plus a few photographs, however many there are.
+    The photographs are streamed: a few are decoded at a time (in threads) and added to running
+    per-pixel sums (:func:`ptmcore.reduce.reduce_photographs`, with no stack), so memory is 11
+    float32 per pixel (the six coefficient sums, the peak luma, Σ C·Y and Σ Y²) plus a few
+    photographs, however many there are. :func:`ptmcore.images.load_stack_and_fits` makes the
+    same fit in the pass that decodes the stack.
 
     Parameters
     ----------
@@ -92,40 +229,13 @@ def fit_ptm_encoded(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
-    _, pinv = _fit_setup(images, directions, solver)
-    wr, wg, wb = (np.float32(x) for x in HP_LUMA_WEIGHTS)
-    sums: dict[str, np.ndarray] = {}
+    from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
 
-    def allocate(shape: tuple[int, int]) -> None:
-        # Sums are kept plane by plane: adding into an interleaved (H, W, 6) array makes
-        # NumPy loop over the last axis of 6 and runs several times slower.
-        sums.update(acc=np.zeros((6,) + shape, np.float32), peak=np.zeros(shape, np.float32),
-                    cy=np.zeros((3,) + shape, np.float32), y2=np.zeros(shape, np.float32))
-
-    def add(k: int, c: np.ndarray, r0: int, r1: int) -> None:
-        y = c[..., 0] * wr + c[..., 1] * wg + c[..., 2] * wb
-        for j in range(6):
-            sums["acc"][j, r0:r1] += y * pinv[j, k]
-        np.maximum(sums["peak"][r0:r1], y, out=sums["peak"][r0:r1])
-        for j in range(3):
-            sums["cy"][j, r0:r1] += c[..., j] * y
-        sums["y2"][r0:r1] += y * y
-
-    shape = accumulate_photographs(images, allocate, add, threads=threads, progress=progress)
-    acc, peak, cy, y2 = sums["acc"], sums["peak"], sums["cy"], sums["y2"]
-    coefficients = np.empty(shape + (6,), dtype=np.float32)
-    rgb = np.empty(shape + (3,), dtype=np.uint8)
-    step = max(1, (1 << 18) // shape[1])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for r0 in range(0, shape[0], step):
-            band = slice(r0, r0 + step)
-            p = peak[band]
-            # A pixel black in every photograph keeps L = 0 and colour 0.
-            norm = np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
-            coefficients[band] = np.moveaxis(acc[:, band], 0, -1) * norm
-            colour = np.floor(p[..., None] * np.moveaxis(cy[:, band], 0, -1) / y2[band][..., None])
-            rgb[band] = np.clip(np.nan_to_num(colour, nan=0.0, posinf=255.0), 0, 255).astype(np.uint8)
-    return coefficients, rgb
+    _fit_setup(images)
+    fit = EncodedFit(directions, "lrgb", solver)
+    fit.matrices(len(images))  # bad directions fail before any photograph is decoded
+    done = reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress)
+    return finish_lrgb(done.ptm_sums, done.ptm_aux)
 
 
 def fit_ptm_rgb_encoded(
@@ -160,5 +270,9 @@ def fit_ptm_rgb_encoded(
     ndarray, shape (H, W, 3, 6), float32
         Per-channel coefficients in 0..255 units, row 0 at the top.
     """
-    _, pinv = _fit_setup(images, directions, solver)
-    return fit_channels(images, pinv, threads=threads, progress=progress)
+    from .reduce import reduce_photographs
+
+    _fit_setup(images)
+    fit = EncodedFit(directions, "rgb", solver)
+    fit.matrices(len(images))
+    return reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress).channel_sums

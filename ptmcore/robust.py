@@ -50,6 +50,8 @@ _MAD_TO_SIGMA = 1.4826
 #: Memory for one band of the stack as float32. Each band's float64 work arrays take about as
 #: much again, and smaller bands spread across more threads.
 _BAND_BYTES = 4 << 20
+#: Pixels per band of the compiled photometric stereo.
+_KERNEL_PIXELS = 1 << 16
 #: The stricter test of the specular cone's fit (see :func:`_lambertian_start`).
 _CONE_SINGULAR = 1e-3
 
@@ -353,17 +355,26 @@ def robust_photometric_stereo(
     """
     opt = RobustOptions(method, iterations, dark_fraction, min_shading, cast_shadow_ratio,
                         specular_cone, reject_below, reject_above, noise_floor, relative_floor)
+    from .robustkernel import robust_ps_rows  # numba's import costs a second; the CLI's start does not need it
+
     n = len(stack)
     h, w = stack.shape
-    lights = Lights.of(as_directions(directions, n))
+    dirs = as_directions(directions, n)
+    basis = orthonormal_basis(dirs)
+    halves = _half_vectors(dirs)
+    cos_cone = 1.0 if opt.cos_cone is None else float(opt.cos_cone)
+    par = np.array([dark_fraction, min_shading, cast_shadow_ratio, cos_cone, reject_below, reject_above,
+                    noise_floor, relative_floor, opt.consistency], dtype=np.float64)
     result = empty_result((h, w))
+    codes, table = stack.luminance, stack.table
+    outer_t, u_t = np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T)
+    back, dirs32 = np.ascontiguousarray(basis.back), dirs.astype(np.float32)
 
     def work(r0: int, r1: int) -> None:
-        values, saturated = stack.band(r0, r1)
-        v = values.reshape(n, -1)
-        usable = ~saturated.reshape(n, -1)
-        unit, rho, ok, weights = robust_lambertian(lights, opt, v, usable)
-        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
+        robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs32,
+                       halves, par, method == "irls", opt.cos_cone is not None, iterations,
+                       result.normals, result.albedo, result.samples, result.valid)
 
-    run_bands(h, band_height(n, w), work, threads=threads, progress=progress)
+    # Bands only spread the rows over the threads: the kernel needs no work arrays.
+    run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads, progress=progress)
     return result

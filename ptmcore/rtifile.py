@@ -49,9 +49,8 @@ import numpy as np
 
 from .atomic import atomic_write
 from .errors import InputError, read_input_file
-from .hsh import ORDERS, hsh_basis, hsh_fit_matrix
-from .lp import as_directions
-from .streaming import fit_channels
+from .hsh import ORDERS, hsh_basis
+from .ptmencoded import EncodedFit
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -345,8 +344,10 @@ def fit_rti_hsh(
     Each channel's ``byte/255`` (sRGB-encoded, not linearised; 16-bit values /65535, floats as
     they are) is fitted by the pseudoinverse of the HSH light matrix
     (:func:`ptmcore.hsh.hsh_fit_matrix`), so :meth:`RTIFile.render` of the written file
-    approximates the photographs. The photographs are streamed one at a time into running sums
-    (3·order² float32 per pixel), so memory does not grow with their number.
+    approximates the photographs. The photographs are streamed a few at a time into running sums
+    (3·order² float32 per pixel; :func:`ptmcore.reduce.reduce_photographs`), so memory does not
+    grow with their number. :func:`ptmcore.images.load_stack_and_fits` makes the same fit in the
+    pass that decodes the stack.
 
     Parameters
     ----------
@@ -370,11 +371,13 @@ def fit_rti_hsh(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
+    from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
+
     if order not in ORDERS:
         raise ValueError(f"HSH order must be one of {ORDERS}, got {order!r}")
     n = len(images)
     if n < 1:
         raise InputError("no photographs given")
-    # Photographs in 0..255 (streaming.encoded_rows) → divide by 255 once, in the matrix.
-    pinv = (hsh_fit_matrix(as_directions(directions, n), order) / 255.0).astype(np.float32)
-    return fit_channels(images, pinv, threads=threads, progress=progress)
+    fit = EncodedFit(directions, None, hsh_order=order)
+    fit.matrices(n)  # bad directions fail before any photograph is decoded
+    return reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress).hsh

@@ -146,6 +146,7 @@ def test_same_result_whatever_the_bands_and_threads(monkeypatch):
     ref_ptm = robust_ptm(stack, dirs, threads=1)
     # Bands of one row in three threads, and Cholesky chunks smaller than a band.
     monkeypatch.setattr(robust, "_BAND_BYTES", 1)
+    monkeypatch.setattr(robust, "_KERNEL_PIXELS", 1)
     monkeypatch.setattr(pixelfit, "_CHUNK", 7)
     rows = []
     ps = robust_photometric_stereo(stack, dirs, threads=3, progress=rows.append)

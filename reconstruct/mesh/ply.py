@@ -120,17 +120,21 @@ def write_binary_ply(
 
     with atomic_write(path, "wb") as handle:
         handle.write(("\n".join(header) + "\n").encode("utf-8"))
+        # One record buffer per element, reused for every chunk and written as it is (its
+        # bytes, without the copy tobytes makes).
+        record = np.empty(min(_CHUNK, n_vertices), dtype=vertex_dtype)
         for start in range(0, n_vertices, _CHUNK):
-            record = np.empty(min(_CHUNK, n_vertices - start), dtype=vertex_dtype)
+            part = record[: min(_CHUNK, n_vertices - start)]
             for name, values in vertex.items():
-                record[name] = values[start : start + _CHUNK]
-            handle.write(record.tobytes())
-        for start in range(0, 0 if faces is None else len(faces), _CHUNK):
-            block = faces[start : start + _CHUNK]
-            record = np.empty(len(block), dtype=_FACE_DTYPE)
-            record["count"] = 3
-            record["index"] = block
-            handle.write(record.tobytes())
+                part[name] = values[start : start + _CHUNK]
+            handle.write(part.view(np.uint8))
+        n_faces = 0 if faces is None else len(faces)
+        record = np.empty(min(_CHUNK, n_faces), dtype=_FACE_DTYPE)
+        record["count"] = 3
+        for start in range(0, n_faces, _CHUNK):
+            part = record[: min(_CHUNK, n_faces - start)]
+            part["index"] = faces[start : start + _CHUNK]
+            handle.write(part.view(np.uint8))
 
 
 def write_ply(

@@ -21,10 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.images import ImageStack, load_stack, read_image
+from ptmcore.images import ImageStack, load_stack, load_stack_and_fits, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
+from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.solvers import RankInfo, analyse_lights
 from reconstruct.pipeline.options import RunOptions
@@ -93,6 +94,11 @@ class Capture:
         ``{"source": …, "factors": (N,) or (N, 3)}`` when intensities were applied.
     warnings : list of str
         What a user should know about the capture (clipping, left-out photographs, ...).
+    fits : EncodedFits or None
+        The PTM (and HSH) fitted to the photographs as encoded, made in the decoding pass when
+        the photographs and their lights were known before it (a capture with an ``.lp``);
+        :func:`reconstruct.pipeline.fit_relighting` uses them, and fits from the files
+        otherwise (or if photographs or lights changed since).
     """
 
     source: Path
@@ -107,6 +113,7 @@ class Capture:
     rank: RankInfo | None = None
     intensities: dict | None = None
     warnings: list[str] = field(default_factory=list)
+    fits: EncodedFits | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -261,9 +268,13 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages) -> Capt
     lp_path = find_lp(capture, opt.lp)
     lights = read_lp(lp_path)
     near = _near_lights_from_file(lights, lp_path, opt.light_positions)
+    # The photographs and their lights are known before decoding, so the files viewers open
+    # are fitted in the same pass (with near lights too: they use one direction per photograph).
+    fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None)
     with stages("decode", len(lights)) as advance:
-        stack = load_stack(lights.paths, linearize=opt.linearize, threads=opt.threads, progress=advance)
-    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near)
+        stack, fits = load_stack_and_fits(lights.paths, fit=fit, linearize=opt.linearize, threads=opt.threads,
+                                          progress=advance)
+    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits)
 
 
 def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:

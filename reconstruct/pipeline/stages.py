@@ -33,6 +33,7 @@ from ptmcore.images import write_png
 from ptmcore.lp import LightSet
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+from ptmcore.ptmencoded import EncodedFits
 from ptmcore import (
     debiased_normals,
     fit_ptm_encoded,
@@ -173,12 +174,15 @@ class Relighting:
 
 
 def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathLike, *,
-                   bit_depth: int = 8, progress: Advance | None = None) -> Relighting:
+                   bit_depth: int = 8, progress: Advance | None = None,
+                   fits: EncodedFits | None = None) -> Relighting:
     """Write ``coefficients.ptm``, ``web/`` (LRGB only) and, with ``options.hsh``, ``coefficients.rti``.
 
-    A second pass over the photographs, as they are encoded: the fit HP's PTMfitter makes (its
-    files are reproduced byte for byte), streamed so that memory stays bounded. With near
-    lights these files use each photograph's direction from the image centre.
+    The fits are made to the photographs as they are encoded: the fit HP's PTMfitter makes (its
+    files are reproduced byte for byte). They come from ``fits``, made in the pass that decoded
+    the photographs (``Capture.fits``), when those are of these photographs and lights; else
+    from a second pass over the files, streamed so that memory stays bounded. With near lights
+    these files use each photograph's direction from the image centre.
 
     Parameters
     ----------
@@ -192,15 +196,26 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
         Of the photographs (``Capture.stack.bit_depth``): 8-bit ones are sRGB-encoded, deeper
         ones linear, and report.json says which the PTM holds.
     progress : callable, optional
-        ``progress(k)`` as photographs are read (N in all).
+        ``progress(k)`` as photographs are read (N in all; at once when ``fits`` are used).
+    fits : EncodedFits, optional
+        Fits made while decoding (``Capture.fits``). The coefficients used are taken out of it,
+        so their memory goes as soon as the files are written.
     """
     folder = Path(folder)
     paths, directions = lights.paths, lights.directions
     kw = {"solver": options.solver, "threads": options.threads, "progress": progress}
-    if options.ptm_format == "lrgb":
+    # Fits of other photographs or lights (some dropped after decoding) are not these files'.
+    usable = fits is not None and fits.matches(paths, directions, options.solver)
+    made = fits.take_ptm(options.ptm_format) if usable else None
+    if made is not None:
+        coef8, rgb8 = made
+        if progress is not None:
+            progress(len(paths))
+    elif options.ptm_format == "lrgb":
         coef8, rgb8 = fit_ptm_encoded(paths, directions, **kw)
     else:
         coef8, rgb8 = fit_ptm_rgb_encoded(paths, directions, **kw), None
+    del made
     written = write_ptm(folder / "coefficients.ptm", coef8, rgb8)
     result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, bit_depth))
     if rgb8 is not None:
@@ -209,7 +224,9 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
         result.warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
     del coef8, rgb8
     if options.hsh:
-        hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads)
+        hsh = fits.take_hsh(3) if usable else None
+        if hsh is None:
+            hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads)
         result.summary = PtmSummary.from_written(
             written, bit_depth, hsh=write_rti_hsh(folder / "coefficients.rti", hsh, order=3))
         result.names.append("coefficients.rti")

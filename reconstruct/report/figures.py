@@ -1,9 +1,10 @@
 """The pictures of ``report.html``, small and quick to make from an output folder.
 
-Every function reads only a subsample of the large outputs (memory-mapped normals and heights,
-strided before anything is computed), so a 24-megapixel run's pictures cost a fraction of a
-second and a few megabytes. Figures are NumPy images ``(H, W, 3)`` uint8, or encoded bytes
-where a plotting library makes them.
+The page shows pictures at most :data:`MAX_WIDTH` pixels wide, so the maps are subsampled once,
+first, to :data:`PREVIEW_SIDE` pixels (:func:`previews`: every s-th row and column, which on a
+memory-mapped file reads only those rows), and every picture is made from those subsamples; a
+24-megapixel run's pictures then cost a fraction of a second and a few megabytes. Figures are
+NumPy images ``(H, W, 3)`` uint8, or encoded bytes where a plotting library makes them.
 """
 
 from __future__ import annotations
@@ -12,11 +13,12 @@ import io
 import math
 import os
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ptmcore.images import linear_to_srgb, srgb_to_linear
+from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
 from ptmcore.relight import light_direction
 
 from reconstruct.report import rendering
@@ -24,6 +26,16 @@ from ptmcore.images import encode_png
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
+
+#: Longest side of the maps' subsamples that every picture is made from (:func:`previews`):
+#: the height figure's image is about 700 pixels wide, the normal map is area-averaged to 500
+#: and the Lambertian relit renderings take every other sample (480).
+PREVIEW_SIDE = 960
+
+#: Longest side of the height grid rendered in place of a mesh too large to render from its
+#: file: about three screen pixels per grid cell in the 900-pixel render, which smooth shading
+#: hides, at half the render time of 600.
+MESH_RENDER_SIDE = 320
 
 #: The lights of the relit renderings: (label, azimuth °, elevation °). Azimuth 0° is light
 #: from the right, 90° from the top (``ptmcore.relight.light_direction``).
@@ -58,6 +70,14 @@ def fit_width(image: np.ndarray, max_width: int) -> np.ndarray:
         return image
     size = (max_width, max(1, round(h * max_width / w)))
     return cv2.resize(np.ascontiguousarray(image), size, interpolation=cv2.INTER_AREA)
+
+
+def fit_side(image: np.ndarray, max_side: int) -> np.ndarray:
+    """``image`` resized (area average) so that its longer side is at most ``max_side``, or as
+    it is."""
+    h, w = image.shape[:2]
+    k = max_side / max(h, w)
+    return fit_width(image, max(1, round(w * k))) if k < 1 else image
 
 
 def finite_range(values: np.ndarray) -> tuple[float, float]:
@@ -118,9 +138,11 @@ def downscale_file(path: str | os.PathLike, max_width: int = MAX_WIDTH, fmt: str
 def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.ndarray:
     """A photograph reduced to ``max_side`` pixels for a contact sheet, 8-bit RGB.
 
-    JPEGs are decoded at a reduced size (libjpeg's DCT scaling), so a 24-megapixel photograph
-    costs a few milliseconds. 16-bit and float images are linear light: they are scaled to
-    their 99.5th percentile and encoded as sRGB so they look as a photograph does.
+    JPEGs are decoded at an eighth of their size (libjpeg's DCT scaling), which skips most of
+    the arithmetic but not the entropy decoding: a 24-megapixel photograph of 18 MB still
+    costs about 0.15 s (:func:`stack_thumbnail` makes one from an already decoded stack).
+    16-bit and float images are linear light: they are scaled to their 99.5th percentile and
+    encoded as sRGB so they look as a photograph does.
     """
     from PIL import Image
 
@@ -139,12 +161,46 @@ def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.nda
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     if image.dtype != np.uint8:
-        v = image.astype(np.float32)
-        top = float(np.percentile(v, 99.5)) or 1.0
-        image = np.round(linear_to_srgb(np.clip(v / top, 0, 1)) * 255).astype(np.uint8)
-    h, w = image.shape[:2]
-    k = max_side / max(h, w)
-    return fit_width(image, max(1, round(w * k))) if k < 1 else image
+        image = _linear_to_srgb8(image.astype(np.float32), stretch=True)
+    return fit_side(image, max_side)
+
+
+def stack_thumbnail(stack: ImageStack, index: int, *, max_side: int = 240) -> np.ndarray:
+    """A contact-sheet thumbnail of photograph ``index`` of a decoded stack, 8-bit RGB.
+
+    What :func:`photograph_thumbnail` makes from the file, without decoding it again: the
+    photograph's linear luminance times the capture's colour, every s-th pixel (s brings the
+    longer side to twice ``max_side``), area-averaged to ``max_side`` and encoded as sRGB.
+
+    Parameters
+    ----------
+    stack : ptmcore.images.ImageStack
+        The capture's photographs (``Capture.stack``), before the pipeline releases it.
+    index : int
+        Which photograph.
+    max_side : int
+        Longer side of the thumbnail.
+
+    Returns
+    -------
+    ndarray, shape (h, w, 3), uint8
+        8-bit photographs as they were encoded; deeper ones (linear light) scaled to their
+        99.5th percentile, as :func:`photograph_thumbnail` shows them.
+    """
+    s = stride_for(stack.shape, 2 * max_side)
+    codes = stack.luminance[index, ::s, ::s]
+    # The stack's table maps its codes (luminance × 65534, or 8-bit sRGB) to linear light; a
+    # stack without one holds luminance × 65534.
+    table = getattr(stack, "table", None)
+    luminance = table[codes] if table is not None else codes * np.float32(1 / 65534)
+    linear = luminance[..., None] * stack.chroma[::s, ::s]
+    return fit_side(_linear_to_srgb8(linear, stretch=stack.bit_depth > 8), max_side)
+
+
+def _linear_to_srgb8(linear: np.ndarray, *, stretch: bool) -> np.ndarray:
+    """Linear light as 8-bit sRGB; ``stretch``: divided by its 99.5th percentile first."""
+    top = (float(np.percentile(linear, 99.5)) or 1.0) if stretch else 1.0
+    return np.round(linear_to_srgb(np.clip(linear / top, 0, 1)) * 255).astype(np.uint8)
 
 
 def normal_colors(normals: np.ndarray) -> np.ndarray:
@@ -214,23 +270,77 @@ def relit_lambertian(
             for label, az, el in RELIGHT_LIGHTS]
 
 
+def map_array(path: str | os.PathLike) -> np.ndarray:
+    """A ``.npy`` or uncompressed TIFF array as a read-only memory map (nothing is read until
+    it is sliced); a file that cannot be mapped (a compressed or tiled TIFF) is read whole."""
+    import tifffile
+
+    path = Path(path)
+    if path.suffix == ".npy":
+        return np.load(path, mmap_mode="r")
+    try:
+        return tifffile.memmap(path, mode="r")
+    except ValueError:  # compressed or tiled: tifffile cannot map it
+        return tifffile.imread(path)
+
+
 def read_subsampled(path: str | os.PathLike, max_side: int) -> tuple[np.ndarray, int]:
     """A ``.npy`` or uncompressed TIFF array read through a memory map, strided to ``max_side``.
 
     Returns the subsample and the stride. Files that cannot be mapped are read whole.
     """
-    import tifffile
-
-    path = Path(path)
-    if path.suffix == ".npy":
-        full = np.load(path, mmap_mode="r")
-    else:
-        try:
-            full = tifffile.memmap(path, mode="r")
-        except ValueError:  # compressed or tiled: tifffile cannot map it
-            full = tifffile.imread(path)
+    full = map_array(path)
     s = stride_for(full.shape, max_side)
     return np.array(full[::s, ::s]), s
+
+
+@dataclass
+class Previews:
+    """Subsamples of a run's maps, every ``stride``-th row and column of the full maps, from
+    which every picture of ``report.html`` is made (:func:`previews`).
+
+    Attributes
+    ----------
+    stride : int
+        Step of the subsamples in full-size pixels (a scale bar measures the full map with it).
+    normals : ndarray, shape (h, w, 3), float32, or None
+        Unit normals.
+    height : ndarray, shape (h, w), float32, or None
+        Heights, NaN outside the object.
+    albedo : ndarray, shape (h, w, 3) or (h, w), uint8, or None
+        The 8-bit sRGB albedo (the texture), for Lambertian relighting without a PTM.
+    """
+
+    stride: int = 1
+    normals: np.ndarray | None = None
+    height: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+
+
+def previews(*, normals: np.ndarray | None = None, height: np.ndarray | None = None,
+             albedo: np.ndarray | None = None, max_side: int = PREVIEW_SIDE) -> Previews:
+    """Every s-th row and column of full-size maps, s the smallest step that brings the
+    longest side to ``max_side``: what the page's pictures are made from.
+
+    Strided slicing costs nothing on arrays in memory and reads only the rows it takes from a
+    memory-mapped file (:func:`map_array`); the results are small copies. The maps (``(H, W,
+    3)`` normals, ``(H, W)`` heights, ``(H, W[, 3])`` uint8 albedo) share one stride, so that
+    their samples coincide.
+    """
+    maps = {"normals": normals, "height": height, "albedo": albedo}
+    shapes = [np.shape(m) for m in maps.values() if m is not None]
+    s = max((stride_for(shape, max_side) for shape in shapes), default=1)
+    small = {name: None if m is None else np.array(m[::s, ::s]) for name, m in maps.items()}
+    for name in ("normals", "height"):
+        if small[name] is not None:
+            small[name] = small[name].astype(np.float32, copy=False)
+    return Previews(s, **small)
+
+
+def thin(image: np.ndarray, max_side: int) -> tuple[np.ndarray, int]:
+    """``image`` strided (a view) so that its longer side is at most ``max_side``; and the step."""
+    k = stride_for(image.shape, max_side)
+    return image[::k, ::k], k
 
 
 def _nice_length(x: float) -> float:

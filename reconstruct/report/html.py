@@ -6,6 +6,12 @@ embedded as a ``data:`` URI and the style is inline, so the file opens anywhere 
 no network) and references nothing else. A picture that cannot be made (no off-screen
 rendering, no matplotlib, an unreadable photograph) becomes a note in its place: the page is
 always written.
+
+The maps are subsampled once, first (:func:`reconstruct.report.figures.previews`, to about a
+thousand pixels), and every picture is made from the subsamples; a caller that holds the maps
+(the pipeline) passes them, and the photographs' thumbnails, so that nothing large is read
+again. The mesh is rendered in a second thread while the other pictures are made: most of its
+time is the start of an OpenGL context, in VTK's C++ code, which leaves the GIL to them.
 """
 
 from __future__ import annotations
@@ -14,7 +20,8 @@ import base64
 import html
 import json
 import os
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -137,29 +144,52 @@ def _photographs_from_report(report: dict | None) -> list[tuple[Path, np.ndarray
     return list(zip(lights.paths, lights.directions))
 
 
-def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]]) -> str:
+def contact_sheet_picks(n: int) -> list[int]:
+    """Indices of the photographs on the contact sheet of ``n``: at most :data:`CONTACT_SHEET`,
+    evenly spread, the first and the last included."""
+    return sorted(set(np.linspace(0, n - 1, min(n, CONTACT_SHEET)).round().astype(int).tolist()))
+
+
+def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]],
+                   thumbnails: Mapping[int, np.ndarray] | None = None) -> str:
     n = len(photographs)
-    picks = sorted(set(np.linspace(0, n - 1, min(n, CONTACT_SHEET)).round().astype(int).tolist()))
+    picks = contact_sheet_picks(n)
+    thumbs = {k: v for k, v in (thumbnails or {}).items() if k in picks and v is not None}
+    missing = [k for k in picks if k not in thumbs]
+    if missing:
+        # Entropy decoding dominates even at an eighth of the size (0.15 s for a 24-megapixel
+        # JPEG), and Pillow leaves the GIL while it decodes: the photographs go in parallel.
+        with ThreadPoolExecutor(max_workers=min(len(missing), os.cpu_count() or 1, 4)) as pool:
+            thumbs.update(zip(missing, pool.map(lambda k: figures.photograph_thumbnail(photographs[k][0]), missing)))
     items = []
     for k in picks:
         path, light = photographs[k]
         light = np.asarray(light, dtype=np.float64)
         az = np.degrees(np.arctan2(light[1], light[0])) % 360
         el = np.degrees(np.arcsin(np.clip(light[2], -1, 1)))
-        thumb = figures.photograph_thumbnail(path)
-        items.append(_figure(figures.encode(thumb, "JPEG"), "image/jpeg",
+        items.append(_figure(figures.encode(thumbs[k], "JPEG"), "image/jpeg",
                              f"{Path(path).name} — light az {az:.0f}°, el {el:.0f}°"))
     shown = f"{len(picks)} of {n} photographs" if len(picks) < n else f"all {n} photographs"
     return f"<p>{_esc(shown)}; azimuth 0° = light from the right, 90° = from the top.</p>" \
            f'<div class="grid sheet">{"".join(items)}</div>'
 
 
-def _relit(files: _Folder, report: dict | None) -> str:
+def _previews(files: _Folder, notes: list[str]) -> figures.Previews:
+    """The subsamples of the folder's normals and heights (memory-mapped: only the rows taken
+    are read); a map that cannot be read is left out with a note."""
+    maps = {}
+    for key, name in (("normals", "normals.npy"), ("height", "height.tif")):
+        path = files.find(name)
+        if path is not None:
+            maps[key] = _attempt(lambda path=path: figures.map_array(path), f"{name} subsample", notes)
+    return _attempt(lambda: figures.previews(**maps), "maps", notes, figures.Previews())
+
+
+def _relit(files: _Folder, report: dict | None, previews: figures.Previews) -> str:
     ptm = files.find("coefficients.ptm")
     source = ((report or {}).get("inputs") or {}).get("ptm")
     if ptm is None and source and Path(source).is_file():
         ptm = Path(source)  # a run from a .ptm file: relight the file itself
-    normals = files.find("normals.npy")
     if ptm is not None:
         # Only a subsample is decoded: for a run from a .ptm file this re-reads the source
         # file, at the cost of the subsample.
@@ -167,15 +197,16 @@ def _relit(files: _Folder, report: dict | None) -> str:
         images = figures.relit_from_ptm(ptm, linear=linear)
         how = f"RTIViewer's default rendering of {ptm.name}" + (
             " (a PTM of linear light, from 16-bit photographs: shown sRGB-encoded)" if linear else "")
-    elif normals is not None:
-        from ptmcore.images import read_image
-
-        n = np.load(normals, mmap_mode="r")
-        albedo_path = files.find("albedo.png")
+    elif previews.normals is not None:
         # A normal map from elsewhere has no albedo (its albedo.png is a shaded rendering).
         from_normal_map = "normal_map" in ((report or {}).get("inputs") or {})
-        albedo = read_image(albedo_path) if albedo_path and not from_normal_map else None
-        images = figures.relit_lambertian(n, albedo)
+        albedo = None if from_normal_map else previews.albedo
+        albedo_path = files.find("albedo.png")
+        if albedo is None and albedo_path and not from_normal_map:
+            from ptmcore.images import read_image
+
+            albedo = read_image(albedo_path)  # a PNG is decoded whole; only without a PTM
+        images = figures.relit_lambertian(previews.normals, albedo)
         how = "Lambertian shading of the normals" + (" and albedo" if albedo is not None else " (uniform grey)")
     else:
         return _note("no relit renderings: neither coefficients.ptm nor normals.npy is in the folder")
@@ -184,25 +215,20 @@ def _relit(files: _Folder, report: dict | None) -> str:
            f'<div class="grid">{items}</div>'
 
 
-def _maps(files: _Folder, report: dict | None, notes: list[str]) -> str:
+def _maps(report: dict | None, previews: figures.Previews, notes: list[str]) -> str:
     parts = []
-    normals = files.find("normals.npy")
-    if normals is not None:
+    if previews.normals is not None:
         def normal_map() -> bytes:
-            n = np.load(normals, mmap_mode="r")
-            s = figures.stride_for(n.shape, figures.MAX_WIDTH // 2)
-            return figures.encode(figures.normal_colors(n[::s, ::s]))
+            return figures.encode(figures.fit_side(figures.normal_colors(previews.normals), figures.MAX_WIDTH // 2))
 
         parts.append(_attempt(lambda: _figure(normal_map(), "image/png",
             "normal map (R = x right, G = y up, B = z towards the camera)"), "normal map picture", notes, _note))
-    height = files.find("height.tif")
-    if height is not None:
+    if previews.height is not None:
         unit = (report or {}).get("height_unit", "pixel")
         pixel_size = figures.display_pixel_size(report)
 
         def make() -> str:
-            sub, stride = figures.read_subsampled(height, 1200)
-            png = figures.height_figure(sub, stride, unit, pixel_size)
+            png = figures.height_figure(previews.height, previews.stride, unit, pixel_size)
             bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
             return _figure(png, "image/png", f"height map in {unit}; {bar}")
 
@@ -212,19 +238,19 @@ def _maps(files: _Folder, report: dict | None, notes: list[str]) -> str:
     return f'<div class="grid" style="--min:420px">{"".join(parts)}</div>'
 
 
-def _mesh(files: _Folder, report: dict | None, notes: list[str]) -> str:
+def _mesh(files: _Folder, report: dict | None, previews: figures.Previews, notes: list[str]) -> str:
     mesh = files.find("mesh.ply")
     if mesh is None:
         return _note("no mesh.ply in the folder")
     faces = figures.ply_face_count(mesh)
-    height = files.find("height.tif")
 
     def make() -> str:
-        if faces is not None and faces <= figures.MAX_RENDER_FACES or height is None:
+        if faces is not None and faces <= figures.MAX_RENDER_FACES or previews.height is None:
             image = figures.mesh_render(mesh)
             what = "mesh.ply"
         else:
-            sub, stride = figures.read_subsampled(height, 600)
+            sub, k = figures.thin(previews.height, figures.MESH_RENDER_SIDE)
+            stride = previews.stride * k
             image = figures.mesh_render(figures.surface_from_height(sub, stride, figures.display_pixel_size(report)))
             what = f"mesh.ply's surface ({faces:,} triangles) sampled every {stride} pixels"
         return _figure(figures.encode(image, "JPEG", 90), "image/jpeg",
@@ -268,6 +294,30 @@ def _timings(report: dict | None, comparison: dict | None) -> str:
     return _table([*rows, ("total", round(total, 3), None)], ("stage", "wall time (s)", f"peak memory (MiB, {scope})"))
 
 
+def _run_sections(report: dict, files: _Folder, previews: figures.Previews,
+                  photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None,
+                  thumbnails: Mapping[int, np.ndarray] | None, notes: list[str]) -> list[tuple[str, str, str]]:
+    """The sections of a run before its mesh: inputs, photographs, relit renderings, maps."""
+    inputs = report.get("inputs") or {}
+    tables = [_table(inputs.items(), ("input", "")),
+              _table((report.get("parameters") or {}).items(), ("parameter", "value"))]
+    result = dict(report.get("mesh") or {})
+    for key in ("albedo_scale", "lights", "ptm", "intensities", "leave_one_out"):
+        if report.get(key) is not None:
+            result.update(_flatten({key: report[key]}))
+    tables.append(_table(result.items(), ("result", "")))
+    sections = [("inputs", "Inputs and parameters", f'<div class="tables">{"".join(tables)}</div>')]
+    if photographs is None:
+        photographs = _attempt(lambda: _photographs_from_report(report), "contact sheet", notes)
+    if photographs:
+        sections.append(("photographs", "Photographs",
+                         _attempt(lambda: _contact_sheet(photographs, thumbnails), "contact sheet", notes, _note)))
+    sections.append(("relit", "Relit renderings",
+                     _attempt(lambda: _relit(files, report, previews), "relit renderings", notes, _note)))
+    sections.append(("maps", "Normal map and height map", _maps(report, previews, notes)))
+    return sections
+
+
 def report_html(
     folder: str | os.PathLike,
     *,
@@ -276,6 +326,8 @@ def report_html(
     photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
     title: str | None = None,
     also: Sequence[str | os.PathLike] = (),
+    previews: figures.Previews | None = None,
+    thumbnails: Mapping[int, np.ndarray] | None = None,
 ) -> str:
     """The text of ``report.html`` for an output folder.
 
@@ -296,6 +348,15 @@ def report_html(
     also : sequence of paths
         Further folders to look in for files not in ``folder`` (an output folder published
         earlier, e.g. the reconstruction a comparison was written beside).
+    previews : Previews, optional
+        Subsamples of the run's normals, heights and albedo
+        (:func:`reconstruct.report.figures.previews` of the arrays in memory), from which the
+        maps, the Lambertian relighting and the mesh render are made. Default: subsamples of
+        ``normals.npy`` and ``height.tif`` read through memory maps.
+    thumbnails : mapping of int to ndarray, optional
+        8-bit RGB thumbnails of photographs by their index in ``photographs``
+        (:func:`reconstruct.report.figures.stack_thumbnail`; :func:`contact_sheet_picks` says
+        which are shown); the others are decoded from the files.
 
     Returns
     -------
@@ -316,22 +377,15 @@ def report_html(
 
     sections: list[tuple[str, str, str]] = []
     if report is not None:
-        tables = [_table(inputs.items(), ("input", "")),
-                  _table((report.get("parameters") or {}).items(), ("parameter", "value"))]
-        result = dict(report.get("mesh") or {})
-        for key in ("albedo_scale", "lights", "ptm", "intensities", "leave_one_out"):
-            if report.get(key) is not None:
-                result.update(_flatten({key: report[key]}))
-        tables.append(_table(result.items(), ("result", "")))
-        sections.append(("inputs", "Inputs and parameters", f'<div class="tables">{"".join(tables)}</div>'))
-        if photographs is None:
-            photographs = _attempt(lambda: _photographs_from_report(report), "contact sheet", notes)
-        if photographs:
-            sections.append(("photographs", "Photographs",
-                             _attempt(lambda: _contact_sheet(photographs), "contact sheet", notes, _note)))
-        sections.append(("relit", "Relit renderings", _attempt(lambda: _relit(files, report), "relit renderings", notes, _note)))
-        sections.append(("maps", "Normal map and height map", _maps(files, report, notes)))
-        sections.append(("mesh", "Mesh", _mesh(files, report, notes)))
+        previews = previews if previews is not None else _previews(files, notes)
+        mesh_notes: list[str] = []
+        # The mesh is rendered in its own thread while the other pictures are made (see the
+        # module's docstring); its notes join the others in the order of the sections.
+        with ThreadPoolExecutor(max_workers=1) as render:
+            mesh_section = render.submit(_mesh, files, report, previews, mesh_notes)
+            sections += _run_sections(report, files, previews, photographs, thumbnails, notes)
+            sections.append(("mesh", "Mesh", mesh_section.result()))
+        notes += mesh_notes
         if report.get("accuracy"):
             sections.append(("accuracy", "Accuracy against ground truth",
                              _table(_flatten(report["accuracy"]), ("measure", "value"))))
@@ -368,6 +422,8 @@ def write_report_html(
     photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
     title: str | None = None,
     also: Sequence[str | os.PathLike] = (),
+    previews: figures.Previews | None = None,
+    thumbnails: Mapping[int, np.ndarray] | None = None,
 ) -> Path:
     """Write ``report.html`` into ``folder`` (atomically); see :func:`report_html`.
 
@@ -377,7 +433,7 @@ def write_report_html(
         The file written.
     """
     text = report_html(folder, report=report, comparison=comparison, photographs=photographs, title=title,
-                       also=also)
+                       also=also, previews=previews, thumbnails=thumbnails)
     path = Path(folder) / "report.html"
     with atomic_write(path, "w") as f:
         f.write(text)

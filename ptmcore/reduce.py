@@ -1,0 +1,532 @@
+"""One decoding pass: each photograph reduced, in one read of its pixels, to all the run needs.
+
+A run needs two views of the same photographs: the linear-luminance stack the normals are fitted
+to (:func:`ptmcore.images.load_stack`) and the sums of the fits made in the photographs' own
+encoding for viewers' files (HP's PTM, :mod:`ptmcore.ptmencoded`; RTIBuilder's HSH,
+:func:`ptmcore.rtifile.fit_rti_hsh`). Decoding a 24-megapixel JPEG takes about 0.2 s of CPU;
+in NumPy and OpenCV each of the two reductions took as long again, as chains of element-wise
+passes over the photograph, and the viewers' fits decoded every photograph a second time.
+
+Here one compiled kernel (:func:`_reduce_rows`, numba) visits each pixel of a band of rows
+once and, for every photograph of a batch in order:
+
+* linearises each channel through a table (or computes it, for float TIFF) into its
+  contribution ``w_c · linear_c · 65534`` to the luminance, marks a pixel where a channel
+  clipped, and writes the stack's code (uint16, or 8-bit sRGB with ``storage="auto"``);
+* adds the contributions to the colour sums (the chromaticity);
+* adds the encoded fits: HP's LRGB sums (luma ``0.2125 R + 0.7154 G + 0.0721 B`` of the bytes,
+  the six pseudoinverse-weighted sums, the peak, Σ C·Y, Σ Y²), the 18 per-channel sums of an
+  RGB PTM, the 3·K per-channel sums of an HSH.
+
+The arithmetic is the NumPy code's, in float32 and in the same order (numba does not contract a
+product and a sum into one fused multiply-add without ``fastmath``), so a ``.ptm`` file's bytes
+do not change (``tests/test_one_decode.py`` and HP's fixture in ``tests/test_ptmfile.py``).
+Several photographs per visit keep a pixel's sums in registers: the sums are read and written
+once per batch instead of once per photograph, which is most of the memory traffic.
+
+The kernel releases the GIL and runs in the caller's threads on bands of rows
+(:func:`ptmcore.streaming.run_in_order` keeps the photographs in order per band), so ``threads``
+is respected and numba's threading layer is not involved. Compiled code is cached on disk
+(``cache=True``), so only the first run after installation pays for compilation.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numba import types
+from numba.extending import overload
+
+from .bands import run_bands
+from .errors import InputError
+from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, linear_to_srgb, srgb_to_linear
+from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
+from .streaming import Photographs, check_same_size, run_in_order
+
+__all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
+
+#: Photographs per kernel call (and per task): the kernel's tuple of images always has this
+#: length, padded, so that numba compiles one version per sample type only.
+_BATCH = 4
+#: Pixels per band of rows: the unit of ownership between threads (:class:`BandTurns`).
+_BAND_PIXELS = 1 << 18
+#: Memory for the decoded photographs one task holds. At 24 megapixels (72 MB as 8-bit RGB)
+#: that is 2 photographs per task, 288 MB for 2 threads: 4 per task made the kernel 15 %
+#: faster but held 576 MB, beyond the 4 GB a 48-photograph capture of that size should fit in.
+_BATCH_BYTES = 160 << 20
+
+
+def _contribution(lut, wscale, i, ch, v):  # pragma: no cover - replaced in compiled code
+    """Channel ``ch``'s contribution ``w · linear · 65534`` (an integer) of sample ``v``."""
+    raise NotImplementedError
+
+
+@overload(_contribution)
+def _contribution_impl(lut, wscale, i, ch, v):  # pragma: no cover - typing-time dispatch
+    if isinstance(v, types.Integer):
+        # 8- and 16-bit: the table built by _Tables (sRGB decoding, weight and gain folded in).
+        def table(lut, wscale, i, ch, v):
+            return np.int32(lut[ch, v])
+
+        return table
+
+    # float32 TIFF: as the NumPy reduction did it, clip to [0, 1], scale, round half to even.
+    def computed(lut, wscale, i, ch, v):
+        return np.int32(np.rint(min(max(v, np.float32(0.0)), np.float32(1.0)) * wscale[i, ch]))
+
+    return computed
+
+
+@numba.njit(nogil=True, cache=True)
+def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum8, to8, chan, hp, ptm_pinv,
+                 ptm_sums, ptm_aux, mat_a, sums_a, mat_b, sums_b):  # pragma: no cover - compiled
+    """Add rows ``r0:r1`` of the first ``m`` images of ``images`` (photographs ``ks``, in order).
+
+    What is not wanted is passed as None: numba prunes ``x is None`` branches of arguments
+    when it compiles, so each combination gets lean code of its own. (Runtime flags and
+    empty arrays instead made the common case 50 % slower: stores into arrays in the pixel
+    loop, even in branches never taken, keep LLVM from holding values in registers.)
+
+    Parameters
+    ----------
+    images : tuple of ndarray (H, W, 3)
+        One sample type and layout (grey is a view repeating its channel). Padded to
+        :data:`_BATCH`; only ``m`` are used.
+    ks : ndarray (m,), int64
+        Their photograph indices, ascending.
+    luts, wscale
+        Each channel's luminance contribution of a sample of ``images[i]``: ``luts[i][c, v]``
+        for integer samples, ``rint(clip(v, 0, 1) · wscale[i, c])`` for floats. (A tuple of
+        tables, not one indexed array: indexing a (N, 3, 2^bits) array per photograph and
+        sample made the kernel 40 % slower.)
+    top : scalar of the images' type
+        A sample above this is clipped (254, 65534, or the float below 1).
+    enc_scale : float32
+        Sample → 0..255 units of the encoded fits (1, 1/257 or 255).
+    lum16, lum8, to8, chan : ndarray or None
+        The stack: uint16 codes (N, H, W), or 8-bit codes through the table ``to8``
+        (65536,); the colour sums (H, W, 3). None without a stack.
+    hp, ptm_pinv, ptm_sums, ptm_aux
+        HP's luma weights (3,), the LRGB pseudoinverse (6, N), the sums (H, W, 6) and the
+        peak, Σ C·Y and Σ Y² (H, W, 5); ``ptm_sums`` None without an LRGB fit.
+    mat_a, sums_a, mat_b, sums_b
+        Two per-channel fits (RGB-format PTM, HSH): matrices (K, N) and sums (H, W, 3, K);
+        ``sums_*`` None when not wanted.
+
+    Returns
+    -------
+    tuple of 4 int
+        Clipped pixels of each image (with the stack), counted in scalars for the reason above.
+    """
+    w = images[0].shape[1]
+    hr, hg, hb = hp[0], hp[1], hp[2]
+    zero = np.float32(0.0)
+    n0 = n1 = n2 = n3 = 0
+    for r in range(r0, r1):
+        for c in range(w):
+            # A pixel's sums stay in registers over the batch's photographs: they are read and
+            # written once per batch, not once per photograph.
+            s0 = s1 = s2 = a0 = a1 = a2 = a3 = a4 = a5 = peak = q0 = q1 = q2 = yy = zero
+            if chan is not None:
+                s0 = chan[r, c, 0]
+                s1 = chan[r, c, 1]
+                s2 = chan[r, c, 2]
+            if ptm_sums is not None:
+                a0 = ptm_sums[r, c, 0]
+                a1 = ptm_sums[r, c, 1]
+                a2 = ptm_sums[r, c, 2]
+                a3 = ptm_sums[r, c, 3]
+                a4 = ptm_sums[r, c, 4]
+                a5 = ptm_sums[r, c, 5]
+                peak = ptm_aux[r, c, 0]
+                q0 = ptm_aux[r, c, 1]
+                q1 = ptm_aux[r, c, 2]
+                q2 = ptm_aux[r, c, 3]
+                yy = ptm_aux[r, c, 4]
+            # A loop of fixed length (the tuple's), which LLVM unrolls, rather than range(m).
+            for i in range(len(images)):
+                if i >= m:
+                    break
+                img = images[i]
+                k = ks[i]
+                v0 = img[r, c, 0]
+                v1 = img[r, c, 1]
+                v2 = img[r, c, 2]
+                if chan is not None:
+                    lut = luts[i]
+                    t0 = _contribution(lut, wscale, i, 0, v0)
+                    t1 = _contribution(lut, wscale, i, 1, v1)
+                    t2 = _contribution(lut, wscale, i, 2, v2)
+                    code = min(t0 + t1 + t2, 65534)
+                    if v0 > top or v1 > top or v2 > top:
+                        code = 65535  # images.SATURATED
+                        if i == 0:
+                            n0 += 1
+                        elif i == 1:
+                            n1 += 1
+                        elif i == 2:
+                            n2 += 1
+                        else:
+                            n3 += 1
+                    if lum16 is not None:
+                        lum16[k, r, c] = code
+                    if lum8 is not None:
+                        lum8[k, r, c] = to8[code]
+                    s0 += np.float32(t0)
+                    s1 += np.float32(t1)
+                    s2 += np.float32(t2)
+                e0 = np.float32(v0) * enc_scale
+                e1 = np.float32(v1) * enc_scale
+                e2 = np.float32(v2) * enc_scale
+                if ptm_sums is not None:
+                    y = e0 * hr + e1 * hg + e2 * hb
+                    a0 += y * ptm_pinv[0, k]
+                    a1 += y * ptm_pinv[1, k]
+                    a2 += y * ptm_pinv[2, k]
+                    a3 += y * ptm_pinv[3, k]
+                    a4 += y * ptm_pinv[4, k]
+                    a5 += y * ptm_pinv[5, k]
+                    if y > peak:
+                        peak = y
+                    q0 += e0 * y
+                    q1 += e1 * y
+                    q2 += e2 * y
+                    yy += y * y
+                if sums_a is not None:
+                    for j in range(mat_a.shape[0]):
+                        f = mat_a[j, k]
+                        sums_a[r, c, 0, j] += e0 * f
+                        sums_a[r, c, 1, j] += e1 * f
+                        sums_a[r, c, 2, j] += e2 * f
+                if sums_b is not None:
+                    for j in range(mat_b.shape[0]):
+                        f = mat_b[j, k]
+                        sums_b[r, c, 0, j] += e0 * f
+                        sums_b[r, c, 1, j] += e1 * f
+                        sums_b[r, c, 2, j] += e2 * f
+            if chan is not None:
+                chan[r, c, 0] = s0
+                chan[r, c, 1] = s1
+                chan[r, c, 2] = s2
+            if ptm_sums is not None:
+                ptm_sums[r, c, 0] = a0
+                ptm_sums[r, c, 1] = a1
+                ptm_sums[r, c, 2] = a2
+                ptm_sums[r, c, 3] = a3
+                ptm_sums[r, c, 4] = a4
+                ptm_sums[r, c, 5] = a5
+                ptm_aux[r, c, 0] = peak
+                ptm_aux[r, c, 1] = q0
+                ptm_aux[r, c, 2] = q1
+                ptm_aux[r, c, 3] = q2
+                ptm_aux[r, c, 4] = yy
+    return n0, n1, n2, n3
+
+
+def srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
+    """The 8-bit stack's tables: uint16 code → 8-bit code (65536,), 8-bit code → linear (256,).
+
+    An 8-bit code is ``round(255 · sRGB_encode(linear))``; 255 is reserved for a clipped
+    sample, so an unclipped one that rounds to 255 stores 254. Linear of code 255 reads as 1.
+    """
+    lin = np.arange(65535, dtype=np.float64) / _LUM_SCALE
+    to8 = np.empty(65536, np.uint8)
+    to8[:65535] = np.minimum(np.rint(255.0 * linear_to_srgb(lin)), 254)
+    to8[65535] = 255
+    table = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
+    table[255] = 1.0
+    return to8, table
+
+
+@dataclass
+class Reduced:
+    """What :func:`reduce_photographs` made.
+
+    Attributes
+    ----------
+    luminance : ndarray (N, H, W), uint16 or uint8, or None
+        The stack's codes (see :class:`ptmcore.images.ImageStack`).
+    table : ndarray, float32, or None
+        Code → linear luminance.
+    chroma : ndarray (H, W, 3), float32, or None
+    saturated : ndarray (N,), int64, or None
+        Clipped pixels per photograph.
+    depths : ndarray (N,), int
+        Bits per sample of each photograph.
+    ptm_sums, ptm_aux : ndarray (H, W, 6) and (H, W, 5), float32, or None
+        HP's LRGB sums (:func:`ptmcore.ptmencoded.finish_lrgb` makes the coefficients).
+    channel_sums : ndarray (H, W, 3, 6), float32, or None
+        The RGB-format PTM's coefficients.
+    hsh : ndarray (H, W, 3, K), float32, or None
+        The HSH coefficients (0..1 units).
+    """
+
+    luminance: np.ndarray | None
+    table: np.ndarray | None
+    chroma: np.ndarray | None
+    saturated: np.ndarray | None
+    depths: np.ndarray
+    ptm_sums: np.ndarray | None
+    ptm_aux: np.ndarray | None
+    channel_sums: np.ndarray | None
+    hsh: np.ndarray | None
+
+
+class _Tables:
+    """Per sample type: each channel's luminance contribution, for every photograph's gains."""
+
+    def __init__(self, linearize: bool, gains: np.ndarray | None, n: int) -> None:
+        self.linearize = linearize
+        # One set of tables without gains; one per photograph with them.
+        self.weights = (LUMA_WEIGHTS[None, :] if gains is None
+                        else (LUMA_WEIGHTS[None, :] * gains).astype(np.float32))
+        self.lut_of = np.zeros(n, np.int64) if gains is None else np.arange(n, dtype=np.int64)
+        self.wscale = (self.weights * np.float32(_LUM_SCALE)).astype(np.float32)
+        self._luts: dict[np.dtype, np.ndarray] = {}
+
+    def for_photographs(self, dtype: np.dtype, ks: np.ndarray) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+        """The kernel's tables of photographs ``ks``: a (3, 2^bits) uint16 table each (a
+        1-entry dummy for floats), padded to :data:`_BATCH`, and their (_BATCH, 3) float scales."""
+        luts = self._luts.get(dtype)
+        if luts is None:
+            # Two threads may both build it on first use of a sample type: harmless.
+            luts = self._luts[dtype] = self._build(dtype)
+        rows = self.lut_of[ks]
+        rows = np.concatenate([rows, np.repeat(rows[:1], _BATCH - len(rows))])
+        return tuple(luts[i] for i in rows), self.wscale[rows]
+
+    def _build(self, dtype: np.dtype) -> np.ndarray:
+        import cv2
+
+        if dtype == np.uint8:
+            # The 8-bit rule of the OpenCV reduction this replaces, so that codes are unchanged.
+            v = np.arange(256, dtype=np.float32) / np.float32(255.0)
+            lin = srgb_to_linear(v) if self.linearize else v
+            return np.stack([np.round(lin[:, None] * wt * _LUM_SCALE).astype(np.uint16).T for wt in self.weights])
+        if dtype == np.uint16:
+            # 16-bit samples are linear: cv2.transform's rounding of v · w · 65534/65535, read
+            # off a ramp of every value so that codes are the transform's own.
+            ramp = np.repeat(np.arange(65536, dtype=np.uint16).reshape(1, -1, 1), 3, axis=2)
+            out = [cv2.transform(ramp, np.diag(wt * np.float32(_LUM_SCALE / 65535.0)))[0].T for wt in self.weights]
+            return np.ascontiguousarray(np.stack(out))
+        return np.zeros((1, 3, 1), np.uint16)
+
+
+class _Buffers:
+    """Memory for decoded JPEG photographs, reused from one to the next.
+
+    A fresh array per photograph costs page faults as long as decoding it on some (virtual)
+    machines; at most one buffer per photograph held at a time is ever made.
+    """
+
+    def __init__(self, nbytes: int) -> None:
+        self._nbytes = nbytes
+        self._free: list[np.ndarray] = []
+        self._lock = threading.Lock()
+
+    def take(self) -> np.ndarray | None:
+        """A buffer (None when photographs are not 8-bit: they are not JPEGs)."""
+        if self._nbytes == 0:
+            return None
+        with self._lock:
+            if self._free:
+                return self._free.pop()
+        return np.empty(self._nbytes, np.uint8)
+
+    def give(self, buf: np.ndarray) -> None:
+        """Return a buffer whose photograph is done."""
+        with self._lock:
+            self._free.append(buf)
+
+
+def _kernel_view(img: np.ndarray) -> np.ndarray:
+    """A photograph as the kernel reads it: (H, W, 3) uint8, uint16 or float32.
+
+    Colour is made C-contiguous (a PNG's BGR → RGB view is copied); grey becomes a view that
+    repeats its one channel (stride 0), so the kernel reads channels 0, 1, 2 either way: with
+    the channel index fixed it runs 15 % faster than with one taken from the shape.
+    """
+    if img.dtype.kind == "f" and img.dtype != np.float32:
+        img = img.astype(np.float32)
+    if img.ndim == 2 or img.shape[2] == 1:
+        grey = np.ascontiguousarray(img.reshape(img.shape[:2]))
+        return np.broadcast_to(grey[:, :, None], grey.shape + (3,))
+    return np.ascontiguousarray(img)
+
+
+def _kind(img: np.ndarray) -> tuple[np.dtype, bool, bool]:
+    """What numba types a photograph by: sample type, contiguous layout, writeable; one
+    kernel call takes photographs of one kind (a tuple indexed at run time must be uniform)."""
+    return img.dtype, img.flags.c_contiguous, img.flags.writeable
+
+
+def _top(dtype: np.dtype) -> np.generic:
+    """Samples above this are clipped: 255, 65535, and float values of 1 or more. Of the
+    samples' own type: comparing in float64 slowed the kernel."""
+    if dtype == np.uint8:
+        return np.uint8(254)
+    if dtype == np.uint16:
+        return np.uint16(65534)
+    return np.nextafter(np.float32(1.0), np.float32(0.0))
+
+
+def _encoded_scale(dtype: np.dtype) -> np.float32:
+    """Sample → 0..255 units of the encoded fits (65535 ↦ 255; floats × 255)."""
+    if dtype == np.uint8:
+        return np.float32(1.0)
+    if dtype == np.uint16:
+        return np.float32(1 / 257)
+    return np.float32(255)
+
+
+def _batch_size(first: np.ndarray) -> int:
+    """Photographs per task: up to :data:`_BATCH`, within :data:`_BATCH_BYTES` per task."""
+    return int(max(1, min(_BATCH, _BATCH_BYTES // max(1, first.nbytes))))
+
+
+def reduce_photographs(
+    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
+    *,
+    stack: bool = True,
+    linearize: bool = True,
+    channel_gains: np.ndarray | None = None,
+    storage: str = "uint16",
+    fit: EncodedFit | None = None,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Reduced:
+    """Decode each photograph once and reduce it to the stack and the encoded fits' sums.
+
+    Parameters
+    ----------
+    images : sequence of path or ndarray, or ndarray (N, H, W[, 3])
+        The photographs, all of one size.
+    stack : bool
+        Make the linear-luminance stack, the colour sums and the clipped counts.
+    linearize : bool
+        Take 8-bit photographs as sRGB (for the stack; the encoded fits use the bytes).
+    channel_gains : ndarray (N, 3), float32, optional
+        Factors of each photograph's linear R, G, B, checked by the caller.
+    storage : {"uint16", "auto"}
+        The stack's codes: uint16, or with ``"auto"`` 8-bit sRGB codes when the first
+        photograph is 8-bit, ``linearize`` is true and there are no gains
+        (:func:`ptmcore.images.load_stack`).
+    fit : EncodedFit, optional
+        The fits in the photographs' own encoding to add up in the same pass.
+    threads : int, optional
+        Decoding and reducing threads; default: the number of CPUs.
+    progress : callable, optional
+        Called with 1 for each photograph, when its batch is done.
+
+    Returns
+    -------
+    Reduced
+
+    Raises
+    ------
+    InputError
+        If no photograph is given, one cannot be read, or sizes differ.
+    """
+    photos = Photographs(images)
+    n = len(photos)
+    if n < 1:
+        raise InputError("no photographs given")
+    first = photos.load(0)
+    h, w = first.shape[:2]
+    workers = max(1, threads or os.cpu_count() or 1)
+    batch = _batch_size(first)
+    # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in
+    # the shadows); gains or linear 8-bit input would need finer steps in the highlights.
+    eight = storage == "auto" and first.dtype == np.uint8 and linearize and channel_gains is None
+    tables = _Tables(linearize, channel_gains, n)
+    f32 = np.float32
+    zeroed: list[np.ndarray] = []
+
+    def zeros(shape: tuple[int, ...]) -> np.ndarray:
+        zeroed.append(np.empty(shape, f32))  # filled below
+        return zeroed[-1]
+
+    # What is not asked for is None: the kernel compiles without it (see _reduce_rows).
+    lum16 = lum8 = to8 = table = chan = None
+    clipped = np.zeros(n, np.int64)
+    if stack:
+        chan = zeros((h, w, 3))
+        if eight:
+            lum8 = np.empty((n, h, w), np.uint8)
+            to8, table = srgb8_tables()
+        else:
+            lum16 = np.empty((n, h, w), np.uint16)
+    hp = HP_LUMA_WEIGHTS.astype(f32)
+    ptm_pinv = ptm_sums = ptm_aux = mat_a = sums_a = mat_b = sums_b = None
+    if fit is not None:
+        ptm_matrix, hsh_matrix = fit.matrices(n)
+        if fit.ptm_format == "lrgb":
+            ptm_pinv = ptm_matrix
+            ptm_sums = zeros((h, w, 6))
+            ptm_aux = zeros((h, w, 5))
+        elif fit.ptm_format == "rgb":
+            mat_a = ptm_matrix
+            sums_a = zeros((h, w, 3, 6))
+        if hsh_matrix is not None:
+            mat_b = hsh_matrix
+            sums_b = zeros((h, w, 3, hsh_matrix.shape[0]))
+    # The sums are zeroed in bands by all threads before decoding starts. With np.zeros the
+    # first task would touch (page in) every page of them while the second waited behind it:
+    # 1.35 GB at 24 megapixels, seconds on a machine where fresh memory is slow to map.
+    run_bands(h, max(1, _BAND_PIXELS // w), lambda r0, r1: [a[r0:r1].fill(0) for a in zeroed], threads=workers)
+    depths = np.zeros(n, np.int64)
+    held = [first]  # photograph 0 until its task takes it (and frees it)
+    buffers = _Buffers(first.nbytes if first.dtype == np.uint8 else 0)
+    del first
+    first_path = photos.path(0)
+
+    def prepare(k: int) -> tuple[int, np.ndarray, np.ndarray | None]:
+        buf = buffers.take() if k > 0 and photos.path(k) is not None else None
+        img = held.pop() if k == 0 else photos.load(k, buf)
+        if buf is not None and not np.may_share_memory(img, buf):
+            buffers.give(buf)  # not a JPEG: decoded into an array of its own
+            buf = None
+        check_same_size(img, (h, w), k, photos.path(k), first_path)
+        depths[k] = img.dtype.itemsize * 8
+        return k, _kernel_view(img), buf
+
+    def release(prepared: list[tuple[int, np.ndarray, np.ndarray | None]]) -> None:
+        for _, _, buf in prepared:
+            if buf is not None:
+                buffers.give(buf)
+
+    def add_batch(prepared: list[np.ndarray], k0: int, r0: int, r1: int) -> None:
+        # Consecutive photographs of one kind go to the kernel together.
+        i = 0
+        while i < len(prepared):
+            j = i + 1
+            while j < len(prepared) and _kind(prepared[j]) == _kind(prepared[i]):
+                j += 1
+            group = prepared[i:j]
+            dtype = group[0].dtype
+            padded = tuple(group + [group[0]] * (_BATCH - len(group)))
+            ks = np.arange(k0 + i, k0 + j, dtype=np.int64)
+            luts, wscale = tables.for_photographs(dtype, ks)
+            counts = _reduce_rows(padded, len(group), ks, r0, r1, luts, wscale, _top(dtype), _encoded_scale(dtype),
+                                  lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
+                                  mat_b, sums_b)
+            clipped[ks] += counts[: len(group)]  # this task owns these photographs' counts
+            i = j
+
+    rows = max(1, _BAND_PIXELS // w)
+    bands = [(r0, min(h, r0 + rows)) for r0 in range(0, h, rows)]
+    # A task's prepared photographs carry their indices: the kernel needs them for the
+    # matrices' columns and the stack's planes.
+    run_in_order(n, batch, prepare,
+                 lambda prepared, r0, r1: add_batch([p for _, p, _ in prepared], prepared[0][0], r0, r1),
+                 bands, threads=workers, progress=progress, release=release)
+    return Reduced(
+        lum16 if lum16 is not None else lum8, UINT16_TABLE if lum16 is not None else table,
+        _chroma_in_place(chan) if stack else None, clipped if stack else None, depths,
+        ptm_sums, ptm_aux, sums_a, sums_b,
+    )

@@ -1,0 +1,85 @@
+"""The compiled robust photometric stereo against the NumPy steps it follows."""
+
+import numpy as np
+import pytest
+
+from ptmcore import robust
+from ptmcore.bands import run_bands
+from ptmcore.images import ImageStack, default_table
+from ptmcore.lp import as_directions
+from ptmcore.normals import empty_result, store_normals
+from ptmcore.robust import Lights, RobustOptions, band_height, robust_lambertian, robust_photometric_stereo
+
+from helpers import dome, stack_from_luminance
+from test_robust import _corrupted_sphere
+
+
+def _numpy_steps(stack, directions, method, specular_cone):
+    """robust_photometric_stereo as the NumPy steps of ptmcore.robust compute it."""
+    opt = RobustOptions(method, 3, 0.05, 0.05, 0.4, specular_cone, 3.0, 2.0, 0.002, 0.01)
+    n, (h, w) = len(stack), stack.shape
+    lights = Lights.of(as_directions(directions, n))
+    result = empty_result((h, w))
+
+    def work(r0, r1):
+        values, saturated = stack.band(r0, r1)
+        unit, rho, ok, weights = robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))
+        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
+
+    run_bands(h, band_height(n, w), work, threads=1)
+    return result
+
+
+def _angle(a, b):
+    a, b = a.astype(np.float64), b.astype(np.float64)
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
+
+
+@pytest.mark.parametrize("method", robust.METHODS)
+@pytest.mark.parametrize("cone", [30.0, None])
+def test_kernel_matches_the_numpy_steps(method, cone):
+    values, _, _, dirs = _corrupted_sphere(seed=2)
+    # Some clipped samples too: they must be left out the same way.
+    values[:, 10:14, 10:14] = 1.0
+    saturated = values >= 1.0
+    stack = stack_from_luminance(values, saturated)
+    ref = _numpy_steps(stack, dirs, method, cone)
+    new = robust_photometric_stereo(stack, dirs, method=method, specular_cone=cone)
+    # Float32 rounding only: the sums are added in another order. Measured ≤ 1e-4°.
+    assert _angle(new.normals, ref.normals).max() < 1e-3
+    np.testing.assert_allclose(new.albedo, ref.albedo, atol=1e-5)
+    np.testing.assert_array_equal(new.valid, ref.valid)
+    assert np.abs(new.samples.astype(int) - ref.samples).max() <= 1
+    assert np.mean(new.samples != ref.samples) < 0.01
+
+
+def test_kernel_with_lights_in_one_plane_and_dark_pixels():
+    el = np.radians(np.linspace(20.0, 160.0, 12))
+    ring = np.stack([np.cos(el), np.zeros_like(el), np.sin(el)], axis=1)  # all in the plane y = 0
+    rng = np.random.default_rng(0)
+    values = rng.random((len(ring), 5, 7))
+    values[:, 0] = 0.0
+    stack = stack_from_luminance(values)
+    for dirs in (ring, dome(12, seed=3)):
+        ref = _numpy_steps(stack, dirs, "irls", 30.0)
+        new = robust_photometric_stereo(stack, dirs)
+        np.testing.assert_array_equal(new.valid, ref.valid)
+        np.testing.assert_allclose(new.normals[new.valid], ref.normals[ref.valid], atol=1e-5)
+        np.testing.assert_allclose(new.normals[~new.valid], np.broadcast_to([0.0, 0.0, 1.0], (int((~new.valid).sum()), 3)))
+    assert not robust_photometric_stereo(stack, ring).valid.any()  # one plane: undetermined
+
+
+def test_kernel_reads_8_bit_codes_through_the_stack_table():
+    # An 8-bit stack (sRGB codes and their decoding table) and a 16-bit stack of the same linear
+    # values give the same normals.
+    values, _, mask, dirs = _corrupted_sphere(seed=3)
+    table8 = default_table(np.dtype(np.uint8))
+    codes = np.searchsorted(table8[:255], values).clip(0, 254).astype(np.uint8)
+    stack8 = stack_from_luminance(values)
+    stack8 = ImageStack(codes, stack8.chroma, [], 8, True, np.zeros(len(codes), np.int64))
+    stack16 = stack_from_luminance(table8[codes])
+    out8 = robust_photometric_stereo(stack8, dirs)
+    out16 = robust_photometric_stereo(stack16, dirs)
+    # The 16-bit copy rounds each value to 1/65534.
+    assert np.percentile(_angle(out8.normals, out16.normals)[mask], 99) < 0.01
+    np.testing.assert_array_equal(out8.valid, out16.valid)
