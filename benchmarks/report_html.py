@@ -34,7 +34,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ptmcore.images import write_png
+from ptmcore.png import write_png
 from reconstruct.report import outputs
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.mesh.ply import write_ply

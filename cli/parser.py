@@ -372,6 +372,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="with --flatten highpass: the wavelength in pixels that keeps half its height (default 200)")
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
+    p.add_argument("--memory-limit", type=_positive_float, metavar="MB",
+                   help="memory the run may use (default: what is available); a capture whose photographs "
+                        "would not fit is processed from a temporary file in the output folder")
     p.add_argument("--ground-truth", type=Path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
     p.add_argument("--light-positions", default=default(RunOptions, "light_positions"), metavar="FILE|auto|none",
                    help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "

@@ -305,6 +305,7 @@ def load_stack(
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",
+    on_disk: str | os.PathLike | None = None,
 ) -> ImageStack:
     """Decode a capture's photographs into an :class:`ImageStack`.
 
@@ -328,6 +329,10 @@ def load_stack(
         ``"uint16"``: luminance × 65534. ``"auto"``: 8-bit sRGB codes (half the memory) when the
         first photograph is 8-bit, ``linearize`` is true and there are no channel gains, else
         uint16; a later photograph of more than 8 bits is then stored at 8 bits too.
+    on_disk : path, optional
+        A folder with room for the stack (N·H·W bytes, twice that as uint16): the stack is then
+        a memory-mapped file there, for captures larger than memory
+        (:func:`ptmcore.reduce.disk_array`; the file is never visible in the folder).
 
     Returns
     -------
@@ -340,7 +345,7 @@ def load_stack(
     """
     return load_stack_and_fits(paths, linearize=linearize, channel_gains=channel_gains,
                                min_photographs=min_photographs, threads=threads, progress=progress,
-                               storage=storage)[0]
+                               storage=storage, on_disk=on_disk)[0]
 
 
 def load_stack_and_fits(
@@ -353,6 +358,7 @@ def load_stack_and_fits(
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",
+    on_disk: str | os.PathLike | None = None,
 ) -> tuple[ImageStack, EncodedFits | None]:
     """:func:`load_stack`, and in the same decoding pass the fits viewers' files need.
 
@@ -366,7 +372,7 @@ def load_stack_and_fits(
         and these fits: the results equal :func:`ptmcore.ptmencoded.fit_ptm_encoded`,
         :func:`~ptmcore.ptmencoded.fit_ptm_rgb_encoded` and :func:`ptmcore.rtifile.fit_rti_hsh`
         of the files, bit for bit.
-    linearize, channel_gains, min_photographs, threads, progress, storage
+    linearize, channel_gains, min_photographs, threads, progress, storage, on_disk
         As :func:`load_stack`.
 
     Returns
@@ -399,7 +405,7 @@ def load_stack_and_fits(
     if fit is not None:
         fit.matrices(len(paths))  # bad directions fail before any photograph is decoded
     done = reduce_photographs(paths, linearize=linearize, channel_gains=channel_gains, storage=storage,
-                              fit=fit, threads=threads, progress=progress)
+                              fit=fit, threads=threads, progress=progress, on_disk=on_disk)
     stack = ImageStack(done.luminance, done.chroma, paths, int(done.depths.max()), linearize, done.saturated,
                        done.table)
     if fit is None:
@@ -427,10 +433,3 @@ def encode_png(image: np.ndarray) -> bytes:
     if not ok:
         raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
     return buf.tobytes()
-
-
-def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG."""
-    data = encode_png(image)
-    with atomic_write(path, "wb") as f:
-        f.write(data)

@@ -36,6 +36,8 @@ whole image (and over the three channels for the RGB format), with ``max − min
 (``frexp``), ``scale = 2^(e − 8)``; if ``min < 0``, ``bias = int(−min/scale + 1)``, doubling the
 scale while ``bias > 255``; otherwise ``bias = 0`` and the scale doubles while
 ``max/scale > 255``. A value is stored as ``floor(v/scale + bias + 0.5)`` clamped to 0..255.
+:func:`write_ptm` quantises in compiled kernels (:mod:`ptmcore.quantize`) with the float64
+arithmetic of :func:`quantize`, so their bytes are the same.
 
 PTMfitter's own fit of the photographs, which :func:`write_ptm` turns into its file byte for
 byte, is :func:`ptmcore.ptmencoded.fit_ptm_encoded`.
@@ -46,7 +48,7 @@ from __future__ import annotations
 import math
 import mmap
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -379,10 +381,10 @@ def quantization_parameters(coefficients: np.ndarray) -> tuple[np.ndarray, np.nd
     bias : ndarray, shape (6,), int64
         Integers in 0..255.
     """
+    from .quantize import coefficient_range  # numba's import costs half a second; `import ptmcore` does not need it
+
     c = _check_coefficients(coefficients)
-    axes = tuple(range(c.ndim - 1))
-    lo = np.min(c, axis=axes).astype(np.float64)
-    hi = np.max(c, axis=axes).astype(np.float64)
+    lo, hi = coefficient_range(c)  # one compiled pass over the values, in threads
     if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
         raise ValueError("coefficients contain NaN or infinite values")
     pairs = [_scale_bias(float(a), float(b)) for a, b in zip(lo, hi)]
@@ -436,26 +438,6 @@ def _header(fmt: str, width: int, height: int, scale: np.ndarray, bias: np.ndarr
         "".join(f"{int(b)} " for b in bias),
     ]
     return ("\n".join(lines) + "\n").encode("ascii")
-
-
-class _ErrorStats:
-    """Running per-coefficient max, RMS and clamp count of the quantisation error."""
-
-    def __init__(self) -> None:
-        self.max = np.zeros(6)
-        self.sq = np.zeros(6)
-        self.clipped = np.zeros(6, dtype=np.int64)
-        self.count = 0
-
-    def add(self, values: np.ndarray, codes: np.ndarray, scale: np.ndarray, bias: np.ndarray) -> None:
-        v = values.reshape(-1, 6).astype(np.float64)
-        q = codes.reshape(-1, 6)
-        err = (q.astype(np.float64) - bias) * scale - v
-        np.maximum(self.max, np.abs(err).max(axis=0), out=self.max)
-        self.sq += np.einsum("ij,ij->j", err, err)
-        exact = v / scale + bias + 0.5
-        self.clipped += np.count_nonzero((exact < 0) | (exact >= 256), axis=0)
-        self.count += v.shape[0]
 
 
 def _as_rgb8(rgb: np.ndarray, h: int, w: int) -> np.ndarray:
@@ -513,32 +495,23 @@ def write_ptm(
             raise ValueError("an RGB-format PTM has no separate rgb block")
         fmt = FORMAT_RGB
         rgb8 = None
+    from .quantize import encode_ptm  # numba's import costs half a second; `import ptmcore` does not need it
+
     scale, bias = quantization_parameters(c)
     header = _header(fmt, w, h, scale, bias)
-    stats = _ErrorStats()
-    per_pixel = 6 if fmt == FORMAT_LRGB else 18
-    step = max(1, (1 << 20) // (w * per_pixel))  # bands keep the float64 temporaries small
-
-    def blocks(values: np.ndarray) -> Iterator[bytes]:
-        # The file wants the bottom row first: walk bands from the bottom up, flip each.
-        for r1 in range(h, 0, -step):
-            r0 = max(0, r1 - step)
-            band = values[r0:r1]
-            codes = _encode(band, scale, bias)
-            stats.add(band, codes, scale, bias)
-            yield codes[::-1].tobytes()
-
     with atomic_write(path, "wb") as f:
         f.write(header)
-        if fmt == FORMAT_LRGB:
-            for chunk in blocks(c):
-                f.write(chunk)
-            f.write(np.ascontiguousarray(rgb8[::-1]).tobytes())
-        else:
-            for ch in range(3):
-                for chunk in blocks(c[:, :, ch, :]):
-                    f.write(chunk)
-    rms = np.sqrt(stats.sq / max(1, stats.count))
+        # Bands are encoded in threads (HP's arithmetic and the error statistics in one compiled
+        # pass) while the bands before them are written, in the file's order.
+        worst, sq, clipped = encode_ptm(c, scale, bias, f.write)
+        if rgb8 is not None:
+            # Bottom row first, a few megabytes at a time rather than one flipped copy of it all.
+            step = max(1, (4 << 20) // (w * 3))
+            for r1 in range(h, 0, -step):
+                f.write(np.ascontiguousarray(rgb8[max(0, r1 - step) : r1][::-1]))
+    # Every value of every channel counts once per coefficient.
+    count = h * w * (1 if fmt == FORMAT_LRGB else 3)
+    rms = np.sqrt(sq / count)
     return {
         "path": os.fspath(path),
         "format": fmt,
@@ -547,7 +520,7 @@ def write_ptm(
         "scale": scale.tolist(),
         "bias": bias.tolist(),
         "bytes": len(header) + h * w * (9 if fmt == FORMAT_LRGB else 18),
-        "max_error": stats.max.tolist(),
+        "max_error": worst.tolist(),
         "rms_error": rms.tolist(),
-        "clipped": stats.clipped.tolist(),
+        "clipped": clipped.astype(np.int64).tolist(),
     }

@@ -33,6 +33,7 @@ is respected and numba's threading layer is not involved. Compiled code is cache
 from __future__ import annotations
 
 import os
+import tempfile
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -48,7 +49,7 @@ from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, li
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
 from .streaming import Photographs, check_same_size, run_in_order
 
-__all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
+__all__ = ["Reduced", "disk_array", "reduce_photographs", "srgb8_tables"]
 
 #: Photographs per kernel call (and per task): the kernel's tuple of images always has this
 #: length, padded, so that numba compiles one version per sample type only.
@@ -228,6 +229,24 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
     return n0, n1, n2, n3
 
 
+def disk_array(folder: str | os.PathLike, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """An uninitialised array backed by a file in ``folder``, for a stack larger than memory.
+
+    The file is removed from the folder as soon as it is mapped: the mapping keeps its data
+    until the array is released, and nothing is left behind when the process ends, however
+    it ends. The operating system pages the array in and out: a band of rows of every
+    photograph at a time is all the fits touch.
+    """
+    fd, name = tempfile.mkstemp(prefix=".stack-", suffix=".raw", dir=folder)
+    try:
+        os.ftruncate(fd, max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize))
+        array = np.memmap(name, dtype=dtype, mode="r+", shape=shape)
+    finally:
+        os.close(fd)
+        os.unlink(name)
+    return array
+
+
 def srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
     """The 8-bit stack's tables: uint16 code → 8-bit code (65536,), 8-bit code → linear (256,).
 
@@ -399,6 +418,7 @@ def reduce_photographs(
     fit: EncodedFit | None = None,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    on_disk: str | os.PathLike | None = None,
 ) -> Reduced:
     """Decode each photograph once and reduce it to the stack and the encoded fits' sums.
 
@@ -422,6 +442,9 @@ def reduce_photographs(
         Decoding and reducing threads; default: the number of CPUs.
     progress : callable, optional
         Called with 1 for each photograph, when its batch is done.
+    on_disk : path, optional
+        A folder: the stack is then a memory-mapped file there (:func:`disk_array`) instead of
+        an array in memory.
 
     Returns
     -------
@@ -456,11 +479,12 @@ def reduce_photographs(
     clipped = np.zeros(n, np.int64)
     if stack:
         chan = zeros((h, w, 3))
+        codes = np.empty if on_disk is None else lambda shape, dtype: disk_array(on_disk, shape, dtype)
         if eight:
-            lum8 = np.empty((n, h, w), np.uint8)
+            lum8 = codes((n, h, w), np.uint8)
             to8, table = srgb8_tables()
         else:
-            lum16 = np.empty((n, h, w), np.uint16)
+            lum16 = codes((n, h, w), np.uint16)
     hp = HP_LUMA_WEIGHTS.astype(f32)
     ptm_pinv = ptm_sums = ptm_aux = mat_a = sums_a = mat_b = sums_b = None
     if fit is not None:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from ptmcore import png
 from ptmcore.images import load_stack, read_image
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.mesh.ply import write_ply
@@ -160,12 +161,12 @@ def test_stack_thumbnail_matches_the_photograph(tmp_path):
                                           ((41, 7), np.uint16), ((1, 1), np.uint8)])
 @pytest.mark.parametrize("compress", [True, False])
 def test_write_png_round_trip(tmp_path, monkeypatch, shape, dtype, compress):
-    monkeypatch.setattr(outputs, "_PNG_BAND_BYTES", 300)  # many bands, each its own deflate stream
+    monkeypatch.setattr(png, "_PNG_BAND_BYTES", 300)  # many bands, each its own deflate stream
     rng = np.random.default_rng(1)
     image = rng.integers(0, np.iinfo(dtype).max + 1, shape).astype(dtype)
     image[shape[0] // 3 :] = 7  # runs, for the run-length matching
     path = tmp_path / "image.png"
-    outputs.write_png(path, image, compress=compress)
+    png.write_png(path, image, compress=compress)
     back = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     back = back[..., ::-1] if back.ndim == 3 else back
     assert back.dtype == dtype
@@ -186,9 +187,9 @@ def test_write_png_round_trip(tmp_path, monkeypatch, shape, dtype, compress):
 
 def test_write_png_rejects_what_png_cannot_hold(tmp_path):
     with pytest.raises(TypeError):
-        outputs.write_png(tmp_path / "x.png", np.zeros((4, 4), np.float32))
+        png.write_png(tmp_path / "x.png", np.zeros((4, 4), np.float32))
     with pytest.raises(ValueError):
-        outputs.write_png(tmp_path / "x.png", np.zeros((4, 4, 4), np.uint8))
+        png.write_png(tmp_path / "x.png", np.zeros((4, 4, 4), np.uint8))
     assert not (tmp_path / "x.png").exists()
 
 
@@ -196,7 +197,7 @@ def test_adler32_combine():
     rng = np.random.default_rng(2)
     for _ in range(50):
         a, b = rng.bytes(int(rng.integers(0, 100_000))), rng.bytes(int(rng.integers(0, 100_000)))
-        assert outputs._adler32_combine(zlib.adler32(a), zlib.adler32(b), len(b)) == zlib.adler32(a + b)
+        assert png._adler32_combine(zlib.adler32(a), zlib.adler32(b), len(b)) == zlib.adler32(a + b)
 
 
 def test_normals_png_reads_back(tmp_path, large_maps):

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ptmcore.atomic import atomic_write
-from ptmcore.images import write_png
+from ptmcore.png import write_png
 from reconstruct.mesh.ply import write_binary_ply
 from reconstruct.report import rendering
 

@@ -244,7 +244,8 @@ def _calibrate_from_spheres(stack: ImageStack, capture: Path, opt: RunOptions) -
                    mask=_sphere_mask(spheres, stack.shape), near=near, warnings=warnings)
 
 
-def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages) -> Capture:
+def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch: str | os.PathLike | None
+            ) -> Capture:
     """The photographs and lights of ``capture``, decoded."""
     if layout == PS_DATASET:
         if opt.light_positions not in ("auto", "none"):
@@ -263,7 +264,8 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages) -> Capt
         except InputError as exc:
             raise InputError(f"no .lp light file, and {exc.problem}", capture) from None
         with stages("decode", len(photographs)) as advance:
-            stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance)
+            stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance,
+                               storage=_storage(opt), on_disk=_on_disk(photographs, opt, scratch))
         return _calibrate_from_spheres(stack, capture, opt)
     lp_path = find_lp(capture, opt.lp)
     lights = read_lp(lp_path)
@@ -273,8 +275,50 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages) -> Capt
     fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None)
     with stages("decode", len(lights)) as advance:
         stack, fits = load_stack_and_fits(lights.paths, fit=fit, linearize=opt.linearize, threads=opt.threads,
-                                          progress=advance)
+                                          progress=advance, storage=_storage(opt),
+                                          on_disk=_on_disk(lights.paths, opt, scratch))
     return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits)
+
+
+def _storage(opt: RunOptions) -> str:
+    """How the stack holds luminance: 8-bit photographs as 8-bit sRGB codes (half the memory of
+    16 bits; the normals of the synthetic JPEG scenes move by under 0.005°, BENCHMARKS.md),
+    except when light intensities will rescale the samples, which 8 bits would round again."""
+    return "uint16" if opt.intensities is not None else "auto"
+
+
+#: Memory of a run beyond its stack, per pixel (sums of the fits, colour, normals, height, mesh
+#: and texture; benchmarks/speed.py), and for the interpreter and libraries.
+_BYTES_PER_PIXEL = 70
+_BASE_MB = 400
+
+
+def stack_on_disk(paths: list[Path], opt: RunOptions) -> bool:
+    """Whether a capture's stack should go to a memory-mapped file: when the run's estimated
+    peak (the stack, 1 byte per sample for JPEGs and 2 otherwise, plus
+    ``_BYTES_PER_PIXEL`` per pixel) exceeds ``opt.memory_limit``, or by default the memory
+    available now."""
+    from PIL import Image
+
+    try:
+        with Image.open(paths[0]) as im:  # the header only
+            w, h = im.size
+    except Exception:  # noqa: BLE001 - the decoding pass reports a bad file properly
+        return False
+    jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
+    sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
+    peak_mb = _BASE_MB + (len(paths) * sample + _BYTES_PER_PIXEL) * w * h / 2**20
+    if opt.memory_limit is not None:
+        limit = opt.memory_limit
+    else:
+        import psutil
+
+        limit = psutil.virtual_memory().available / 2**20
+    return peak_mb > limit
+
+
+def _on_disk(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None) -> str | os.PathLike | None:
+    return scratch if scratch is not None and paths and stack_on_disk(list(paths), opt) else None
 
 
 def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
@@ -307,6 +351,7 @@ def load_capture(
     *,
     progress: Callable[[str, int, int], None] | None = None,
     stages: Stages | None = None,
+    scratch: str | os.PathLike | None = None,
 ) -> Capture:
     """Decode a capture and gather everything the later stages need.
 
@@ -323,6 +368,9 @@ def load_capture(
         ``progress(stage, done, total)`` while the photographs are decoded.
     stages : Stages, optional
         The run's stage log (times, memory, progress); a new one when not given.
+    scratch : path, optional
+        A folder for the stack of a capture too large for ``options.memory_limit``
+        (:func:`stack_on_disk`); without it the stack is always held in memory.
 
     Returns
     -------
@@ -337,7 +385,12 @@ def load_capture(
     opt = options or RunOptions()
     stages = stages or Stages(progress)
     capture = Path(source)
-    loaded = _decode(capture, _layout(capture, opt), opt, stages)
+    loaded = _decode(capture, _layout(capture, opt), opt, stages, scratch)
+    if isinstance(loaded.stack.luminance, np.memmap):
+        loaded.warnings.append(
+            f"the photographs ({loaded.stack.luminance.nbytes / 2**30:.1f} GB as a stack) did not fit in "
+            f"{'--memory-limit' if opt.memory_limit else 'the available memory'}: they were processed from "
+            "a temporary file in the output folder, which is slower")
     if opt.mask is not None and opt.mask != "auto":
         given = read_mask(opt.mask, loaded.shape)
         loaded.mask = given if loaded.mask is None or loaded.layout == PS_DATASET else given & loaded.mask

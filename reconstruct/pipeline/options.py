@@ -172,6 +172,10 @@ class RunOptions:
         are restricted to it.
     threads : int or None
         Decoding threads (default: all CPUs).
+    memory_limit : float or None
+        Megabytes the run may hold in memory (default: the memory available when it starts).
+        A capture whose stack would not fit keeps the stack in a memory-mapped file in the
+        output folder instead (:func:`reconstruct.pipeline.capture.stack_on_disk`).
     ground_truth : Path or None
         Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
         default: ``CAPTURE/ground_truth`` when it exists.
@@ -212,13 +216,14 @@ class RunOptions:
     intensities: str | None = None
     mask: Path | Literal["auto"] | None = None
     threads: int | None = None
+    memory_limit: float | None = None
     ground_truth: Path | None = None
     light_positions: Path | Literal["auto", "none"] = "auto"
 
     def __post_init__(self) -> None:
         _check_choices(self)
         _positive(self, "pixel_size", "distance", unit=" of millimetres")
-        _positive(self, "solid", "flatten_cutoff", "max_error")
+        _positive(self, "solid", "flatten_cutoff", "max_error", "memory_limit")
         for name in ("step", "decimate", "threads"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, int) and value >= 1):

@@ -64,7 +64,8 @@ from reconstruct.pipeline.stages import (
     web_export,
     write_surface_files,
 )
-from reconstruct.report import outputs
+from reconstruct.report import figures, outputs
+from reconstruct.report.html import contact_sheet_picks
 from reconstruct.report.html import write_report_html
 from reconstruct.surface.accuracy import height_rmse, normal_accuracy
 from reconstruct.surface.normalmaps import read_normal_map, shaded
@@ -200,7 +201,7 @@ def run_capture(
     opt = options or RunOptions()
     stages = Stages(progress)
     with staged_output(output) as staged:
-        loaded = load_capture(capture, opt, stages=stages)
+        loaded = load_capture(capture, opt, stages=stages, scratch=staged.staging)
         (h, w), warnings = loaded.shape, loaded.warnings
         relit = None
         if loaded.fits is not None:
@@ -226,6 +227,9 @@ def run_capture(
             with stages("loo", 3 * h) as advance:
                 loo = leave_one_out(loaded, mask, staged.staging, threads=opt.threads, progress=advance)
         inputs = _capture_inputs(loaded, mask, opt)
+        # The page's contact sheet from the decoded photographs: decoding eight 24-megapixel
+        # JPEGs again for it cost a second.
+        thumbnails = {k: figures.stack_thumbnail(loaded.stack, k) for k in contact_sheet_picks(len(loaded.lights))}
         loaded.stack = None  # by far the largest array; no later stage needs it
         if relit is None:  # a second pass over the files, once the stack is released
             with stages("ptm", len(loaded.lights)) as advance:
@@ -246,7 +250,9 @@ def run_capture(
             names.append("light_positions.csv")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
         files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page,
-                        photographs=list(zip(loaded.lights.paths, loaded.lights.directions)))
+                        photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
+                        thumbnails=thumbnails,
+                        previews=figures.previews(normals=found.normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 
 
@@ -306,7 +312,8 @@ def run_ptm(
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
                            fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
-        files = _finish(staged, report, stages, [*web, *names], page=report_page)
+        files = _finish(staged, report, stages, [*web, *names], page=report_page,
+                        previews=figures.previews(normals=normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 
 
@@ -344,5 +351,5 @@ def run_normals(
         source = _mask_source(opt.mask, mask) if opt.mask else ("valid normals" if mask is not None else None)
         report = RunReport(NormalMapInputs(str(path.resolve()), w, h, source), _parameters(opt, mesh.step),
                            mesh.unit, mesh, {}, "", warnings)
-        files = _finish(staged, report, stages, names)
+        files = _finish(staged, report, stages, names, previews=figures.previews(normals=normals, height=height))
     return RunResult(staged.output, files, report)

@@ -29,7 +29,6 @@ import numpy as np
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
-from ptmcore.images import write_png
 from ptmcore.lp import LightSet
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
@@ -354,19 +353,19 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
     from reconstruct.mesh.ops import solid, write_glb, write_stl
 
     folder = Path(folder)
-    write_png(folder / "albedo.png", texture)
+    outputs.write_png(folder / "albedo.png", texture)
     jobs: dict[str, Callable[[], None]] = {
         # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
         # writes release it and proceed alongside.
         "mesh.obj": lambda: write_obj(folder / "mesh.obj", mesh, folder / "albedo.png"),
-        "normals.png": lambda: write_png(folder / "normals.png", outputs.normals_to_rgb16(normals)),
+        "normals.png": lambda: outputs.write_normals_png(folder / "normals.png", normals),
         "mesh.ply": lambda: write_ply(folder / "mesh.ply", mesh, texture_file="mesh_texture.png"),
         "normals.npy": lambda: outputs.write_npy(folder / "normals.npy", normals),
         "height.tif": lambda: outputs.write_height_tiff(folder / "height.tif", surface.height, surface.unit,
                                                         options.pixel_size),
     }
     if mask is not None:
-        jobs["mask.png"] = lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+        jobs["mask.png"] = lambda: outputs.write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
     if options.glb:
         jobs["mesh.glb"] = lambda: write_glb(folder / "mesh.glb", mesh, texture)
     if options.solid is not None:

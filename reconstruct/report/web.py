@@ -70,6 +70,19 @@ PLANE_TERMS = ((5, 3, 4), (0, 2, 1))
 _NPLANES = 9
 
 
+def _checked(coefficients: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An LRGB PTM's arrays, checked: ``(H, W, 6)`` coefficients and a uint8 ``(H, W, 3)`` colour."""
+    coef = np.asarray(coefficients)
+    col = np.asarray(rgb)
+    if coef.ndim != 3 or coef.shape[2] != 6:
+        raise ValueError(f"coefficients must be (H, W, 6), not {coef.shape}")
+    if col.shape != coef.shape[:2] + (3,) or col.dtype != np.uint8:
+        raise ValueError(
+            f"rgb must be uint8 {coef.shape[:2] + (3,)} to match the coefficients, not {col.dtype} {col.shape}"
+        )
+    return coef, col
+
+
 def lrgb_planes(
     coefficients: np.ndarray, rgb: np.ndarray
 ) -> tuple[list[np.ndarray], list[float], list[float]]:
@@ -96,23 +109,18 @@ def lrgb_planes(
     ValueError
         If the shapes or types do not match, or a coefficient is not finite.
     """
-    coef = np.asarray(coefficients)
-    col = np.asarray(rgb)
-    if coef.ndim != 3 or coef.shape[2] != 6:
-        raise ValueError(f"coefficients must be (H, W, 6), not {coef.shape}")
-    if col.shape != coef.shape[:2] + (3,) or col.dtype != np.uint8:
-        raise ValueError(
-            f"rgb must be uint8 {coef.shape[:2] + (3,)} to match the coefficients, not {col.dtype} {col.shape}"
-        )
-    h, w = coef.shape[:2]
-    planes = [np.ascontiguousarray(col)]
+    from ptmcore.quantize import coefficient_range, lrgb_plane_codes  # numba: imported only when needed
+
+    coef, col = _checked(coefficients, rgb)
+    # Compiled passes, each coefficient read once per pass: the ranges, then both planes.
+    lows, highs = coefficient_range(coef)
     scale = [1.0, 1.0, 1.0]
     bias = [0.0, 0.0, 0.0]
-    for terms in PLANE_TERMS:
-        plane = np.empty((h, w, 3), dtype=np.uint8)
+    offsets = np.zeros((len(PLANE_TERMS), 3), dtype=np.float32)
+    steps = np.zeros((len(PLANE_TERMS), 3), dtype=np.float32)
+    for p, terms in enumerate(PLANE_TERMS):
         for c, k in enumerate(terms):
-            a = coef[..., k]
-            lo, hi = float(a.min()), float(a.max())
+            lo, hi = float(lows[k]), float(highs[k])
             if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise ValueError(f"coefficient a{k} is not finite everywhere")
             span = hi - lo
@@ -122,12 +130,11 @@ def lrgb_planes(
             m = lo / 255.0
             scale.append(s)
             bias.append(-m / s)
-            step = np.float32(255.0 / span) if span > 0 else np.float32(0.0)
-            q = (a.astype(np.float32) - np.float32(lo)) * step
-            np.rint(q, out=q)
-            np.clip(q, 0.0, 255.0, out=q)
-            plane[..., c] = q
-        planes.append(plane)
+            # The byte is rint((float32(a) − float32(lo)) · step) clipped to 0..255, in float32.
+            offsets[p, c] = np.float32(lo)
+            steps[p, c] = np.float32(255.0 / span) if span > 0 else np.float32(0.0)
+    planes = [np.ascontiguousarray(col)]
+    planes += lrgb_plane_codes(coef, PLANE_TERMS, offsets, steps)
     return planes, scale, bias
 
 
@@ -198,19 +205,27 @@ def export_openlime(
         raise ValueError(f"JPEG quality must be an integer from 1 to 100, not {quality!r}")
     if pixel_size_mm is not None and not (math.isfinite(float(pixel_size_mm)) and float(pixel_size_mm) > 0):
         raise ValueError(f"pixel size must be a positive number of millimetres, not {pixel_size_mm!r}")
-    planes, scale, bias = lrgb_planes(coefficients, rgb)
-    h, w = planes[0].shape[:2]
+    coef, col = _checked(coefficients, rgb)
+    h, w = col.shape[:2]
     folder = Path(folder)
-    _make_folder(folder)
-
-    with ThreadPoolExecutor(max_workers=len(planes)) as pool:
-        encoded = list(pool.map(lambda p: _encode_jpeg(p, int(quality)), planes))
     written = []
-    for i, data in enumerate(encoded):
-        path = folder / f"plane_{i}.jpg"
-        with atomic_write(path, "wb") as f:
-            f.write(data)
-        written.append(path)
+    with ThreadPoolExecutor(max_workers=-(-_NPLANES // 3)) as pool:
+        # The colour plane needs no quantising: its JPEG is encoded while the coefficient planes
+        # are computed, and each plane is written while the ones after it are still encoding.
+        jobs = [pool.submit(_encode_jpeg, np.ascontiguousarray(col), int(quality))]
+        try:
+            planes, scale, bias = lrgb_planes(coef, col)
+            jobs += [pool.submit(_encode_jpeg, plane, int(quality)) for plane in planes[1:]]
+            _make_folder(folder)
+            for i, job in enumerate(jobs):
+                data = job.result()
+                path = folder / f"plane_{i}.jpg"
+                with atomic_write(path, "wb") as f:
+                    f.write(data)
+                written.append(path)
+        finally:
+            for job in jobs:  # after an error: nothing more is written, so nothing more is encoded
+                job.cancel()
 
     info: dict = {"width": int(w), "height": int(h), "format": "jpg"}
     if pixel_size_mm is not None:
