@@ -29,6 +29,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/decoders.py
 	$(BIN)/python benchmarks/ptm_io.py
 	$(BIN)/python benchmarks/speed.py
+	$(BIN)/python benchmarks/speed.py --size 3000x2000
+	$(BIN)/python benchmarks/robust_kernel.py
 	$(BIN)/python benchmarks/batch.py
 	$(BIN)/python benchmarks/normals_table.py
 	$(BIN)/python benchmarks/relight_loo.py

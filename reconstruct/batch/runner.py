@@ -208,15 +208,12 @@ def _photograph_size(path: Path) -> tuple[int, int] | None:
 
 
 def estimate_peak_mb(item: BatchItem) -> float:
-    """A bound on one object's peak memory (MiB), from its photographs' size and number.
-
-    The stack is 2 bytes per sample and the rest about 60 bytes per pixel (benchmarks/speed.py:
-    3.5 GB for 48 photographs of 24 MP), plus the interpreter and libraries.
-    """
+    """A bound on one object's peak memory (MiB), from its photographs' size and number
+    (:func:`reconstruct.pipeline.capture.peak_memory_mb`)."""
     source = item.source
     if source.is_file() and source.suffix.lower() == ".ptm":
         return 400 + source.stat().st_size * 12 / 2**20
-    from reconstruct.pipeline.capture import IMAGE_SUFFIXES
+    from reconstruct.pipeline.capture import IMAGE_SUFFIXES, peak_memory_mb
 
     folder = source if source.is_dir() else source.parent
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -224,8 +221,8 @@ def estimate_peak_mb(item: BatchItem) -> float:
     size = next(filter(None, map(_photograph_size, images[:5])), None)
     if size is None:
         return 1024.0
-    pixels = size[0] * size[1]
-    return 400 + (2 * len(images) + 60) * pixels / 2**20
+    jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in images)
+    return peak_memory_mb(len(images), size[1], size[0], jpeg, item.options)
 
 
 def choose_workers(items: list[BatchItem], cores: int, available_mb: float) -> int:

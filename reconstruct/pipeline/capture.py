@@ -293,28 +293,40 @@ _BYTES_PER_PIXEL = 70
 _BASE_MB = 400
 
 
+def peak_memory_mb(n: int, width: int, height: int, jpeg: bool, opt: RunOptions) -> float:
+    """A bound on a run's peak memory (MiB) for ``n`` photographs of ``width`` × ``height``:
+    the stack (1 byte per sample for JPEGs stored as 8-bit, 2 otherwise) plus
+    ``_BYTES_PER_PIXEL`` per pixel and ``_BASE_MB``. ``reconstruct batch`` sizes its cluster by
+    it; :func:`stack_on_disk` compares it with the memory limit."""
+    sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
+    return _BASE_MB + (n * sample + _BYTES_PER_PIXEL) * width * height / 2**20
+
+
 def stack_on_disk(paths: list[Path], opt: RunOptions) -> bool:
     """Whether a capture's stack should go to a memory-mapped file: when the run's estimated
-    peak (the stack, 1 byte per sample for JPEGs and 2 otherwise, plus
-    ``_BYTES_PER_PIXEL`` per pixel) exceeds ``opt.memory_limit``, or by default the memory
+    peak (:func:`peak_memory_mb`) exceeds ``opt.memory_limit``, or by default the memory
     available now."""
     from PIL import Image
 
     try:
         with Image.open(paths[0]) as im:  # the header only
             w, h = im.size
-    except Exception:  # noqa: BLE001 - the decoding pass reports a bad file properly
-        return False
+    except Exception:  # noqa: BLE001 - 16-bit RGB TIFF, which Pillow does not open, or a bad file
+        try:
+            import tifffile
+
+            with tifffile.TiffFile(paths[0]) as tif:
+                w, h = tif.pages[0].imagewidth, tif.pages[0].imagelength
+        except Exception:  # noqa: BLE001 - the decoding pass reports a bad file properly
+            return False
     jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
-    sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
-    peak_mb = _BASE_MB + (len(paths) * sample + _BYTES_PER_PIXEL) * w * h / 2**20
     if opt.memory_limit is not None:
         limit = opt.memory_limit
     else:
         import psutil
 
         limit = psutil.virtual_memory().available / 2**20
-    return peak_mb > limit
+    return peak_memory_mb(len(paths), w, h, jpeg, opt) > limit
 
 
 def _on_disk(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None) -> str | os.PathLike | None:
