@@ -143,7 +143,9 @@ def test_report_json_keys(capture, tmp_path):
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert list(report) == ["inputs", "parameters", "height_unit", "albedo_scale", "lights", "light_model",
                             "intensities", "ptm", "leave_one_out", "accuracy", "mesh", "stages",
-                            "peak_rss_scope", "versions", "warnings"]
+                            "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
+    # The whole run's peak: the largest stage's, so no stage can hide it.
+    assert report["peak_rss_mb"] == max(s["peak_rss_mb"] for s in report["stages"].values()) > 0
     assert report["accuracy"]["ground_truth"].endswith("ground_truth")
     assert set(report["mesh"]) == {"vertices", "faces", "unit", "step", "integrator", "integrator_reason",
                                    "decimation"}

@@ -192,6 +192,7 @@ class RunReport:
 
     The capture-only sections (``albedo_scale`` … ``leave_one_out``) are written for runs from
     photographs; runs from a ``.ptm`` file or a normal map have no such sections.
+    ``peak_rss_mb`` is the whole run's peak: the largest of the stages' peaks, as sampled.
     """
 
     inputs: CaptureInputs | PtmInputs | NormalMapInputs
@@ -202,6 +203,7 @@ class RunReport:
     peak_rss_scope: str
     warnings: list[str]
     accuracy: Accuracy | None = None
+    peak_rss_mb: float | None = None
     albedo_scale: float | None = None
     lights: LightLayout | None = None
     light_model: LightModel | None = None
@@ -220,7 +222,7 @@ class RunReport:
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
             keys += ["albedo_scale", "lights", "light_model", "intensities", "ptm", "leave_one_out"]
-        keys += ["accuracy", "mesh", "stages", "peak_rss_scope", "versions", "warnings"]
+        keys += ["accuracy", "mesh", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
         if self.fingerprint is not None:
             keys.append("fingerprint")
         return {k: json_safe(getattr(self, k)) for k in keys}

@@ -121,6 +121,7 @@ def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list
         with stages("report"):
             write_report_html(staged.staging, report=report.to_dict(), **html)
         names = [*names, "report.html"]
+    report.peak_rss_mb = max((s.get("peak_rss_mb", 0.0) for s in report.stages.values()), default=None)
     outputs.write_json(staged / "report.json", report.to_dict())
     return staged.publish([*names, "report.json"])
 
