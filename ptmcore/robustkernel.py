@@ -36,19 +36,17 @@ _FAST = {"contract", "arcp", "nsz"}
 
 
 @numba.njit(nogil=True, cache=True, fastmath=_FAST)
-def _solve(v, w, m, outer_t, u_t, r, prior, singular, out, ok, gram, rhs, low, wv):  # pragma: no cover - compiled
+def _solve(w, wv, m, outer_t, u_t, r, prior, singular, out, ok, gram, rhs, low):  # pragma: no cover - compiled
     """Each pixel's weighted least squares ``min Σ_k w (v − u c)²`` with a ridge towards
     ``prior``, as :func:`ptmcore.pixelfit.weighted_fit`: the sums in float32 (as its matrix
-    products), the Cholesky solve in float64. ``v``, ``w`` (N, m); writes c into ``out`` (3, m)
-    and well-posedness into ``ok`` (m,). ``outer_t`` (r(r + 1)/2, N) and ``u_t`` (r, N) are the
-    basis's products and columns; ``gram``, ``rhs``, ``wv`` (float32) and ``low`` (11, m)
-    float64 are work arrays. Every loop runs over the pixels innermost, so the compiler
+    products), the Cholesky solve in float64. ``w`` and ``wv`` = w·v (N, m) are filled by the
+    caller in the pass that makes the weights (one pass fewer over the samples); writes c into
+    ``out`` (3, m) and well-posedness into ``ok`` (m,). ``outer_t`` (r(r + 1)/2, N) and ``u_t``
+    (r, N) are the basis's products and columns; ``gram``, ``rhs`` (float32) and ``low``
+    (11, m) float64 are work arrays. Every loop runs over the pixels innermost, so the compiler
     vectorises it."""
     # The sums are two small matrix products, as in the NumPy steps; BLAS does them several
     # times faster than a compiled loop that keeps nine running sums per pixel in memory.
-    for k in range(v.shape[0]):
-        for j in range(m):
-            wv[k, j] = w[k, j] * v[k, j]
     np.dot(outer_t, w, gram)
     np.dot(u_t, wv, rhs)
     # low[0:6]: the Cholesky factor, packed as gram; low[6]: ridge λ; low[7]: det; low[8:11]:
@@ -118,20 +116,6 @@ def _to_normal(c, m, back, r, g32, unit, rho):  # pragma: no cover - compiled
         rho[j] = length
         g32[0, j], g32[1, j], g32[2, j] = np.float32(g0), np.float32(g1), np.float32(g2)
         unit[0, j], unit[1, j], unit[2, j] = np.float32(g0 / div), np.float32(g1 / div), np.float32(g2 / div)
-
-
-@numba.njit(nogil=True, cache=True, fastmath=_FAST)
-def _weighted_rms(res, w, m, dof, out):  # pragma: no cover - compiled
-    """Per-pixel RMS of ``res`` under ``w`` with ``dof`` parameters fitted, into ``out``."""
-    n = res.shape[0]
-    num = np.zeros(m, np.float32)
-    den = np.zeros(m, np.float32)
-    for k in range(n):
-        for j in range(m):
-            num[j] += w[k, j] * res[k, j] * res[k, j]
-            den[j] += w[k, j]
-    for j in range(m):
-        out[j] = math.sqrt(num[j] / max(den[j] - dof, np.float32(1.0)))
 
 
 @numba.njit(nogil=True, cache=True, fastmath=_FAST)
@@ -220,6 +204,9 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     rhs = np.empty((r, chunk), np.float32)
     gram = np.empty((outer_t.shape[0], chunk), np.float32)
     wv = np.empty((n, chunk), np.float32)
+    wv2 = np.empty((n, chunk), np.float32)
+    num = np.empty(chunk, np.float32)
+    den = np.empty(chunk, np.float32)
     low = np.empty((11, chunk))
     for row in range(r0, r1):
         for c0 in range(0, width, chunk):
@@ -243,7 +230,8 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
             for k in range(n):
                 for j in range(m):
                     ww[k, j] = np.float32(1.0) if (vv[k, j] > vmax[j]) & uu[k, j] else np.float32(0.0)
-            _solve(vv, ww, m, outer_t, u_t, r, zero, 1e-6, c, ok, gram, rhs, low, wv)
+                    wv[k, j] = ww[k, j] * vv[k, j]
+            _solve(ww, wv, m, outer_t, u_t, r, zero, 1e-6, c, ok, gram, rhs, low)
             _to_normal(c, m, back, r, g32, unit, rho)
             if cone:
                 # Step 2: without the lights whose half vector is near the first normal.
@@ -257,7 +245,8 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                         half = h0 * unit[0, j] + h1 * unit[1, j] + h2 * unit[2, j]
                         in_cone = (lit > min_shading32) & (half < cos_cone) & uu[k, j]
                         ww2[k, j] = np.float32(1.0) if in_cone else np.float32(0.0)
-                _solve(vv, ww2, m, outer_t, u_t, r, c, 1e-3, c2, ok2, gram, rhs, low, wv)
+                        wv2[k, j] = ww2[k, j] * vv[k, j]
+                _solve(ww2, wv2, m, outer_t, u_t, r, c, 1e-3, c2, ok2, gram, rhs, low)
                 _to_normal(c2, m, back, r, g32b, unit2, rho2)
                 for j in range(m):
                     # Where the cone's fit is ill posed or its normal left the cone, the first
@@ -273,18 +262,27 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
             for t in range(iterations):
                 for j in range(m):
                     floor[j] = np.float32(min_shading * rho[j])
+                    num[j] = 0.0
+                    den[j] = 0.0
+                # Predictions, candidates and residuals, and in the same pass the residuals'
+                # RMS under the previous weights (the scale; see ptmcore.robust.reweight).
                 for k in range(n):
                     d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
                     for j in range(m):
                         p = d0 * g32[0, j] + d1 * g32[1, j] + d2 * g32[2, j]
                         cc[k, j] = (p > floor[j]) & uu[k, j] & (vv[k, j] >= cast * p)
-                        rr[k, j] = vv[k, j] - p
-                if t > 0:
-                    _weighted_rms(rr, ww, m, np.float32(0.0), scale)
+                        res_kj = vv[k, j] - p
+                        rr[k, j] = res_kj
+                        num[j] += ww[k, j] * res_kj * res_kj
+                        den[j] += ww[k, j]
+                if t > 0 or cone:
+                    # The cone's fit's residuals over its own samples first (r parameters
+                    # fitted to them), then the previous pass's, divided by the consistency.
+                    dof = np.float32(0.0) if t > 0 else np.float32(r)
                     for j in range(m):
-                        scale[j] = np.float32(scale[j]) / consistency
-                elif cone:
-                    _weighted_rms(rr, ww, m, np.float32(r), scale)
+                        scale[j] = math.sqrt(num[j] / max(den[j] - dof, np.float32(1.0)))
+                        if t > 0:
+                            scale[j] = np.float32(scale[j]) / consistency
                 else:
                     _median_scale(rr, cc, m, scale)
                 for j in range(m):
@@ -303,12 +301,14 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                             q = max(rr[k, j] * hi[j], rr[k, j] * lo[j])
                             q = max(np.float32(1.0) - q * q, np.float32(0.0))
                             ww[k, j] = q * q if cc[k, j] else np.float32(0.0)
+                            wv[k, j] = ww[k, j] * vv[k, j]
                 else:
                     for k in range(n):
                         for j in range(m):
                             keep = (rr[k, j] <= hi[j]) & (rr[k, j] >= lo[j]) & cc[k, j]
                             ww[k, j] = np.float32(1.0) if keep else np.float32(0.0)
-                _solve(vv, ww, m, outer_t, u_t, r, c, 1e-6, c2, ok2, gram, rhs, low, wv)
+                            wv[k, j] = ww[k, j] * vv[k, j]
+                _solve(ww, wv, m, outer_t, u_t, r, c, 1e-6, c2, ok2, gram, rhs, low)
                 for j in range(m):
                     if ok2[j]:
                         for a in range(r):
