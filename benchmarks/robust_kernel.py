@@ -34,27 +34,8 @@ sys.path.insert(0, str(ROOT))
 
 import ptmcore  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
-from ptmcore.bands import run_bands  # noqa: E402
-from ptmcore.lp import as_directions  # noqa: E402
-from ptmcore.normals import empty_result, store_normals  # noqa: E402
-from ptmcore.robust import Lights, RobustOptions, band_height, robust_lambertian  # noqa: E402
+from ptmcore.robust import robust_photometric_stereo_steps  # noqa: E402
 from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
-
-
-def numpy_steps(stack, directions):
-    """robust_photometric_stereo's defaults, as the NumPy steps compute them."""
-    opt = RobustOptions("irls", 3, 0.05, 0.05, 0.4, 30.0, 3.0, 2.0, 0.002, 0.01)
-    n, (h, w) = len(stack), stack.shape
-    lights = Lights.of(as_directions(directions, n))
-    result = empty_result((h, w))
-
-    def work(r0, r1):
-        values, saturated = stack.band(r0, r1)
-        unit, rho, ok, weights = robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))
-        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
-
-    run_bands(h, band_height(n, w), work, threads=1)
-    return result.normals
 
 
 def angle(a, b):
@@ -80,7 +61,7 @@ def main() -> None:
                 truth = load_ground_truth(info.ground_truth_dir)
                 stack16 = ptmcore.load_stack(lights.paths)
                 stack8 = ptmcore.load_stack(lights.paths, storage="auto")
-                ref, t_ref = timed(lambda: numpy_steps(stack16, lights.directions))
+                ref, t_ref = timed(lambda: robust_photometric_stereo_steps(stack16, lights.directions).normals)
                 results = {"numpy": (ref, t_ref)}
                 for name, stack in (("kernel", stack16), ("kernel 8-bit", stack8)):
                     results[name] = timed(lambda stack=stack: ptmcore.robust_photometric_stereo(

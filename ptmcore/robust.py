@@ -41,7 +41,7 @@ from .lp import as_directions
 from .normals import PhotometricStereo, empty_result, store_normals
 from .pixelfit import Basis, blocked_matmul, orthonormal_basis, weighted_fit
 
-__all__ = ["METHODS", "robust_photometric_stereo"]
+__all__ = ["METHODS", "robust_photometric_stereo", "robust_photometric_stereo_steps"]
 
 #: Robust methods: Tukey-biweight IRLS, or trimming (weights 0 or 1) at the same bounds.
 METHODS = ("irls", "trimmed")
@@ -295,6 +295,25 @@ def robust_lambertian(lights: Lights, opt: RobustOptions, v: np.ndarray, usable:
 
 # --------------------------------------------------------------------------------------------
 # Photometric stereo
+
+
+def robust_photometric_stereo_steps(stack: ImageStack, directions: np.ndarray, *, method: str = "irls",
+                                    specular_cone: float | None = 30.0) -> PhotometricStereo:
+    """:func:`robust_photometric_stereo` with its default thresholds, by the NumPy steps above,
+    on one thread: the reference the compiled kernel is tested and benchmarked against
+    (``tests/test_robust_kernel.py``, ``benchmarks/robust_kernel.py``)."""
+    opt = RobustOptions(method, 3, 0.05, 0.05, 0.4, specular_cone, 3.0, 2.0, 0.002, 0.01)
+    n, (h, w) = len(stack), stack.shape
+    lights = Lights.of(as_directions(directions, n))
+    result = empty_result((h, w))
+
+    def work(r0: int, r1: int) -> None:
+        values, saturated = stack.band(r0, r1)
+        unit, rho, ok, weights = robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))
+        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
+
+    run_bands(h, band_height(n, w), work, threads=1)
+    return result
 
 
 def robust_photometric_stereo(

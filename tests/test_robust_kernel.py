@@ -4,30 +4,15 @@ import numpy as np
 import pytest
 
 from ptmcore import robust
-from ptmcore.bands import run_bands
 from ptmcore.images import ImageStack, default_table
-from ptmcore.lp import as_directions
-from ptmcore.normals import empty_result, store_normals
-from ptmcore.robust import Lights, RobustOptions, band_height, robust_lambertian, robust_photometric_stereo
+from ptmcore.robust import robust_photometric_stereo, robust_photometric_stereo_steps
 
 from helpers import dome, stack_from_luminance
 from test_robust import _corrupted_sphere
 
 
 def _numpy_steps(stack, directions, method, specular_cone):
-    """robust_photometric_stereo as the NumPy steps of ptmcore.robust compute it."""
-    opt = RobustOptions(method, 3, 0.05, 0.05, 0.4, specular_cone, 3.0, 2.0, 0.002, 0.01)
-    n, (h, w) = len(stack), stack.shape
-    lights = Lights.of(as_directions(directions, n))
-    result = empty_result((h, w))
-
-    def work(r0, r1):
-        values, saturated = stack.band(r0, r1)
-        unit, rho, ok, weights = robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))
-        store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
-
-    run_bands(h, band_height(n, w), work, threads=1)
-    return result
+    return robust_photometric_stereo_steps(stack, directions, method=method, specular_cone=specular_cone)
 
 
 def _angle(a, b):
