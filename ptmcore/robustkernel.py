@@ -32,6 +32,8 @@ __all__ = ["robust_ps_rows"]
 _DARK, _MIN_SHADING, _CAST, _COS_CONE, _BELOW, _ABOVE, _NOISE, _RELATIVE, _CONSISTENCY = range(9)
 _RIDGE = 1e-6
 _MAD_TO_SIGMA = 1.4826
+#: Fused multiply-adds and reciprocals allowed (not reassociation, so sums keep their order):
+#: like the different summation order, they change results by float32 rounding only.
 _FAST = {"contract", "arcp", "nsz"}
 
 
