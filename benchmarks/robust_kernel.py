@@ -5,7 +5,7 @@ specular highlight so the robust weights have work to do) and encoding (16-bit T
 JPEG), the default normals (robust photometric stereo, IRLS) are computed three ways:
 
 * ``numpy``: the NumPy steps of ``ptmcore.robust`` on the uint16 stack (the code before the
-  kernel);
+  kernel; ``compiled=False``);
 * ``kernel``: ``ptmcore.robust_photometric_stereo`` (the numba kernel) on the same stack;
 * ``kernel 8-bit``: the kernel on the stack as the pipeline now stores 8-bit photographs
   (``load_stack(storage="auto")``; TIFFs stay 16-bit).
@@ -34,7 +34,6 @@ sys.path.insert(0, str(ROOT))
 
 import ptmcore  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
-from ptmcore.robust import robust_photometric_stereo_steps  # noqa: E402
 from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
 
 
@@ -61,7 +60,8 @@ def main() -> None:
                 truth = load_ground_truth(info.ground_truth_dir)
                 stack16 = ptmcore.load_stack(lights.paths)
                 stack8 = ptmcore.load_stack(lights.paths, storage="auto")
-                ref, t_ref = timed(lambda: robust_photometric_stereo_steps(stack16, lights.directions).normals)
+                ref, t_ref = timed(lambda: ptmcore.robust_photometric_stereo(stack16, lights.directions, threads=1,
+                                                                          compiled=False).normals)
                 results = {"numpy": (ref, t_ref)}
                 for name, stack in (("kernel", stack16), ("kernel 8-bit", stack8)):
                     results[name] = timed(lambda stack=stack: ptmcore.robust_photometric_stereo(

@@ -41,7 +41,7 @@ from .lp import as_directions
 from .normals import PhotometricStereo, empty_result, store_normals
 from .pixelfit import Basis, blocked_matmul, orthonormal_basis, weighted_fit
 
-__all__ = ["METHODS", "robust_photometric_stereo", "robust_photometric_stereo_steps"]
+__all__ = ["METHODS", "robust_photometric_stereo"]
 
 #: Robust methods: Tukey-biweight IRLS, or trimming (weights 0 or 1) at the same bounds.
 METHODS = ("irls", "trimmed")
@@ -297,12 +297,9 @@ def robust_lambertian(lights: Lights, opt: RobustOptions, v: np.ndarray, usable:
 # Photometric stereo
 
 
-def robust_photometric_stereo_steps(stack: ImageStack, directions: np.ndarray, *, method: str = "irls",
-                                    specular_cone: float | None = 30.0) -> PhotometricStereo:
-    """:func:`robust_photometric_stereo` with its default thresholds, by the NumPy steps above,
-    on one thread: the reference the compiled kernel is tested and benchmarked against
-    (``tests/test_robust_kernel.py``, ``benchmarks/robust_kernel.py``)."""
-    opt = RobustOptions(method, 3, 0.05, 0.05, 0.4, specular_cone, 3.0, 2.0, 0.002, 0.01)
+def _numpy_steps(stack: ImageStack, directions: np.ndarray, opt: RobustOptions, threads: int | None,
+                 progress: Callable[[int], None] | None) -> PhotometricStereo:
+    """:func:`robust_photometric_stereo` by the NumPy steps above."""
     n, (h, w) = len(stack), stack.shape
     lights = Lights.of(as_directions(directions, n))
     result = empty_result((h, w))
@@ -312,7 +309,7 @@ def robust_photometric_stereo_steps(stack: ImageStack, directions: np.ndarray, *
         unit, rho, ok, weights = robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))
         store_normals(result, slice(r0, r1), unit * rho, ok, weights.sum(axis=0))
 
-    run_bands(h, band_height(n, w), work, threads=1)
+    run_bands(h, band_height(n, w), work, threads=threads, progress=progress)
     return result
 
 
@@ -332,6 +329,7 @@ def robust_photometric_stereo(
     relative_floor: float = 0.01,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    compiled: bool = True,
 ) -> PhotometricStereo:
     """Lambertian photometric stereo with per-pixel robust weights.
 
@@ -366,6 +364,10 @@ def robust_photometric_stereo(
         Threads that work on bands of rows (default: all CPUs).
     progress : callable, optional
         Called with the number of rows done after each band.
+    compiled : bool
+        Run the compiled kernel (:mod:`ptmcore.robustkernel`); False runs the NumPy steps of
+        this module instead, three times slower: the kernel's reference in its tests and
+        benchmark.
 
     Returns
     -------
@@ -374,6 +376,8 @@ def robust_photometric_stereo(
     """
     opt = RobustOptions(method, iterations, dark_fraction, min_shading, cast_shadow_ratio,
                         specular_cone, reject_below, reject_above, noise_floor, relative_floor)
+    if not compiled:
+        return _numpy_steps(stack, directions, opt, threads, progress)
     from .robustkernel import robust_ps_rows  # numba's import costs a second; the CLI's start does not need it
 
     n = len(stack)
