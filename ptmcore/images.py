@@ -127,6 +127,28 @@ def _decode_tiff(path: Path) -> np.ndarray:
     return img
 
 
+def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
+    """``(width, height)`` of an image from its header (nothing is decoded), or None when the
+    file is missing or unreadable: Pillow's reading, or tifffile's for the 16-bit RGB TIFFs
+    Pillow does not open."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, ValueError):
+        pass
+    if Path(path).suffix.lower() not in (".tif", ".tiff"):
+        return None
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            return tif.pages[0].imagewidth, tif.pages[0].imagelength
+    except (OSError, ValueError, IndexError, tifffile.TiffFileError):
+        return None
+
+
 def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None) -> np.ndarray:
     """Read a photograph as it is stored.
 

@@ -22,6 +22,7 @@ from urllib.parse import quote
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.images import image_size
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchRow
 from reconstruct.report import figures
 
@@ -211,17 +212,6 @@ def _height(folder: Path, max_side: int) -> bytes | None:
     image = _viridis()[level.astype(np.uint8)]
     image[~finite] = _NO_HEIGHT
     return figures.encode(image, "PNG")
-
-
-def image_size(path: Path) -> tuple[int, int] | None:
-    """``(width, height)`` from the file's header, or None if it is missing or unreadable."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:  # reads the header only
-            return im.size
-    except (OSError, ValueError):
-        return None
 
 
 def _thumbnail(out: Path, rel: str | None, alt: str) -> str:

@@ -189,27 +189,9 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     return _row_from_folder(item, folder, DONE, time.perf_counter() - t0, timer.stages["object"]["peak_rss_mb"])
 
 
-def _photograph_size(path: Path) -> tuple[int, int] | None:
-    """``(width, height)`` from a photograph's header: Pillow's, or tifffile's for the 16-bit
-    RGB TIFFs Pillow does not open."""
-    from reconstruct.batch.gallery import image_size
-
-    size = image_size(path)
-    if size is None and path.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
-
-        try:
-            with tifffile.TiffFile(path) as tif:
-                page = tif.pages[0]
-                size = (page.imagewidth, page.imagelength)
-        except (OSError, ValueError, tifffile.TiffFileError):
-            return None
-    return size
-
-
 def estimate_peak_mb(item: BatchItem) -> float:
     """A bound on one object's peak memory (MiB), from its photographs' size and number
-    (:func:`reconstruct.pipeline.capture.peak_memory_mb`)."""
+    (:func:`reconstruct.pipeline.capture.peak_memory_mb`); 1 GiB when none can be read."""
     source = item.source
     if source.is_file() and source.suffix.lower() == ".ptm":
         return 400 + source.stat().st_size * 12 / 2**20
@@ -217,12 +199,8 @@ def estimate_peak_mb(item: BatchItem) -> float:
 
     folder = source if source.is_dir() else source.parent
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    # The first photograph whose header reads (a corrupt one fails its object, not this).
-    size = next(filter(None, map(_photograph_size, images[:5])), None)
-    if size is None:
-        return 1024.0
-    jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in images)
-    return peak_memory_mb(len(images), size[1], size[0], jpeg, item.options)
+    peak = peak_memory_mb(images, item.options)
+    return 1024.0 if peak is None else peak
 
 
 def choose_workers(items: list[BatchItem], cores: int, available_mb: float) -> int:

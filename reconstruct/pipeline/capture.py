@@ -14,14 +14,14 @@ hand over and returns one :class:`Capture` whatever the layout:
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.images import ImageStack, load_stack, load_stack_and_fits, read_image
+from ptmcore.images import ImageStack, image_size, load_stack, load_stack_and_fits, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
@@ -293,44 +293,36 @@ _BYTES_PER_PIXEL = 70
 _BASE_MB = 400
 
 
-def peak_memory_mb(n: int, width: int, height: int, jpeg: bool, opt: RunOptions) -> float:
-    """A bound on a run's peak memory (MiB) for ``n`` photographs of ``width`` × ``height``:
-    the stack (1 byte per sample for JPEGs stored as 8-bit, 2 otherwise) plus
-    ``_BYTES_PER_PIXEL`` per pixel and ``_BASE_MB``. ``reconstruct batch`` sizes its cluster by
-    it; :func:`stack_on_disk` compares it with the memory limit."""
+def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
+    """A bound on the peak memory (MiB) of a run on these photographs: the stack (1 byte per
+    sample for JPEGs stored as 8-bit, 2 otherwise) plus ``_BYTES_PER_PIXEL`` per pixel and
+    ``_BASE_MB``; None when none of the first five has a readable header. ``reconstruct
+    batch`` sizes its cluster by it; :func:`stack_on_disk` compares it with the memory limit."""
+    # The first photograph whose header reads (a corrupt one is reported by the decoding).
+    size = next(filter(None, map(image_size, paths[:5])), None)
+    if size is None:
+        return None
+    jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
     sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
-    return _BASE_MB + (n * sample + _BYTES_PER_PIXEL) * width * height / 2**20
+    return _BASE_MB + (len(paths) * sample + _BYTES_PER_PIXEL) * size[0] * size[1] / 2**20
 
 
-def stack_on_disk(paths: list[Path], opt: RunOptions) -> bool:
+def stack_on_disk(paths: Sequence[Path], opt: RunOptions) -> bool:
     """Whether a capture's stack should go to a memory-mapped file: when the run's estimated
     peak (:func:`peak_memory_mb`) exceeds ``opt.memory_limit``, or by default the memory
     available now."""
-    from PIL import Image
-
-    try:
-        with Image.open(paths[0]) as im:  # the header only
-            w, h = im.size
-    except Exception:  # noqa: BLE001 - 16-bit RGB TIFF, which Pillow does not open, or a bad file
-        try:
-            import tifffile
-
-            with tifffile.TiffFile(paths[0]) as tif:
-                w, h = tif.pages[0].imagewidth, tif.pages[0].imagelength
-        except Exception:  # noqa: BLE001 - the decoding pass reports a bad file properly
-            return False
-    jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
+    peak = peak_memory_mb(paths, opt)
+    if peak is None:
+        return False
     if opt.memory_limit is not None:
-        limit = opt.memory_limit
-    else:
-        import psutil
+        return peak > opt.memory_limit
+    import psutil
 
-        limit = psutil.virtual_memory().available / 2**20
-    return peak_memory_mb(len(paths), w, h, jpeg, opt) > limit
+    return peak > psutil.virtual_memory().available / 2**20
 
 
 def _on_disk(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None) -> str | os.PathLike | None:
-    return scratch if scratch is not None and paths and stack_on_disk(list(paths), opt) else None
+    return scratch if scratch is not None and stack_on_disk(paths, opt) else None
 
 
 def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
