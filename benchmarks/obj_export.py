@@ -50,7 +50,7 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ptmcore.atomic import atomic_write  # noqa: E402
-from ptmcore.images import encode_png  # noqa: E402
+from ptmcore.png import encode_png  # noqa: E402
 from reconstruct.mesh.grid import GridMesh, grid_mesh  # noqa: E402
 from reconstruct.mesh.obj import write_obj  # noqa: E402
 
@@ -139,7 +139,7 @@ def _child(writer: str, data: Path, out: Path) -> None:
     arrays = {name: np.load(data / f"{name}.npy") for name in _ARRAYS}
     mesh = GridMesh(**arrays, unit="mm")
     texture = np.load(data / "texture.npy")
-    # OpenCV, which ours and numpy import for the PNG on first use, is not the writer's memory.
+    # The PNG encoder's first use (its imports and threads) is not the writer's memory.
     encode_png(np.zeros((1, 1, 3), np.uint8))
     # Linux: the peak RSS is reset to the current one, so that VmHWM is the writer's.
     Path("/proc/self/clear_refs").write_text("5")

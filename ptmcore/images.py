@@ -29,7 +29,6 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .atomic import atomic_write
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -439,19 +438,3 @@ def load_stack_and_fits(
         fits.coefficients = done.channel_sums
     return stack, fits
 
-
-def encode_png(image: np.ndarray) -> bytes:
-    """Encode an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG bytes.
-
-    OpenCV's encoder releases the GIL (it runs beside other writers) and, unlike Pillow, writes
-    16-bit RGB.
-    """
-    import cv2
-
-    if image.dtype not in (np.uint8, np.uint16):
-        raise TypeError("PNG images must be uint8 or uint16")
-    img = image[..., ::-1] if image.ndim == 3 else image  # OpenCV stores BGR
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
-    if not ok:
-        raise ValueError(f"OpenCV could not encode a {image.shape} {image.dtype} image as PNG")
-    return buf.tobytes()

@@ -4,23 +4,25 @@ OpenCV's and Pillow's encoders work row by row in one thread: more than a second
 24-megapixel 16-bit image even uncompressed, and several at their default compression. Here
 bands of rows are filtered with NumPy and deflated by zlib in threads (pigz's way: each band an
 independent raw deflate stream ended by a sync flush, so they concatenate into one zlib stream),
-both of which leave the GIL. Small images encoded to bytes in memory (figures, textures) use
-:func:`ptmcore.images.encode_png`.
+both of which leave the GIL. :func:`encode_png` gives the same file as bytes (figures,
+textures).
 """
 
 from __future__ import annotations
 
+import io
 import os
 import struct
 import zlib
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import BinaryIO
 
 import numpy as np
 
 from .atomic import atomic_write
 
-__all__ = ["write_png"]
+__all__ = ["encode_png", "write_png"]
 
 # Bytes of image data per band that one thread filters and compresses: a few hundred rows of a
 # 24-megapixel image, small enough to spread over the threads and to bound the memory.
@@ -77,38 +79,23 @@ def _png_band(rows: np.ndarray, level: int, last: bool) -> tuple[list[bytes | me
     return _png_chunk(b"IDAT", packed), zlib.adler32(data), len(data)
 
 
-def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = True) -> None:
-    """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG, bands in parallel.
-
-    A plain PNG that every reader opens (one zlib stream over several IDAT chunks). It is
-    written without OpenCV's encoder, which works row by row in one thread and takes more than
-    a second for a 24-megapixel 16-bit image even uncompressed: here bands of rows are filtered
-    with NumPy and deflated by zlib in parallel threads (pigz's way), both of which leave the
-    GIL. At 24 megapixels: 8-bit RGB 0.4 s on two free cores (OpenCV 0.75 s), the same size;
-    16-bit RGB stored 0.3 s (OpenCV 2 s at its default compression).
-
-    Parameters
-    ----------
-    path : path
-        The file to write.
-    image : ndarray, shape (H, W) or (H, W, 3), uint8 or uint16
-    compress : bool
-        Deflate with zlib's fastest level and run-length matching (as small as OpenCV's
-        default on photographs). False stores the data uncompressed: valid and fastest, for
-        data that hardly compresses (a 16-bit normal map's low bytes are noise: compression
-        saves a quarter of the size for about six times the time).
-    """
+def _check(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image)
     if image.dtype not in (np.uint8, np.uint16):
         raise TypeError(f"PNG images must be uint8 or uint16, not {image.dtype}")
     if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] != 3) or 0 in image.shape:
         raise ValueError(f"PNG images must be (H, W) or (H, W, 3), not {image.shape}")
+    return image
+
+
+def _write(f: BinaryIO, image: np.ndarray, compress: bool) -> None:
+    """The PNG of a checked image into a binary file, bands encoded in parallel threads."""
     h, w = image.shape[:2]
     colour = 2 if image.ndim == 3 else 0
     header = struct.pack(">IIBBBBB", w, h, 8 * image.itemsize, colour, 0, 0, 0)
     band = max(1, _PNG_BAND_BYTES // (image[0].nbytes + 1))
     level = 1 if compress else 0
-    with atomic_write(path, "wb") as f, ThreadPoolExecutor(max_workers=_PNG_WORKERS) as pool:
+    with ThreadPoolExecutor(max_workers=_PNG_WORKERS) as pool:
         f.write(_PNG_SIGNATURE)
         f.writelines(_png_chunk(b"IHDR", header))
         f.writelines(_png_chunk(b"IDAT", b"\x78\x01"))  # zlib header: deflate, 32 KiB window
@@ -133,3 +120,38 @@ def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = Tr
             raise
         f.writelines(_png_chunk(b"IDAT", struct.pack(">I", adler)))
         f.writelines(_png_chunk(b"IEND", b""))
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = True) -> None:
+    """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG, bands in parallel.
+
+    A plain PNG that every reader opens (one zlib stream over several IDAT chunks). It is
+    written without OpenCV's encoder, which works row by row in one thread and takes more than
+    a second for a 24-megapixel 16-bit image even uncompressed: here bands of rows are filtered
+    with NumPy and deflated by zlib in parallel threads (pigz's way), both of which leave the
+    GIL. At 24 megapixels: 8-bit RGB 0.4 s on two free cores (OpenCV 0.75 s), the same size;
+    16-bit RGB stored 0.3 s (OpenCV 2 s at its default compression).
+
+    Parameters
+    ----------
+    path : path
+        The file to write.
+    image : ndarray, shape (H, W) or (H, W, 3), uint8 or uint16
+    compress : bool
+        Deflate with zlib's fastest level and run-length matching (as small as OpenCV's
+        default on photographs). False stores the data uncompressed: valid and fastest, for
+        data that hardly compresses (a 16-bit normal map's low bytes are noise: compression
+        saves a quarter of the size for about six times the time).
+    """
+    image = _check(image)
+    with atomic_write(path, "wb") as f:
+        _write(f, image, compress)
+
+
+def encode_png(image: np.ndarray, *, compress: bool = True) -> bytes:
+    """The PNG file of an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as bytes, as
+    :func:`write_png` writes it (figures, textures)."""
+    image = _check(image)
+    buf = io.BytesIO()
+    _write(buf, image, compress)
+    return buf.getvalue()

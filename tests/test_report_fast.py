@@ -50,7 +50,7 @@ def large_folder(tmp_path_factory, large_maps):
     folder = tmp_path_factory.mktemp("large")
     outputs.write_npy(folder / "normals.npy", normals)
     outputs.write_height_tiff(folder / "height.tif", height, "mm", 0.02)
-    outputs.write_png(folder / "albedo.png", albedo)
+    png.write_png(folder / "albedo.png", albedo)
     # Step 6: more faces than figures.MAX_RENDER_FACES, so the render is of the heights.
     write_ply(folder / "mesh.ply", grid_mesh(height, step=6, pixel_size=0.02))
     return folder
@@ -147,7 +147,7 @@ def test_stack_thumbnail_matches_the_photograph(tmp_path):
     paths = []
     for k, gain in enumerate((0.6, 0.8, 1.0)):
         paths.append(tmp_path / f"p{k}.png")
-        outputs.write_png(paths[-1], np.round(base * gain).astype(np.uint8))
+        png.write_png(paths[-1], np.round(base * gain).astype(np.uint8))
     stack = load_stack(paths)
     for k, path in enumerate(paths):
         thumb = figures.stack_thumbnail(stack, k, max_side=120)

@@ -21,7 +21,7 @@ from PIL import Image
 
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
-from ptmcore.images import encode_png
+from ptmcore.png import encode_png
 from reconstruct.mesh import textfmt
 from reconstruct.mesh.grid import GridMesh, _as_rgb
 from reconstruct.mesh.ply import _check_comment

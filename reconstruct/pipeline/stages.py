@@ -30,6 +30,7 @@ from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
 from ptmcore.lp import LightSet
+from ptmcore.png import write_png
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
 from ptmcore.ptmencoded import EncodedFits
@@ -353,7 +354,7 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
     from reconstruct.mesh.ops import solid, write_glb, write_stl
 
     folder = Path(folder)
-    outputs.write_png(folder / "albedo.png", texture)
+    write_png(folder / "albedo.png", texture)
     jobs: dict[str, Callable[[], None]] = {
         # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
         # writes release it and proceed alongside.
@@ -365,7 +366,7 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
                                                         options.pixel_size),
     }
     if mask is not None:
-        jobs["mask.png"] = lambda: outputs.write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+        jobs["mask.png"] = lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
     if options.glb:
         jobs["mesh.glb"] = lambda: write_glb(folder / "mesh.glb", mesh, texture)
     if options.solid is not None:

@@ -22,7 +22,7 @@ from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
 from ptmcore.relight import light_direction
 
 from reconstruct.report import rendering
-from ptmcore.images import encode_png
+from ptmcore.png import encode_png
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
@@ -111,7 +111,7 @@ def linear_ptm(report: dict | None) -> bool:
 
 
 def encode(image: np.ndarray, fmt: str = "PNG", quality: int = 85) -> bytes:
-    """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`ptmcore.images.encode_png`)
+    """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`ptmcore.png.encode_png`)
     or ``"JPEG"`` bytes."""
     from PIL import Image
 
