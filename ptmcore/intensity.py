@@ -165,10 +165,7 @@ def _sample_pixels(
     rows, cols = np.divmod(candidates, w)
     raw = stack.luminance[:, rows, cols]  # (N, P) codes
     usable = raw != stack.saturated_code
-    if raw.dtype == np.uint16:
-        values = raw.astype(np.float64) / _LUM_SCALE  # exact, unlike the float32 table
-    else:
-        values = stack.table[raw].astype(np.float64)
+    values = stack.table[raw].astype(np.float64)
     # Background (dark in every usable photograph) says nothing about the lights.
     lit = np.where(usable, values, 0.0).max(axis=0) > 2e-3
     return values[:, lit], usable[:, lit]

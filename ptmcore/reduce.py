@@ -45,7 +45,7 @@ from numba.extending import overload
 
 from .bands import run_bands
 from .errors import InputError
-from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, linear_to_srgb, srgb_to_linear
+from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, default_table, linear_to_srgb, srgb_to_linear
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
 from .streaming import Photographs, check_same_size, run_in_order
 
@@ -257,9 +257,7 @@ def srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
     to8 = np.empty(65536, np.uint8)
     to8[:65535] = np.minimum(np.rint(255.0 * linear_to_srgb(lin)), 254)
     to8[65535] = 255
-    table = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
-    table[255] = 1.0
-    return to8, table
+    return to8, default_table(np.dtype(np.uint8))
 
 
 @dataclass
