@@ -5,13 +5,19 @@ Lambertian estimate, specular cone, robust passes) one pixel at a time here, wit
 those steps are some forty element-wise passes over a band of the stack per pixel fit; here each
 chunk of a row's pixels is read once from the stack (through the stack's code → linear table)
 into buffers that stay in the cache, and every pass works on those, with the pixels in the
-innermost loops so that the compiler vectorises them as BLAS vectorises the NumPy products. The kernel releases the GIL,
-so bands of rows run in the caller's threads: ``threads`` is respected and numba's own threading
-layer is not involved (several of its layers may not be entered from several threads at once).
+innermost loops so that the compiler vectorises them. The compiler only vectorises a loop whose
+arrays it can tell apart, so the work arrays have a width fixed at compilation (:data:`_CHUNK`)
+and the loops that use several photographs at a time are inlined where those arrays are made.
+The weighted least-squares sums take a few photographs at a time, with every pixel's sums in
+registers (:func:`_sums`), and the solves are for three unknowns only, the basis padded to three
+columns where the lights lie in a plane, so that each pixel's solve is straight-line code
+(:func:`_solve`). The kernel releases the GIL, so bands of rows run in the caller's threads:
+``threads`` is respected and numba's own threading layer is not involved (several of its layers
+may not be entered from several threads at once).
 
 The arithmetic follows the NumPy steps: float32 where they use float32 (residuals, weights,
-thresholds), float64 for the normal equations, which NumPy sums in float32 before converting;
-results agree within float32 rounding (``tests/test_robust_kernel.py``). The NumPy steps stay in
+thresholds, the least-squares sums), float64 for the normal equations; results agree within
+float32 rounding (``tests/test_robust_kernel.py``). The NumPy steps stay in
 :mod:`ptmcore.robust`: the robust PTM fit (:mod:`ptmcore.robustptm`) uses them.
 
 Compiled code is cached on disk (numba's ``cache=True``, beside this module or in
@@ -32,95 +38,168 @@ __all__ = ["robust_ps_rows"]
 _DARK, _MIN_SHADING, _CAST, _COS_CONE, _BELOW, _ABOVE, _NOISE, _RELATIVE, _CONSISTENCY = range(9)
 _RIDGE = 1e-6
 _MAD_TO_SIGMA = 1.4826
+#: Photographs per step of the passes that add up over the photographs. Within a step each
+#: pixel's running sums stay in registers; without steps they go to memory and back at every
+#: photograph. Two were a few per cent slower on 48 photographs, eight five times slower.
+_BLOCK = 4
+#: Pixels done together: their samples stay in the cache through every pass. A width known at
+#: compilation puts the rows of the work arrays a known distance apart, which is what lets the
+#: compiler vectorise the loops that write several rows at once.
+_CHUNK = 256
+#: Pixels per vector or two: the last chunk of a row is done to a multiple of this.
+_LANES = 16
 #: Fused multiply-adds and reciprocals allowed (not reassociation, so sums keep their order):
-#: like the different summation order, they change results by float32 rounding only.
+#: they change results by float32 rounding only.
 _FAST = {"contract", "arcp", "nsz"}
+#: Division by zero gives inf or NaN instead of raising: the check for it on every division
+#: keeps a loop from vectorising (the kernel never divides by zero).
+_JIT = {"nogil": True, "cache": True, "fastmath": _FAST, "error_model": "numpy"}
 
 
-@numba.njit(nogil=True, cache=True, fastmath=_FAST)
-def _solve(w, wv, m, outer_t, u_t, r, prior, singular, out, ok, gram, rhs, low):  # pragma: no cover - compiled
-    """Each pixel's weighted least squares ``min Σ_k w (v − u c)²`` with a ridge towards
-    ``prior``, as :func:`ptmcore.pixelfit.weighted_fit`: the sums in float32 (as its matrix
-    products), the Cholesky solve in float64. ``w`` and ``wv`` = w·v (N, m) are filled by the
-    caller in the pass that makes the weights (one pass fewer over the samples); writes c into
-    ``out`` (3, m) and well-posedness into ``ok`` (m,). ``outer_t`` (r(r + 1)/2, N) and ``u_t``
-    (r, N) are the basis's products and columns; ``gram``, ``rhs`` (float32) and ``low``
-    (11, m) float64 are work arrays. Every loop runs over the pixels innermost, so the compiler
-    vectorises it."""
-    # The sums are two small matrix products, as in the NumPy steps; BLAS does them several
-    # times faster than a compiled loop that keeps nine running sums per pixel in memory.
-    np.dot(outer_t, w, gram)
-    np.dot(u_t, wv, rhs)
-    # low[0:6]: the Cholesky factor, packed as gram; low[6]: ridge λ; low[7]: det; low[8:11]:
-    # the forward solution.
-    lam = low[6]
-    det = low[7]
-    for j in range(m):
-        mean_eig = 0.0
-        for a in range(r):
-            mean_eig += gram[_packed(a, a, r), j]
-        lam[j] = _RIDGE * max(mean_eig / r, 1e-30)
-        det[j] = 1.0
-    for jj in range(r):
-        djj = _packed(jj, jj, r)
-        for j in range(m):
-            d = np.float64(gram[djj, j]) + lam[j]
-            for k in range(jj):
-                d -= low[_packed(k, jj, r), j] ** 2
-            d = max(d, lam[j])
-            det[j] *= d
-            low[djj, j] = math.sqrt(d)
-        for i in range(jj + 1, r):
-            e = _packed(jj, i, r)
-            for j in range(m):
-                s = np.float64(gram[e, j])
-                for k in range(jj):
-                    s -= low[_packed(k, i, r), j] * low[_packed(k, jj, r), j]
-                low[e, j] = s / low[djj, j]
-    y = low[8:11]
-    for i in range(r):
-        for j in range(m):
-            s = np.float64(rhs[i, j]) + lam[j] * prior[i, j]
-            for k in range(i):
-                s -= low[_packed(k, i, r), j] * y[k, j]
-            y[i, j] = s / low[_packed(i, i, r), j]
-    for i in range(r - 1, -1, -1):
-        for j in range(m):
-            s = y[i, j]
-            for k in range(i + 1, r):
-                s -= low[_packed(i, k, r), j] * out[k, j]
-            out[i, j] = s / low[_packed(i, i, r), j]
-    for j in range(m):
-        mean_eig = lam[j] / _RIDGE
-        # det G > singular · (mean eigenvalue)^r, without logarithms: each pivot ≥ λ keeps the
-        # product far from underflow.
-        ok[j] = det[j] > singular * mean_eig ** r
-
-
-@numba.njit(nogil=True, cache=True, inline="always", fastmath=_FAST)
+@numba.njit(inline="always", **_JIT)
 def _packed(a, b, r):  # pragma: no cover - compiled
     """Row of entry (a, b), a ≤ b, of an r×r symmetric matrix stored as its upper triangle."""
     return a * r - a * (a - 1) // 2 + (b - a)
 
 
-@numba.njit(nogil=True, cache=True, fastmath=_FAST)
-def _to_normal(c, m, back, r, g32, unit, rho):  # pragma: no cover - compiled
+@numba.njit(**_JIT)
+def _padded(outer_t, u_t, back, dirs, halves):  # pragma: no cover - compiled
+    """The basis and the lights padded with zeros to three columns and a whole number of blocks.
+
+    Returns ``basis`` (9, N'), float32: rows 0–5 are the products of the pairs of columns
+    (packed as :func:`_packed` for r = 3), rows 6–8 the columns; ``back`` (3, 3); ``dirs`` and
+    ``halves`` (N', 3). N' is N rounded up to a multiple of :data:`_BLOCK`. A padded column
+    leaves every sum of its own as 0, and a padded photograph, never usable, adds nothing.
+    """
+    r, n = u_t.shape
+    n_padded = -(-n // _BLOCK) * _BLOCK
+    basis = np.zeros((9, n_padded), np.float32)
+    back3 = np.zeros((3, 3))
+    for a in range(r):
+        basis[6 + a, :n] = u_t[a]
+        back3[:, a] = back[:, a]
+        for b in range(a, r):
+            basis[_packed(a, b, 3), :n] = outer_t[_packed(a, b, r)]
+    dirs_padded = np.zeros((n_padded, 3), np.float32)
+    halves_padded = np.zeros((n_padded, 3), np.float32)
+    dirs_padded[:n] = dirs
+    halves_padded[:n] = halves
+    return basis, back3, dirs_padded, halves_padded
+
+
+@numba.njit(inline="always", **_JIT)
+def _sums_of(sums, j):  # pragma: no cover - compiled
+    """Pixel ``j``'s nine sums, as a tuple the compiler keeps in registers."""
+    return (sums[0, j], sums[1, j], sums[2, j], sums[3, j], sums[4, j], sums[5, j],
+            sums[6, j], sums[7, j], sums[8, j])
+
+
+@numba.njit(inline="always", **_JIT)
+def _add(acc, basis, k, w, wv):  # pragma: no cover - compiled
+    """``acc`` plus photograph ``k``'s terms of ``Σ w φ φᵀ`` and ``Σ w φ v`` (``wv`` = w·v)."""
+    s0, s1, s2, s3, s4, s5, s6, s7, s8 = acc
+    return (s0 + basis[0, k] * w, s1 + basis[1, k] * w, s2 + basis[2, k] * w,
+            s3 + basis[3, k] * w, s4 + basis[4, k] * w, s5 + basis[5, k] * w,
+            s6 + basis[6, k] * wv, s7 + basis[7, k] * wv, s8 + basis[8, k] * wv)
+
+
+@numba.njit(inline="always", **_JIT)
+def _store(sums, j, acc):  # pragma: no cover - compiled
+    """Writes pixel ``j``'s nine sums back."""
+    sums[0, j], sums[1, j], sums[2, j], sums[3, j], sums[4, j], sums[5, j] = acc[:6]
+    sums[6, j], sums[7, j], sums[8, j] = acc[6:]
+
+
+@numba.njit(inline="always", **_JIT)
+def _sums(w, v, basis, m, sums):  # pragma: no cover - compiled
+    """Each pixel's ``Σ w φ φᵀ`` and ``Σ w φ v`` over the photographs, float32, into ``sums``
+    (9, m): what the NumPy steps get from two matrix products, added photograph by photograph.
+
+    Inlined: only where the work arrays are made does the compiler know their width, which it
+    needs to vectorise the loop (called as a function, the kernel was three times slower).
+    """
+    for e in range(9):
+        for j in range(m):
+            sums[e, j] = 0.0
+    for k0 in range(0, basis.shape[1], _BLOCK):
+        for j in range(m):
+            acc = _sums_of(sums, j)
+            for k in range(k0, k0 + _BLOCK):
+                acc = _add(acc, basis, k, w[k, j], w[k, j] * v[k, j])
+            _store(sums, j, acc)
+
+
+@numba.njit(**_JIT)
+def _solve(sums, prior, r, singular, m, out, ok):  # pragma: no cover - compiled
+    """Each pixel's weighted least squares with a ridge towards ``prior``, as
+    :func:`ptmcore.pixelfit.cholesky_solve` solves it: in float64, from the float32 sums
+    (9, m) of :func:`_sums`. Writes the solution into ``out`` (3, m) and
+    well-posedness into ``ok`` (m,).
+
+    The basis has three columns, the last ``3 − r`` of them zero (:func:`_padded`): their
+    pivots are λ and their unknowns stay 0, so only the determinant, over the first ``r``
+    pivots, and the mean eigenvalue, over r, need ``r``. With the size fixed, each pixel's
+    factorisation is straight-line code and the loop over the pixels vectorises.
+    """
+    for j in range(m):
+        g00, g01, g02 = np.float64(sums[0, j]), np.float64(sums[1, j]), np.float64(sums[2, j])
+        g11, g12, g22 = np.float64(sums[3, j]), np.float64(sums[4, j]), np.float64(sums[5, j])
+        mean_eig = max((g00 + g11 + g22) / r, 1e-30)
+        lam = _RIDGE * mean_eig
+        # G + λI = L D Lᵀ with a unit triangular L: the pivots d are those of the Cholesky
+        # factorisation in cholesky_solve (the squares of its diagonal), without its square
+        # roots and with three divisions instead of nine; a difference of float64 rounding.
+        d0 = max(g00 + lam, lam)
+        i0 = 1.0 / d0
+        l01 = g01 * i0
+        l02 = g02 * i0
+        d1 = max(g11 + lam - l01 * g01, lam)
+        i1 = 1.0 / d1
+        e12 = g12 - l01 * g02
+        l12 = e12 * i1
+        d2 = max(g22 + lam - l02 * g02 - l12 * e12, lam)
+        i2 = 1.0 / d2
+        y0 = sums[6, j] + lam * prior[0, j]
+        y1 = sums[7, j] + lam * prior[1, j] - l01 * y0
+        y2 = sums[8, j] + lam * prior[2, j] - l02 * y0 - l12 * y1
+        x2 = y2 * i2
+        x1 = y1 * i1 - l12 * x2
+        out[0, j] = y0 * i0 - l01 * x1 - l02 * x2
+        out[1, j] = x1
+        out[2, j] = x2
+        # det G > singular · (mean eigenvalue)^r, without logarithms: each pivot ≥ λ keeps the
+        # product far from underflow.
+        det = d0
+        bound = singular * mean_eig
+        if r > 1:
+            det *= d1
+            bound *= mean_eig
+        if r > 2:
+            det *= d2
+            bound *= mean_eig
+        ok[j] = det > bound
+
+
+@numba.njit(**_JIT)
+def _to_normal(c, m, back, g32, unit, rho):  # pragma: no cover - compiled
     """ρ = |g| (float64) into ``rho``, g = back · c as float32 into ``g32`` (the predictions are
     made from it, as the NumPy steps make them) and the unit normal (float32) into ``unit``."""
+    b00, b01, b02 = back[0, 0], back[0, 1], back[0, 2]
+    b10, b11, b12 = back[1, 0], back[1, 1], back[1, 2]
+    b20, b21, b22 = back[2, 0], back[2, 1], back[2, 2]
     for j in range(m):
-        g0 = g1 = g2 = 0.0
-        for a in range(r):
-            g0 += back[0, a] * c[a, j]
-            g1 += back[1, a] * c[a, j]
-            g2 += back[2, a] * c[a, j]
+        c0, c1, c2 = c[0, j], c[1, j], c[2, j]
+        g0 = b00 * c0 + b01 * c1 + b02 * c2
+        g1 = b10 * c0 + b11 * c1 + b12 * c2
+        g2 = b20 * c0 + b21 * c1 + b22 * c2
         length = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-        div = length if length > 0 else 1.0
+        inv = 1.0 / length if length > 0 else 1.0
         rho[j] = length
         g32[0, j], g32[1, j], g32[2, j] = np.float32(g0), np.float32(g1), np.float32(g2)
-        unit[0, j], unit[1, j], unit[2, j] = np.float32(g0 / div), np.float32(g1 / div), np.float32(g2 / div)
+        unit[0, j], unit[1, j], unit[2, j] = np.float32(g0 * inv), np.float32(g1 * inv), np.float32(g2 * inv)
 
 
-@numba.njit(nogil=True, cache=True, fastmath=_FAST)
+@numba.njit(**_JIT)
 def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
     """1.4826 × the lower median of ``|res|`` over each pixel's candidates, into ``out``."""
     n = res.shape[0]
@@ -134,9 +213,9 @@ def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
         out[j] = 0.0 if count == 0 else _MAD_TO_SIGMA * np.sort(buf[:count])[(count - 1) // 2]
 
 
-@numba.njit(nogil=True, cache=True, fastmath=_FAST)
+@numba.njit(**_JIT)
 def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, irls, cone, iterations,
-                   normals, albedo, samples, valid, chunk=256):  # pragma: no cover - compiled
+                   normals, albedo, samples, valid):  # pragma: no cover - compiled
     """Robust photometric stereo of rows ``r0:r1``, written into the result arrays.
 
     Parameters
@@ -165,14 +244,12 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
         Robust passes.
     normals, albedo, samples, valid : ndarray
         The result arrays (H, W, 3) float32, (H, W) float32, (H, W) uint16, (H, W) bool.
-    chunk : int
-        Pixels done together: their samples stay in the cache through every pass.
     """
-    n, _, width = codes.shape
+    n_photos, _, width = codes.shape
     r = u_t.shape[0]
-    # Every chunk has the same width, so the work arrays stay contiguous for BLAS; the columns
-    # past the image's edge have no usable sample and are not stored.
-    chunk = -(-width // -(-width // chunk))
+    basis, back3, dirs, halves = _padded(outer_t, u_t, back, dirs, halves)
+    n = basis.shape[1]
+    chunk = _CHUNK  # a global: numba compiles it in as a constant
     sat = table.shape[0] - 1
     dark = np.float32(par[_DARK])
     min_shading = par[_MIN_SHADING]
@@ -181,12 +258,14 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     cos_cone = np.float32(par[_COS_CONE])
     below, above = par[_BELOW], par[_ABOVE]
     noise, relative, consistency = par[_NOISE], par[_RELATIVE], par[_CONSISTENCY]
-    v = np.empty((n, chunk), np.float32)
-    usable = np.empty((n, chunk), np.bool_)
+    # The padded photographs' rows stay 0 and unusable.
+    v = np.zeros((n, chunk), np.float32)
+    usable = np.zeros((n, chunk), np.bool_)
     w = np.empty((n, chunk), np.float32)
     w2 = np.empty((n, chunk), np.float32)
     res = np.empty((n, chunk), np.float32)
     cand = np.empty((n, chunk), np.bool_)
+    sums = np.empty((9, chunk), np.float32)
     c = np.empty((3, chunk))
     c2 = np.empty((3, chunk))
     zero = np.zeros((3, chunk))
@@ -198,43 +277,43 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     rho2 = np.empty(chunk)
     ok = np.empty(chunk, np.bool_)
     ok2 = np.empty(chunk, np.bool_)
+    take = np.empty(chunk, np.bool_)
     vmax = np.empty(chunk, np.float32)
     scale = np.empty(chunk)
     hi = np.empty(chunk, np.float32)
     floor = np.empty(chunk, np.float32)
     lo = np.empty(chunk, np.float32)
-    rhs = np.empty((r, chunk), np.float32)
-    gram = np.empty((outer_t.shape[0], chunk), np.float32)
-    wv = np.empty((n, chunk), np.float32)
-    wv2 = np.empty((n, chunk), np.float32)
     num = np.empty(chunk, np.float32)
     den = np.empty(chunk, np.float32)
-    low = np.empty((11, chunk))
+    total = np.empty(chunk, np.float32)
     for row in range(r0, r1):
         for c0 in range(0, width, chunk):
             inside = min(chunk, width - c0)
-            m = chunk
-            vv, uu, ww, ww2, rr, cc = v, usable, w, w2, res, cand
+            # The columns from inside to m have no usable sample and are not stored.
+            m = min(chunk, -(-inside // _LANES) * _LANES)
             for j in range(m):
                 vmax[j] = 0.0
-            for k in range(n):
+            for k in range(n_photos):
+                line = codes[k, row, c0:c0 + inside]
+                # The look-up is a gather, which the compiler leaves scalar: on its own the rest
+                # of the pass vectorises.
                 for j in range(inside):
-                    code = codes[k, row, c0 + j]
-                    vv[k, j] = table[code]
-                    uu[k, j] = code != sat
-                    vmax[j] = max(vmax[j], vv[k, j])
+                    v[k, j] = table[line[j]]
+                for j in range(inside):
+                    usable[k, j] = line[j] != sat
+                    vmax[j] = max(vmax[j], v[k, j])
                 for j in range(inside, m):
-                    vv[k, j] = 0.0
-                    uu[k, j] = False
+                    v[k, j] = 0.0
+                    usable[k, j] = False
             # Step 1: without dark (shadowed) and clipped samples.
             for j in range(m):
                 vmax[j] = max(dark * vmax[j], np.float32(1e-4))
             for k in range(n):
                 for j in range(m):
-                    ww[k, j] = np.float32(1.0) if (vv[k, j] > vmax[j]) & uu[k, j] else np.float32(0.0)
-                    wv[k, j] = ww[k, j] * vv[k, j]
-            _solve(ww, wv, m, outer_t, u_t, r, zero, 1e-6, c, ok, gram, rhs, low)
-            _to_normal(c, m, back, r, g32, unit, rho)
+                    w[k, j] = np.float32(1.0) if (v[k, j] > vmax[j]) & usable[k, j] else np.float32(0.0)
+            _sums(w, v, basis, m, sums)
+            _solve(sums, zero, r, 1e-6, m, c, ok)
+            _to_normal(c, m, back3, g32, unit, rho)
             if cone:
                 # Step 2: without the lights whose half vector is near the first normal.
                 for k in range(n):
@@ -245,21 +324,26 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                     for j in range(m):
                         lit = d0 * unit[0, j] + d1 * unit[1, j] + d2 * unit[2, j]
                         half = h0 * unit[0, j] + h1 * unit[1, j] + h2 * unit[2, j]
-                        in_cone = (lit > min_shading32) & (half < cos_cone) & uu[k, j]
-                        ww2[k, j] = np.float32(1.0) if in_cone else np.float32(0.0)
-                        wv2[k, j] = ww2[k, j] * vv[k, j]
-                _solve(ww2, wv2, m, outer_t, u_t, r, c, 1e-3, c2, ok2, gram, rhs, low)
-                _to_normal(c2, m, back, r, g32b, unit2, rho2)
+                        in_cone = (lit > min_shading32) & (half < cos_cone) & usable[k, j]
+                        w2[k, j] = np.float32(1.0) if in_cone else np.float32(0.0)
+                _sums(w2, v, basis, m, sums)
+                _solve(sums, c, r, 1e-3, m, c2, ok2)
+                _to_normal(c2, m, back3, g32b, unit2, rho2)
                 for j in range(m):
                     # Where the cone's fit is ill posed or its normal left the cone, the first
                     # estimate stays: the cone's fit is only meant to undo a highlight's pull.
                     agree = unit2[0, j] * unit[0, j] + unit2[1, j] * unit[1, j] + unit2[2, j] * unit[2, j]
-                    if ok2[j] and agree > cos_cone:
-                        for a in range(r):
+                    take[j] = ok2[j] and agree > cos_cone
+                    if take[j]:
+                        for a in range(3):
                             c[a, j] = c2[a, j]
-                        for k in range(n):
-                            ww[k, j] = ww2[k, j]
-                _to_normal(c, m, back, r, g32, unit, rho)
+                for k in range(n):
+                    for j in range(m):
+                        # Both read first: a select of two values vectorises, one of two
+                        # addresses does not.
+                        cone_w, first_w = w2[k, j], w[k, j]
+                        w[k, j] = cone_w if take[j] else first_w
+                _to_normal(c, m, back3, g32, unit, rho)
             # Step 3: robust passes.
             for t in range(iterations):
                 for j in range(m):
@@ -267,16 +351,20 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                     num[j] = 0.0
                     den[j] = 0.0
                 # Predictions, candidates and residuals, and in the same pass the residuals'
-                # RMS under the previous weights (the scale; see ptmcore.robust.reweight).
-                for k in range(n):
-                    d0, d1, d2 = dirs[k, 0], dirs[k, 1], dirs[k, 2]
+                # RMS under the previous weights (the scale; see ptmcore.robust.reweight); a
+                # block of photographs at a time, as in _sums.
+                for k0 in range(0, n, _BLOCK):
                     for j in range(m):
-                        p = d0 * g32[0, j] + d1 * g32[1, j] + d2 * g32[2, j]
-                        cc[k, j] = (p > floor[j]) & uu[k, j] & (vv[k, j] >= cast * p)
-                        res_kj = vv[k, j] - p
-                        rr[k, j] = res_kj
-                        num[j] += ww[k, j] * res_kj * res_kj
-                        den[j] += ww[k, j]
+                        gx, gy, gz = g32[0, j], g32[1, j], g32[2, j]
+                        sq, sw = num[j], den[j]
+                        for k in range(k0, k0 + _BLOCK):
+                            p = dirs[k, 0] * gx + dirs[k, 1] * gy + dirs[k, 2] * gz
+                            cand[k, j] = (p > floor[j]) & usable[k, j] & (v[k, j] >= cast * p)
+                            res_kj = v[k, j] - p
+                            res[k, j] = res_kj
+                            sq += w[k, j] * res_kj * res_kj
+                            sw += w[k, j]
+                        num[j], den[j] = sq, sw
                 if t > 0 or cone:
                     # The cone's fit's residuals over its own samples first (r parameters
                     # fitted to them), then the previous pass's, divided by the consistency.
@@ -286,7 +374,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                         if t > 0:
                             scale[j] = np.float32(scale[j]) / consistency
                 else:
-                    _median_scale(rr, cc, m, scale)
+                    _median_scale(res, cand, m, scale)
                 for j in range(m):
                     s = max(scale[j], noise + relative * rho[j])
                     hi[j] = np.float32(s * above)
@@ -300,23 +388,22 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                         lo[j] = np.float32(1.0) / lo[j]
                     for k in range(n):
                         for j in range(m):
-                            q = max(rr[k, j] * hi[j], rr[k, j] * lo[j])
+                            q = max(res[k, j] * hi[j], res[k, j] * lo[j])
                             q = max(np.float32(1.0) - q * q, np.float32(0.0))
-                            ww[k, j] = q * q if cc[k, j] else np.float32(0.0)
-                            wv[k, j] = ww[k, j] * vv[k, j]
+                            w[k, j] = q * q if cand[k, j] else np.float32(0.0)
                 else:
                     for k in range(n):
                         for j in range(m):
-                            keep = (rr[k, j] <= hi[j]) & (rr[k, j] >= lo[j]) & cc[k, j]
-                            ww[k, j] = np.float32(1.0) if keep else np.float32(0.0)
-                            wv[k, j] = ww[k, j] * vv[k, j]
-                _solve(ww, wv, m, outer_t, u_t, r, c, 1e-6, c2, ok2, gram, rhs, low)
+                            keep = (res[k, j] <= hi[j]) & (res[k, j] >= lo[j]) & cand[k, j]
+                            w[k, j] = np.float32(1.0) if keep else np.float32(0.0)
+                _sums(w, v, basis, m, sums)
+                _solve(sums, c, r, 1e-6, m, c2, ok2)
                 for j in range(m):
                     if ok2[j]:
-                        for a in range(r):
+                        for a in range(3):
                             c[a, j] = c2[a, j]
                     ok[j] = ok[j] | ok2[j]
-                _to_normal(c, m, back, r, g32, unit, rho)
+                _to_normal(c, m, back3, g32, unit, rho)
             for j in range(inside):
                 col = c0 + j
                 # As ptmcore.normals.store_normals: (0, 0, 1) where undetermined; lights in one
@@ -337,9 +424,10 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                     normals[row, col, 2] = 1.0
                     albedo[row, col] = 0.0
                 valid[row, col] = good
-            total = np.zeros(m, np.float32)
+            for j in range(m):
+                total[j] = 0.0
             for k in range(n):
                 for j in range(m):
-                    total[j] += ww[k, j]
+                    total[j] += w[k, j]
             for j in range(inside):
                 samples[row, c0 + j] = np.uint16(round(total[j]))

@@ -7,8 +7,8 @@ from ptmcore import robust
 from ptmcore.images import ImageStack, default_table
 from ptmcore.robust import robust_photometric_stereo
 
-from helpers import dome, stack_from_luminance
-from test_robust import _corrupted_sphere
+from helpers import dome, sphere_normals, stack_from_luminance
+from test_robust import _corrupted_sphere, _half_vectors, _lambertian
 
 
 def _numpy_steps(stack, directions, method, specular_cone):
@@ -31,6 +31,29 @@ def test_kernel_matches_the_numpy_steps(method, cone):
     ref = _numpy_steps(stack, dirs, method, cone)
     new = robust_photometric_stereo(stack, dirs, method=method, specular_cone=cone)
     # Float32 rounding only: the sums are added in another order. Measured ≤ 1e-4°.
+    assert _angle(new.normals, ref.normals).max() < 1e-3
+    np.testing.assert_allclose(new.albedo, ref.albedo, atol=1e-5)
+    np.testing.assert_array_equal(new.valid, ref.valid)
+    assert np.abs(new.samples.astype(int) - ref.samples).max() <= 1
+    assert np.mean(new.samples != ref.samples) < 0.01
+
+
+@pytest.mark.parametrize("method", robust.METHODS)
+def test_kernel_with_photographs_and_columns_past_its_blocks(method):
+    # 45 photographs, not a whole number of the kernel's blocks of photographs, and 300 columns,
+    # one chunk of pixels and part of the next: the padding must change nothing.
+    rng = np.random.default_rng(4)
+    n_true, _ = sphere_normals(12, 300, 140.0)
+    dirs = dome(45, seed=5)
+    values = _lambertian(n_true, 0.4, dirs)
+    lobe = np.maximum(np.einsum("nc,hwc->nhw", _half_vectors(dirs), n_true), 0.0) ** 40
+    values += 0.5 * lobe * (values > 0)
+    values[rng.random(values.shape) < 0.1] = 0.0
+    values = np.clip(values + rng.normal(0.0, 0.003, values.shape), 0.0, 1.0)
+    values[:, 4:7, 250:262] = 1.0  # clipped, across the chunks' border
+    stack = stack_from_luminance(values, values >= 1.0)
+    ref = _numpy_steps(stack, dirs, method, 30.0)
+    new = robust_photometric_stereo(stack, dirs, method=method)
     assert _angle(new.normals, ref.normals).max() < 1e-3
     np.testing.assert_allclose(new.albedo, ref.albedo, atol=1e-5)
     np.testing.assert_array_equal(new.valid, ref.valid)
