@@ -8,7 +8,7 @@ in NumPy and OpenCV each of the two reductions took as long again, as chains of 
 passes over the photograph, and the viewers' fits decoded every photograph a second time.
 
 Here one compiled kernel (:func:`_reduce_rows`, numba) visits each pixel of a band of rows
-once and, for every photograph of a batch in order:
+once per group of photographs and, for every photograph of the group in order:
 
 * linearises each channel through a table (or computes it, for float TIFF) into its
   contribution ``w_c · linear_c · 65534`` to the luminance, marks a pixel where a channel
@@ -21,12 +21,13 @@ once and, for every photograph of a batch in order:
 The arithmetic is the NumPy code's, in float32 and in the same order (numba does not contract a
 product and a sum into one fused multiply-add without ``fastmath``), so a ``.ptm`` file's bytes
 do not change (``tests/test_one_decode.py`` and HP's fixture in ``tests/test_ptmfile.py``).
-Several photographs per visit keep a pixel's sums in registers: the sums are read and written
-once per batch instead of once per photograph, which is most of the memory traffic.
+The sums are the memory traffic that costs most (14 float32 per pixel with an LRGB PTM): they
+are read and written once per group of photographs, a short stretch of a row at a time kept in
+the first-level cache while the group's photographs are added to it.
 
 The kernel releases the GIL and runs in the caller's threads on bands of rows
-(:func:`ptmcore.streaming.run_in_order` keeps the photographs in order per band), so ``threads``
-is respected and numba's threading layer is not involved. Compiled code is cached on disk
+(:func:`ptmcore.streaming.run_in_groups`: the threads decode a group, then add it band by
+band), so ``threads`` is respected and numba's threading layer is not involved. Compiled code is cached on disk
 (``cache=True``), so only the first run after installation pays for compilation.
 """
 
@@ -47,19 +48,23 @@ from .bands import run_bands
 from .errors import InputError
 from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, default_table, linear_to_srgb, srgb_to_linear
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
-from .streaming import Photographs, check_same_size, run_in_order
+from .streaming import Photographs, check_same_size, run_in_groups
 
 __all__ = ["Reduced", "disk_array", "reduce_photographs", "srgb8_tables"]
 
-#: Photographs per kernel call (and per task): the kernel's tuple of images always has this
-#: length, padded, so that numba compiles one version per sample type only.
-_BATCH = 4
-#: Pixels per band of rows: the unit of ownership between threads (:class:`BandTurns`).
+#: Photographs per kernel call (and per group, see :func:`ptmcore.streaming.run_in_groups`):
+#: the kernel's tuple of images always has this length, padded, so that numba compiles one
+#: version per sample type only.
+_BATCH = 8
+#: Pixels of a row the kernel works on at a time: its scratch rows (a few dozen of them)
+#: then stay in the first-level cache.
+_CHUNK = 256
+#: Pixels per band of rows: the unit of work of a thread.
 _BAND_PIXELS = 1 << 18
-#: Memory for the decoded photographs one task holds. At 24 megapixels (72 MB as 8-bit RGB)
-#: that is 2 photographs per task, 288 MB for 2 threads: 4 per task made the kernel 15 %
-#: faster but held 576 MB, beyond the 4 GB a 48-photograph capture of that size should fit in.
-_BATCH_BYTES = 160 << 20
+#: Memory for the decoded photographs of a group. At 24 megapixels (72 MB as 8-bit RGB) that
+#: is 4 photographs: each pixel's sums are then read and written once per 4 photographs, which
+#: made the reduction 1.6× faster than once per 2 (more is faster still, but holds more).
+_GROUP_BYTES = 300 << 20
 
 
 def _contribution(lut, wscale, i, ch, v):  # pragma: no cover - replaced in compiled code
@@ -89,9 +94,17 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
     """Add rows ``r0:r1`` of the first ``m`` images of ``images`` (photographs ``ks``, in order).
 
     What is not wanted is passed as None: numba prunes ``x is None`` branches of arguments
-    when it compiles, so each combination gets lean code of its own. (Runtime flags and
-    empty arrays instead made the common case 50 % slower: stores into arrays in the pixel
-    loop, even in branches never taken, keep LLVM from holding values in registers.)
+    when it compiles, so each combination gets lean code of its own.
+
+    The work goes a chunk of :data:`_CHUNK` pixels of a row at a time. The chunk's sums are
+    copied into small scratch rows (one row per sum, so a pixel's sums sit in the same column of
+    each), every photograph of the group is added to them, and they are copied back: the large
+    arrays are read and written once per group. For each photograph a scalar loop does what
+    needs table look-ups (the luminance codes, clip marks and per-channel contributions; LLVM
+    emits no gathers for x86 CPUs where they are slow), and the float sums are then loops over
+    the scratch rows alone, contiguous, which LLVM vectorises. The chunk of a photograph is read
+    as one flat row (``ravel``): indexed as (row, column, channel) LLVM did not vectorise the
+    loads, and the kernel was 1.7× slower.
 
     Parameters
     ----------
@@ -102,9 +115,7 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
         Their photograph indices, ascending.
     luts, wscale
         Each channel's luminance contribution of a sample of ``images[i]``: ``luts[i][c, v]``
-        for integer samples, ``rint(clip(v, 0, 1) · wscale[i, c])`` for floats. (A tuple of
-        tables, not one indexed array: indexing a (N, 3, 2^bits) array per photograph and
-        sample made the kernel 40 % slower.)
+        for integer samples, ``rint(clip(v, 0, 1) · wscale[i, c])`` for floats.
     top : scalar of the images' type
         A sample above this is clipped (254, 65534, or the float below 1).
     enc_scale : float32
@@ -121,112 +132,142 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
 
     Returns
     -------
-    tuple of 4 int
-        Clipped pixels of each image (with the stack), counted in scalars for the reason above.
+    ndarray (len(images),), int64
+        Clipped pixels of each image (with the stack).
     """
     w = images[0].shape[1]
     hr, hg, hb = hp[0], hp[1], hp[2]
-    zero = np.float32(0.0)
-    n0 = n1 = n2 = n3 = 0
+    f32 = np.float32
+    counts = np.zeros(len(images), np.int64)
+    # Scratch rows: the contributions t (int32) and encoded samples e of one photograph, and
+    # the accumulated sums of the chunk.
+    tt = np.empty((3, _CHUNK), np.int32)
+    ee = np.empty((3, _CHUNK), f32)
+    acc_c = np.empty((3, _CHUNK), f32)
+    acc_p = np.empty((11, _CHUNK), f32)
+    ka = 0 if sums_a is None else mat_a.shape[0]
+    kb = 0 if sums_b is None else mat_b.shape[0]
+    acc_a = np.empty((3 * ka, _CHUNK), f32)
+    acc_b = np.empty((3 * kb, _CHUNK), f32)
     for r in range(r0, r1):
-        for c in range(w):
-            # A pixel's sums stay in registers over the batch's photographs: they are read and
-            # written once per batch, not once per photograph.
-            s0 = s1 = s2 = a0 = a1 = a2 = a3 = a4 = a5 = peak = q0 = q1 = q2 = yy = zero
+        for c0 in range(0, w, _CHUNK):
+            nc = min(_CHUNK, w - c0)
             if chan is not None:
-                s0 = chan[r, c, 0]
-                s1 = chan[r, c, 1]
-                s2 = chan[r, c, 2]
+                for c in range(nc):
+                    acc_c[0, c] = chan[r, c0 + c, 0]
+                    acc_c[1, c] = chan[r, c0 + c, 1]
+                    acc_c[2, c] = chan[r, c0 + c, 2]
             if ptm_sums is not None:
-                a0 = ptm_sums[r, c, 0]
-                a1 = ptm_sums[r, c, 1]
-                a2 = ptm_sums[r, c, 2]
-                a3 = ptm_sums[r, c, 3]
-                a4 = ptm_sums[r, c, 4]
-                a5 = ptm_sums[r, c, 5]
-                peak = ptm_aux[r, c, 0]
-                q0 = ptm_aux[r, c, 1]
-                q1 = ptm_aux[r, c, 2]
-                q2 = ptm_aux[r, c, 3]
-                yy = ptm_aux[r, c, 4]
-            # A loop of fixed length (the tuple's), which LLVM unrolls, rather than range(m).
-            for i in range(len(images)):
-                if i >= m:
-                    break
+                for c in range(nc):
+                    for j in range(6):
+                        acc_p[j, c] = ptm_sums[r, c0 + c, j]
+                    for j in range(5):
+                        acc_p[6 + j, c] = ptm_aux[r, c0 + c, j]
+            if sums_a is not None:
+                for c in range(nc):
+                    for ch in range(3):
+                        for j in range(ka):
+                            acc_a[ch * ka + j, c] = sums_a[r, c0 + c, ch, j]
+            if sums_b is not None:
+                for c in range(nc):
+                    for ch in range(3):
+                        for j in range(kb):
+                            acc_b[ch * kb + j, c] = sums_b[r, c0 + c, ch, j]
+            for i in range(m):
                 img = images[i]
                 k = ks[i]
-                v0 = img[r, c, 0]
-                v1 = img[r, c, 1]
-                v2 = img[r, c, 2]
+                # The scalar part: what needs tables, and the samples in scratch rows.
+                nclip = 0
+                lut = luts[i]
+                px = img[r, c0:c0 + nc].ravel()
+                for c in range(nc):
+                    v0 = px[3 * c]
+                    v1 = px[3 * c + 1]
+                    v2 = px[3 * c + 2]
+                    if chan is not None:
+                        t0 = _contribution(lut, wscale, i, 0, v0)
+                        t1 = _contribution(lut, wscale, i, 1, v1)
+                        t2 = _contribution(lut, wscale, i, 2, v2)
+                        tt[0, c] = t0
+                        tt[1, c] = t1
+                        tt[2, c] = t2
+                        code = min(t0 + t1 + t2, 65534)
+                        if v0 > top or v1 > top or v2 > top:
+                            code = 65535  # images.SATURATED
+                            nclip += 1
+                        if lum16 is not None:
+                            lum16[k, r, c0 + c] = code
+                        if lum8 is not None:
+                            lum8[k, r, c0 + c] = to8[code]
+                counts[i] += nclip
+                # The vectorised part, in the order of the NumPy arithmetic it replaced.
+                for c in range(nc):
+                    ee[0, c] = f32(px[3 * c]) * enc_scale
+                    ee[1, c] = f32(px[3 * c + 1]) * enc_scale
+                    ee[2, c] = f32(px[3 * c + 2]) * enc_scale
                 if chan is not None:
-                    lut = luts[i]
-                    t0 = _contribution(lut, wscale, i, 0, v0)
-                    t1 = _contribution(lut, wscale, i, 1, v1)
-                    t2 = _contribution(lut, wscale, i, 2, v2)
-                    code = min(t0 + t1 + t2, 65534)
-                    if v0 > top or v1 > top or v2 > top:
-                        code = 65535  # images.SATURATED
-                        if i == 0:
-                            n0 += 1
-                        elif i == 1:
-                            n1 += 1
-                        elif i == 2:
-                            n2 += 1
-                        else:
-                            n3 += 1
-                    if lum16 is not None:
-                        lum16[k, r, c] = code
-                    if lum8 is not None:
-                        lum8[k, r, c] = to8[code]
-                    s0 += np.float32(t0)
-                    s1 += np.float32(t1)
-                    s2 += np.float32(t2)
-                e0 = np.float32(v0) * enc_scale
-                e1 = np.float32(v1) * enc_scale
-                e2 = np.float32(v2) * enc_scale
+                    for c in range(nc):
+                        acc_c[0, c] += f32(tt[0, c])
+                        acc_c[1, c] += f32(tt[1, c])
+                        acc_c[2, c] += f32(tt[2, c])
                 if ptm_sums is not None:
-                    y = e0 * hr + e1 * hg + e2 * hb
-                    a0 += y * ptm_pinv[0, k]
-                    a1 += y * ptm_pinv[1, k]
-                    a2 += y * ptm_pinv[2, k]
-                    a3 += y * ptm_pinv[3, k]
-                    a4 += y * ptm_pinv[4, k]
-                    a5 += y * ptm_pinv[5, k]
-                    if y > peak:
-                        peak = y
-                    q0 += e0 * y
-                    q1 += e1 * y
-                    q2 += e2 * y
-                    yy += y * y
+                    p0 = ptm_pinv[0, k]
+                    p1 = ptm_pinv[1, k]
+                    p2 = ptm_pinv[2, k]
+                    p3 = ptm_pinv[3, k]
+                    p4 = ptm_pinv[4, k]
+                    p5 = ptm_pinv[5, k]
+                    for c in range(nc):
+                        e0 = ee[0, c]
+                        e1 = ee[1, c]
+                        e2 = ee[2, c]
+                        y = e0 * hr + e1 * hg + e2 * hb
+                        acc_p[0, c] += y * p0
+                        acc_p[1, c] += y * p1
+                        acc_p[2, c] += y * p2
+                        acc_p[3, c] += y * p3
+                        acc_p[4, c] += y * p4
+                        acc_p[5, c] += y * p5
+                        peak = acc_p[6, c]
+                        acc_p[6, c] = y if y > peak else peak
+                        acc_p[7, c] += e0 * y
+                        acc_p[8, c] += e1 * y
+                        acc_p[9, c] += e2 * y
+                        acc_p[10, c] += y * y
                 if sums_a is not None:
-                    for j in range(mat_a.shape[0]):
-                        f = mat_a[j, k]
-                        sums_a[r, c, 0, j] += e0 * f
-                        sums_a[r, c, 1, j] += e1 * f
-                        sums_a[r, c, 2, j] += e2 * f
+                    for ch in range(3):
+                        for j in range(ka):
+                            f = mat_a[j, k]
+                            for c in range(nc):
+                                acc_a[ch * ka + j, c] += ee[ch, c] * f
                 if sums_b is not None:
-                    for j in range(mat_b.shape[0]):
-                        f = mat_b[j, k]
-                        sums_b[r, c, 0, j] += e0 * f
-                        sums_b[r, c, 1, j] += e1 * f
-                        sums_b[r, c, 2, j] += e2 * f
+                    for ch in range(3):
+                        for j in range(kb):
+                            f = mat_b[j, k]
+                            for c in range(nc):
+                                acc_b[ch * kb + j, c] += ee[ch, c] * f
             if chan is not None:
-                chan[r, c, 0] = s0
-                chan[r, c, 1] = s1
-                chan[r, c, 2] = s2
+                for c in range(nc):
+                    chan[r, c0 + c, 0] = acc_c[0, c]
+                    chan[r, c0 + c, 1] = acc_c[1, c]
+                    chan[r, c0 + c, 2] = acc_c[2, c]
             if ptm_sums is not None:
-                ptm_sums[r, c, 0] = a0
-                ptm_sums[r, c, 1] = a1
-                ptm_sums[r, c, 2] = a2
-                ptm_sums[r, c, 3] = a3
-                ptm_sums[r, c, 4] = a4
-                ptm_sums[r, c, 5] = a5
-                ptm_aux[r, c, 0] = peak
-                ptm_aux[r, c, 1] = q0
-                ptm_aux[r, c, 2] = q1
-                ptm_aux[r, c, 3] = q2
-                ptm_aux[r, c, 4] = yy
-    return n0, n1, n2, n3
+                for c in range(nc):
+                    for j in range(6):
+                        ptm_sums[r, c0 + c, j] = acc_p[j, c]
+                    for j in range(5):
+                        ptm_aux[r, c0 + c, j] = acc_p[6 + j, c]
+            if sums_a is not None:
+                for c in range(nc):
+                    for ch in range(3):
+                        for j in range(ka):
+                            sums_a[r, c0 + c, ch, j] = acc_a[ch * ka + j, c]
+            if sums_b is not None:
+                for c in range(nc):
+                    for ch in range(3):
+                        for j in range(kb):
+                            sums_b[r, c0 + c, ch, j] = acc_b[ch * kb + j, c]
+    return counts
 
 
 def disk_array(folder: str | os.PathLike, shape: tuple[int, ...], dtype: type) -> np.ndarray:
@@ -312,7 +353,7 @@ class _Tables:
         luts = self._luts.get(dtype)
         if luts is None:
             # Two threads may both build it on first use of a sample type: harmless.
-            luts = self._luts[dtype] = self._build(dtype)
+            luts = self._luts[dtype] = self._build(dtype).astype(np.int32)
         rows = self.lut_of[ks]
         rows = np.concatenate([rows, np.repeat(rows[:1], _BATCH - len(rows))])
         return tuple(luts[i] for i in rows), self.wscale[rows]
@@ -401,9 +442,10 @@ def _encoded_scale(dtype: np.dtype) -> np.float32:
     return np.float32(255)
 
 
-def _batch_size(first: np.ndarray) -> int:
-    """Photographs per task: up to :data:`_BATCH`, within :data:`_BATCH_BYTES` per task."""
-    return int(max(1, min(_BATCH, _BATCH_BYTES // max(1, first.nbytes))))
+def _group_size(first: np.ndarray, threads: int) -> int:
+    """Photographs per group: within :data:`_GROUP_BYTES`, but at least one per thread (so
+    that they all decode), and at most :data:`_BATCH`."""
+    return int(max(1, min(_BATCH, max(threads, _GROUP_BYTES // max(1, first.nbytes)))))
 
 
 def reduce_photographs(
@@ -439,7 +481,7 @@ def reduce_photographs(
     threads : int, optional
         Decoding and reducing threads; default: the number of CPUs.
     progress : callable, optional
-        Called with 1 for each photograph, when its batch is done.
+        Called with 1 for each photograph, when its group is done.
     on_disk : path, optional
         A folder: the stack is then a memory-mapped file there (:func:`disk_array`) instead of
         an array in memory.
@@ -460,7 +502,8 @@ def reduce_photographs(
     first = photos.load(0)
     h, w = first.shape[:2]
     workers = max(1, threads or os.cpu_count() or 1)
-    batch = _batch_size(first)
+    per_group = _group_size(first, workers)
+    counting = threading.Lock()  # threads add the clipped counts of their bands
     # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in
     # the shadows); gains or linear 8-bit input would need finer steps in the highlights.
     eight = storage == "auto" and first.dtype == np.uint8 and linearize and channel_gains is None
@@ -502,7 +545,7 @@ def reduce_photographs(
     # 1.35 GB at 24 megapixels, seconds on a machine where fresh memory is slow to map.
     run_bands(h, max(1, _BAND_PIXELS // w), lambda r0, r1: [a[r0:r1].fill(0) for a in zeroed], threads=workers)
     depths = np.zeros(n, np.int64)
-    held = [first]  # photograph 0 until its task takes it (and frees it)
+    held = [first]  # photograph 0 until its group takes it (and frees it)
     buffers = _Buffers(first.nbytes if first.dtype == np.uint8 else 0)
     del first
     first_path = photos.path(0)
@@ -537,14 +580,15 @@ def reduce_photographs(
             counts = _reduce_rows(padded, len(group), ks, r0, r1, luts, wscale, _top(dtype), _encoded_scale(dtype),
                                   lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
                                   mat_b, sums_b)
-            clipped[ks] += counts[: len(group)]  # this task owns these photographs' counts
+            with counting:
+                clipped[ks] += counts[: len(group)]
             i = j
 
     rows = max(1, _BAND_PIXELS // w)
     bands = [(r0, min(h, r0 + rows)) for r0 in range(0, h, rows)]
-    # A task's prepared photographs carry their indices: the kernel needs them for the
+    # A group's prepared photographs carry their indices: the kernel needs them for the
     # matrices' columns and the stack's planes.
-    run_in_order(n, batch, prepare,
+    run_in_groups(n, per_group, prepare,
                  lambda prepared, r0, r1: add_batch([p for _, p, _ in prepared], prepared[0][0], r0, r1),
                  bands, threads=workers, progress=progress, release=release)
     return Reduced(

@@ -2,23 +2,23 @@
 
 The fits that viewers' files need (HP's PTM, RTIBuilder's HSH) and the linear stack the normals
 use are all built photograph by photograph into per-pixel arrays (:mod:`ptmcore.reduce`). This
-module schedules that work: threads decode a few photographs each and add them into the arrays
-a band of rows at a time, so memory stays at the arrays plus a few photographs.
+module schedules that work: the threads decode a group of photographs together, then add the
+group into the arrays together, each thread a band of rows at a time, so memory stays at the
+arrays plus one group of photographs.
 
 The float32 sums must be added in photograph order, or their last bits (and so a ``.ptm``
-file's bytes) would depend on the threads' timing. Bands of rows never overlap, so a band is
-the unit of ownership: :class:`BandTurns` lets a task add band ``b`` only after the task before
-it has added its own band ``b``. A task whose photographs are decoded follows the one before it
-band by band, instead of waiting for it to finish: decoding the next photographs overlaps the
-reduction of these, with no lock on the sums and no lost update.
+file's bytes) would depend on the threads' timing. Bands of rows never overlap and one call
+adds a whole group to a band, photograph after photograph, so the order holds without a lock.
+Adding a group at once rather than each thread its own photographs matters for speed: the
+sums (14 float32 per pixel, 1.3 GB at 24 megapixels) are read and written once per group, and
+that memory traffic was most of the reduction's time.
 """
 
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ import numpy as np
 from .errors import InputError
 from .images import read_image
 
-__all__ = ["BandTurns", "Photographs", "check_same_size", "run_in_order"]
+__all__ = ["Photographs", "check_same_size", "run_in_groups"]
 
 
 def _as_image(img: np.ndarray, where: str) -> np.ndarray:
@@ -81,47 +81,9 @@ def check_same_size(img: np.ndarray, shape: tuple[int, int], k: int, path: Path 
         )
 
 
-class _Aborted(Exception):
-    """A task gave up because another one failed."""
-
-
-class BandTurns:
-    """Per-band order of the tasks: task ``t`` adds band ``b`` after task ``t − 1`` has.
-
-    Tasks are numbered in photograph order and started in that order, so the task a waiter
-    waits for is running or done, and the waits cannot deadlock; :meth:`fail` wakes and aborts
-    every waiter when a task fails.
-    """
-
-    def __init__(self, bands: int) -> None:
-        self._done = [0] * bands
-        self._cond = threading.Condition()
-        self._failed = False
-
-    def wait(self, band: int, task: int) -> None:
-        """Block until ``task`` may add ``band``; raise if another task failed."""
-        with self._cond:
-            while self._done[band] < task and not self._failed:
-                self._cond.wait()
-            if self._failed:
-                raise _Aborted
-
-    def finish(self, band: int) -> None:
-        """The current task has added ``band``."""
-        with self._cond:
-            self._done[band] += 1
-            self._cond.notify_all()
-
-    def fail(self) -> None:
-        """Abort every task that waits now or later."""
-        with self._cond:
-            self._failed = True
-            self._cond.notify_all()
-
-
-def run_in_order(
+def run_in_groups(
     n: int,
-    batch: int,
+    group: int,
     prepare: Callable[[int], object],
     add: Callable[[list, int, int], None],
     bands: list[tuple[int, int]],
@@ -130,57 +92,39 @@ def run_in_order(
     progress: Callable[[int], None] | None = None,
     release: Callable[[list], None] | None = None,
 ) -> None:
-    """Add ``n`` photographs, ``batch`` at a time, into per-pixel arrays in photograph order.
+    """Add ``n`` photographs, ``group`` at a time, into per-pixel arrays in photograph order.
 
-    Each task takes ``batch`` consecutive photographs: it calls ``prepare(k)`` for each (decode
-    and check; the results stay in memory until the task ends), then ``add(prepared, r0, r1)``
-    for every band of ``bands`` in its turn (:class:`BandTurns`), then ``release(prepared)``
-    (e.g. to reuse the photographs' memory). At most ``threads`` tasks run at a time, so at
-    most ``threads · batch`` photographs are held. ``progress(1)`` is called for each
-    photograph when its task is done.
+    For each group of consecutive photographs the threads first ``prepare(k)`` them (decode and
+    check), then call ``add(prepared, r0, r1)`` for the bands of ``bands`` (each band by one
+    thread; the group's photographs in order inside the call), then ``release(prepared)`` (e.g.
+    to reuse the photographs' memory). So at most ``group`` photographs are held, each pixel's
+    sums are read and written once per group, and a float32 sum never depends on the threads'
+    timing. ``progress(1)`` is called for each photograph when its group is added.
 
     Raises
     ------
     Exception
-        The first error, in photograph order, of a task that failed; the tasks not yet started
-        are cancelled.
+        The first error in photograph order; later groups are not started.
     """
-    tasks = [(k0, min(n, k0 + batch)) for k0 in range(0, n, batch)]
-    turns = BandTurns(len(bands))
-
-    def task(t: int) -> None:
-        k0, k1 = tasks[t]
-        prepared: list = []
-        try:
-            for k in range(k0, k1):
-                prepared.append(prepare(k))
-            for b, (r0, r1) in enumerate(bands):
-                turns.wait(b, t)
-                add(prepared, r0, r1)
-                turns.finish(b)
-        except BaseException:
-            turns.fail()
-            raise
-        finally:
-            if release is not None:
-                release(prepared)
+    workers = max(1, threads or os.cpu_count() or 1)
+    pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
+    each = pool.map if pool is not None else map
+    try:
+        for k0 in range(0, n, group):
+            prepared: list = []
+            try:
+                # Collected in order, so the first failure in photograph order is raised.
+                for item in each(prepare, range(k0, min(n, k0 + group))):
+                    prepared.append(item)
+                for _ in each(lambda band: add(prepared, *band), bands):
+                    pass
+            finally:
+                if release is not None:
+                    release(prepared)
+            if progress is not None:
+                for _ in prepared:
+                    progress(1)
             del prepared
-        if progress is not None:
-            for _ in range(k1 - k0):
-                progress(1)
-
-    workers = max(1, min(len(tasks), threads or os.cpu_count() or 1))
-    if workers == 1:
-        for t in range(len(tasks)):
-            task(t)
-        return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(task, t) for t in range(len(tasks))]
-        wait(futures, return_when=FIRST_EXCEPTION)
-        for f in futures:
-            f.cancel()
-    # The first real error in photograph order: tasks that only gave up (_Aborted) because
-    # another failed, and cancelled ones, are not it.
-    for f in futures:
-        if not f.cancelled() and f.exception() is not None and not isinstance(f.exception(), _Aborted):
-            raise f.exception()
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)

@@ -151,13 +151,13 @@ def synthetic(request, tmp_path_factory):
     return lights, photos
 
 
-@pytest.fixture(params=["default", "small bands, one photograph per task"])
+@pytest.fixture(params=["default", "small bands, one photograph per thread"])
 def schedule(request, monkeypatch):
-    """Default bands and batches, or many bands of a few rows and one photograph per task,
-    so that several tasks follow each other band by band."""
+    """Default bands and groups, or many bands of a few rows and groups of one photograph per
+    thread, so that many groups follow each other."""
     if request.param != "default":
         monkeypatch.setattr(reduce_module, "_BAND_PIXELS", 100)
-        monkeypatch.setattr(reduce_module, "_BATCH_BYTES", 1)
+        monkeypatch.setattr(reduce_module, "_GROUP_BYTES", 1)
     return request.param
 
 
@@ -370,7 +370,7 @@ def test_fits_know_what_they_were_made_of(synthetic):
 
 def test_a_bad_photograph_stops_the_pass_with_its_name(synthetic, tmp_path, monkeypatch):
     lights, photos = synthetic
-    monkeypatch.setattr(reduce_module, "_BATCH_BYTES", 1)
+    monkeypatch.setattr(reduce_module, "_GROUP_BYTES", 1)
     monkeypatch.setattr(reduce_module, "_BAND_PIXELS", 200)
     paths = list(lights.paths)
     broken = tmp_path / paths[6].name

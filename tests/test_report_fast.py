@@ -207,3 +207,37 @@ def test_normals_png_reads_back(tmp_path, large_maps):
     assert np.abs(back - normals).max() < 1e-4
     np.testing.assert_array_equal(cv2.imread(str(tmp_path / "normals.png"), cv2.IMREAD_UNCHANGED)[..., ::-1],
                                   outputs.normals_to_rgb16(normals))
+
+
+def _old_albedo_to_srgb8(albedo_rgb):
+    """The whole-image encoding albedo_to_srgb8 made before it went in bands."""
+    from ptmcore.images import linear_to_srgb
+
+    flat = albedo_rgb.reshape(-1)
+    sample = flat[:: max(1, flat.size // 1_000_000)]
+    sample = sample[np.isfinite(sample)]
+    top = float(np.percentile(sample, 99.9)) if sample.size else 1.0
+    scale = top if top > 1.0 else 1.0
+    a = np.ascontiguousarray(albedo_rgb, dtype=np.float32)
+    index = cv2.addWeighted(a, 65535.0 / scale, a, 0.0, 0.0, dtype=cv2.CV_16U)
+    table = np.round(linear_to_srgb(np.arange(65536, dtype=np.float64) / 65535.0) * 255).astype(np.uint8)
+    return table[index], scale
+
+
+@pytest.mark.parametrize("peak", [0.5, 3.0])
+def test_albedo_texture_is_the_product_encoded_in_bands(peak):
+    rng = np.random.default_rng(7)
+    h, w = 1100, 1500  # several bands, and more than a million values: a strided sample
+    chroma = rng.uniform(0.2, 1.6, (h, w, 3)).astype(np.float32)
+    albedo = rng.uniform(0, peak, (h, w)).astype(np.float32)
+    albedo[5, :7] = np.nan
+    albedo[6, :3] = np.inf
+    product = chroma * albedo[..., None]
+    old, old_scale = _old_albedo_to_srgb8(product)
+    for threads in (1, 2):
+        texture, scale = outputs.albedo_texture(chroma, albedo, threads=threads)
+        assert scale == old_scale and (scale > 1) == (peak > 1)
+        np.testing.assert_array_equal(texture, old)
+        again, scale = outputs.albedo_to_srgb8(product, threads=threads)
+        assert scale == old_scale
+        np.testing.assert_array_equal(again, old)

@@ -219,10 +219,9 @@ def run_capture(
             warnings.append(f"{found.undetermined} pixels ({found.undetermined / (h * w):.2%}) had too few lit, "
                             "unsaturated photographs to determine a normal; their normal is set to (0, 0, 1)")
         with stages("albedo"):
-            albedo_rgb = loaded.stack.chroma * found.albedo[..., None]
-            mask = resolve_mask(opt.mask, loaded.mask, albedo_rgb, found.normals, warnings)
-            texture, albedo_scale = outputs.albedo_to_srgb8(albedo_rgb)
-            del albedo_rgb
+            texture, albedo_scale = outputs.albedo_texture(loaded.stack.chroma, found.albedo, threads=opt.threads)
+            mask = resolve_mask(opt.mask, loaded.mask, lambda: loaded.stack.chroma * found.albedo[..., None],
+                                found.normals, warnings)
         loo = None
         if opt.loo:
             with stages("loo", 3 * h) as advance:

@@ -149,15 +149,19 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads))
 
 
-def resolve_mask(option: Path | str | None, known: np.ndarray | None, albedo_rgb: np.ndarray,
+def resolve_mask(option: Path | str | None, known: np.ndarray | None,
+                 albedo_rgb: np.ndarray | Callable[[], np.ndarray],
                  normals: np.ndarray, warnings: list[str] | None = None) -> np.ndarray | None:
     """The mask to integrate on: ``known`` (from the capture), or with ``option == "auto"``
     the object found against its background (:func:`reconstruct.surface.foreground_mask`);
-    None (the whole frame) with a warning appended to ``warnings`` where that fails."""
+    None (the whole frame) with a warning appended to ``warnings`` where that fails.
+
+    ``albedo_rgb`` may be a function that makes it: it is only needed with ``"auto"``.
+    """
     if option != "auto":
         return known
     try:
-        return foreground_mask(albedo_rgb, normals)
+        return foreground_mask(albedo_rgb() if callable(albedo_rgb) else albedo_rgb, normals)
     except ValueError as exc:
         if warnings is not None:
             warnings.append(f"no automatic mask: {exc}")
