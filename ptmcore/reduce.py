@@ -88,6 +88,32 @@ def _contribution_impl(lut, wscale, i, ch, v):  # pragma: no cover - typing-time
     return computed
 
 
+@numba.njit(nogil=True, cache=True, inline="always")
+def _channel_sums(sums, acc, r, c0, nc, load):  # pragma: no cover - compiled
+    """Copy a per-channel fit's sums (H, W, 3, K) of row ``r``, columns ``c0:c0 + nc``, into
+    the scratch rows ``acc`` (3·K, _CHUNK) when ``load``, else back from them."""
+    k = sums.shape[3]
+    for c in range(nc):
+        for ch in range(3):
+            for j in range(k):
+                if load:
+                    acc[ch * k + j, c] = sums[r, c0 + c, ch, j]
+                else:
+                    sums[r, c0 + c, ch, j] = acc[ch * k + j, c]
+
+
+@numba.njit(nogil=True, cache=True, inline="always")
+def _add_channel_fit(acc, ee, mat, k, nc):  # pragma: no cover - compiled
+    """Add photograph ``k``'s encoded samples ``ee`` (3, _CHUNK) to a per-channel fit's
+    scratch rows: ``acc[ch·K + j] += ee[ch] · mat[j, k]``."""
+    kk = mat.shape[0]
+    for ch in range(3):
+        for j in range(kk):
+            f = mat[j, k]
+            for c in range(nc):
+                acc[ch * kk + j, c] += ee[ch, c] * f
+
+
 @numba.njit(nogil=True, cache=True)
 def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum8, to8, chan, hp, ptm_pinv,
                  ptm_sums, ptm_aux, mat_a, sums_a, mat_b, sums_b):  # pragma: no cover - compiled
@@ -164,15 +190,9 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
                     for j in range(5):
                         acc_p[6 + j, c] = ptm_aux[r, c0 + c, j]
             if sums_a is not None:
-                for c in range(nc):
-                    for ch in range(3):
-                        for j in range(ka):
-                            acc_a[ch * ka + j, c] = sums_a[r, c0 + c, ch, j]
+                _channel_sums(sums_a, acc_a, r, c0, nc, True)
             if sums_b is not None:
-                for c in range(nc):
-                    for ch in range(3):
-                        for j in range(kb):
-                            acc_b[ch * kb + j, c] = sums_b[r, c0 + c, ch, j]
+                _channel_sums(sums_b, acc_b, r, c0, nc, True)
             for i in range(m):
                 img = images[i]
                 k = ks[i]
@@ -235,17 +255,9 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
                         acc_p[9, c] += e2 * y
                         acc_p[10, c] += y * y
                 if sums_a is not None:
-                    for ch in range(3):
-                        for j in range(ka):
-                            f = mat_a[j, k]
-                            for c in range(nc):
-                                acc_a[ch * ka + j, c] += ee[ch, c] * f
+                    _add_channel_fit(acc_a, ee, mat_a, k, nc)
                 if sums_b is not None:
-                    for ch in range(3):
-                        for j in range(kb):
-                            f = mat_b[j, k]
-                            for c in range(nc):
-                                acc_b[ch * kb + j, c] += ee[ch, c] * f
+                    _add_channel_fit(acc_b, ee, mat_b, k, nc)
             if chan is not None:
                 for c in range(nc):
                     chan[r, c0 + c, 0] = acc_c[0, c]
@@ -258,15 +270,9 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
                     for j in range(5):
                         ptm_aux[r, c0 + c, j] = acc_p[6 + j, c]
             if sums_a is not None:
-                for c in range(nc):
-                    for ch in range(3):
-                        for j in range(ka):
-                            sums_a[r, c0 + c, ch, j] = acc_a[ch * ka + j, c]
+                _channel_sums(sums_a, acc_a, r, c0, nc, False)
             if sums_b is not None:
-                for c in range(nc):
-                    for ch in range(3):
-                        for j in range(kb):
-                            sums_b[r, c0 + c, ch, j] = acc_b[ch * kb + j, c]
+                _channel_sums(sums_b, acc_b, r, c0, nc, False)
     return counts
 
 
@@ -353,7 +359,7 @@ class _Tables:
         luts = self._luts.get(dtype)
         if luts is None:
             # Two threads may both build it on first use of a sample type: harmless.
-            luts = self._luts[dtype] = self._build(dtype).astype(np.int32)
+            luts = self._luts[dtype] = self._build(dtype)
         rows = self.lut_of[ks]
         rows = np.concatenate([rows, np.repeat(rows[:1], _BATCH - len(rows))])
         return tuple(luts[i] for i in rows), self.wscale[rows]
