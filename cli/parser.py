@@ -328,8 +328,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     )
     _choice(
         p, RunOptions, "fit",
-        help="per-pixel fit: irls (default: robust, down-weights shadowed, clipped and specular samples), "
-        "trimmed (robust, leaves them out), plain (least squares)",
+        help="per-pixel fit: lobe (default: irls with a glossy reflectance lobe shared by the object, estimated "
+        "from the photographs and used only where it explains them), irls (robust, down-weights shadowed, "
+        "clipped and specular samples), trimmed (robust, leaves them out), plain (least squares)",
     )
     _choice(
         p, RunOptions, "integrator",

@@ -122,12 +122,15 @@ class PhotometricStereo:
         How many photographs were used at each pixel.
     valid : ndarray, shape (H, W), bool
         Where at least three well-spread samples determined the normal.
+    lobe : ptmcore.lobe.Lobe or None
+        The reflectance lobe the normals were fitted with (robust fits with ``lobe``).
     """
 
     normals: np.ndarray
     albedo: np.ndarray
     samples: np.ndarray
     valid: np.ndarray
+    lobe: object | None = None
 
 
 def _weighted_normal_solve(

@@ -53,6 +53,8 @@ _LANES = 16
 _FAST = {"contract", "arcp", "nsz"}
 #: Division by zero gives inf or NaN instead of raising: the check for it on every division
 #: keeps a loop from vectorising (the kernel never divides by zero).
+#: As :data:`ptmcore.lobe.FACTOR_RANGE`.
+_FACTOR_RANGE = (0.3, 3.0)
 _JIT = {"nogil": True, "cache": True, "fastmath": _FAST, "error_model": "numpy"}
 
 
@@ -215,7 +217,7 @@ def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
 
 @numba.njit(**_JIT)
 def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, irls, cone, iterations,
-                   normals, albedo, samples, valid):  # pragma: no cover - compiled
+                   normals, albedo, samples, valid, prior, lobe):  # pragma: no cover - compiled
     """Robust photometric stereo of rows ``r0:r1``, written into the result arrays.
 
     Parameters
@@ -244,6 +246,12 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
         Robust passes.
     normals, albedo, samples, valid : ndarray
         The result arrays (H, W, 3) float32, (H, W) float32, (H, W) uint16, (H, W) bool.
+    prior : ndarray, shape (H, W, 3), float32, or None
+        Unit normals at which the lobe is evaluated (:mod:`ptmcore.lobe`): each sample is
+        divided by ``f(n·h, n·l)`` before the fit. May be ``normals`` itself: a chunk's prior
+        is read before its normals are written. None: no lobe (the branch is compiled out).
+    lobe : ndarray, float64
+        The lobe's coefficients, of the powers of (1 − n·h) from the 0th.
     """
     n_photos, _, width = codes.shape
     r = u_t.shape[0]
@@ -286,6 +294,8 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     num = np.empty(chunk, np.float32)
     den = np.empty(chunk, np.float32)
     total = np.empty(chunk, np.float32)
+    pn = np.empty((3, chunk), np.float32)
+    lo_f, hi_f = np.float32(_FACTOR_RANGE[0]), np.float32(_FACTOR_RANGE[1])
     for row in range(r0, r1):
         for c0 in range(0, width, chunk):
             inside = min(chunk, width - c0)
@@ -293,12 +303,23 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
             m = min(chunk, -(-inside // _LANES) * _LANES)
             for j in range(m):
                 vmax[j] = 0.0
+            if prior is not None:
+                for j in range(inside):
+                    pn[0, j], pn[1, j], pn[2, j] = prior[row, c0 + j, 0], prior[row, c0 + j, 1], prior[row, c0 + j, 2]
             for k in range(n_photos):
                 line = codes[k, row, c0:c0 + inside]
                 # The look-up is a gather, which the compiler leaves scalar: on its own the rest
                 # of the pass vectorises.
                 for j in range(inside):
                     v[k, j] = table[line[j]]
+                if prior is not None:
+                    h0, h1, h2 = halves[k, 0], halves[k, 1], halves[k, 2]
+                    for j in range(inside):
+                        x = np.float32(1.0) - (h0 * pn[0, j] + h1 * pn[1, j] + h2 * pn[2, j])
+                        f = np.float32(0.0)
+                        for a in range(len(lobe) - 1, -1, -1):
+                            f = f * x + np.float32(lobe[a])
+                        v[k, j] = v[k, j] / min(max(f, lo_f), hi_f)
                 for j in range(inside):
                     usable[k, j] = line[j] != sat
                     vmax[j] = max(vmax[j], v[k, j])

@@ -142,7 +142,7 @@ def test_report_json_keys(capture, tmp_path):
     run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert list(report) == ["inputs", "parameters", "height_unit", "albedo_scale", "lights", "light_model",
-                            "intensities", "ptm", "leave_one_out", "accuracy", "mesh", "stages",
+                            "intensities", "reflectance_lobe", "ptm", "leave_one_out", "accuracy", "mesh", "stages",
                             "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
     # The whole run's peak: the largest stage's, so no stage can hide it.
     assert report["peak_rss_mb"] == max(s["peak_rss_mb"] for s in report["stages"].values()) > 0

@@ -36,7 +36,7 @@ __all__ = [
 NormalMethod = Literal["ps", "ptm", "ptm-debiased"]
 #: Per-pixel fits; the default is the more accurate on the synthetic benchmark with specular
 #: highlights and shadows (BENCHMARKS.md), at about three times the plain fit's time.
-Fit = Literal["irls", "trimmed", "plain"]
+Fit = Literal["lobe", "irls", "trimmed", "plain"]
 Integrator = Literal["auto", "dct", "fc", "masked", "bilateral"]
 PtmFormat = Literal["lrgb", "rgb"]
 Solver = Literal["pinv", "lstsq", "rohde"]
@@ -136,9 +136,11 @@ class RunOptions:
     loo : bool
         Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
         photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
-    fit : {"irls", "trimmed", "plain"}
+    fit : {"lobe", "irls", "trimmed", "plain"}
         How each pixel's samples are weighted: robustly (Tukey IRLS, or 0/1 trimming, leaving
-        out shadowed, clipped and specular samples) or by plain least squares.
+        out shadowed, clipped and specular samples) or by plain least squares. ``"lobe"`` is
+        IRLS with a glossy reflectance lobe shared by the object, estimated from the photographs
+        and used where it explains them (:mod:`ptmcore.lobe`); for PTM normals it is IRLS.
     hsh : bool
         Also write ``coefficients.rti``: hemispherical harmonics of order 3, RTIViewer's HSH
         format, fitted per channel to the photographs as encoded.
@@ -203,7 +205,7 @@ class RunOptions:
     ptm_format: PtmFormat = "lrgb"
     solver: Solver = "pinv"
     loo: bool = False
-    fit: Fit = "irls"
+    fit: Fit = "lobe"
     hsh: bool = False
     flatten: Flattening | None = None
     decimate: int | None = None

@@ -208,6 +208,7 @@ class RunReport:
     lights: LightLayout | None = None
     light_model: LightModel | None = None
     intensities: dict | None = None
+    reflectance_lobe: dict | None = None
     ptm: PtmSummary | None = None
     leave_one_out: dict | None = None
     versions: dict[str, str] = field(default_factory=versions)
@@ -221,7 +222,7 @@ class RunReport:
         """
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
-            keys += ["albedo_scale", "lights", "light_model", "intensities", "ptm", "leave_one_out"]
+            keys += ["albedo_scale", "lights", "light_model", "intensities", "reflectance_lobe", "ptm", "leave_one_out"]
         keys += ["accuracy", "mesh", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
         if self.fingerprint is not None:
             keys.append("fingerprint")

@@ -241,7 +241,7 @@ def run_capture(
             inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
             lights=LightLayout.from_rank(loaded.rank), light_model=light_model(loaded.near, (h, w), opt),
-            intensities=json_safe(loaded.intensities), ptm=relit.summary, leave_one_out=loo,
+            intensities=json_safe(loaded.intensities), reflectance_lobe=found.lobe, ptm=relit.summary, leave_one_out=loo,
             fingerprint=fingerprint,
         )
         if loaded.near is not None:

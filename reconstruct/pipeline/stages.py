@@ -85,11 +85,18 @@ Advance = Callable[[int], None]
 @dataclass
 class NormalsResult:
     """Unit normals ``(H, W, 3)`` float32, luminance albedo ``(H, W)`` float32 (linear light),
-    and how many pixels had too few usable photographs to determine a normal."""
+    how many pixels had too few usable photographs to determine a normal, and the reflectance
+    lobe fitted with them (:meth:`ptmcore.lobe.Lobe.summary`), if any."""
 
     normals: np.ndarray
     albedo: np.ndarray
     undetermined: int = 0
+    lobe: dict | None = None
+
+
+def _robust_method(fit: str) -> str:
+    """The robust weighting of ``--fit``: the lobe is fitted with IRLS."""
+    return "irls" if fit == "lobe" else fit
 
 
 def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: Advance | None) -> NormalsResult:
@@ -118,7 +125,7 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     capture : Capture
         From :func:`reconstruct.pipeline.load_capture`.
     options : RunOptions, optional
-        ``normals`` (ps, ptm, ptm-debiased), ``fit`` (irls, trimmed, plain), ``solver``,
+        ``normals`` (ps, ptm, ptm-debiased), ``fit`` (lobe, irls, trimmed, plain), ``solver``,
         ``threads``.
     progress : callable, optional
         ``progress(rows)`` as bands of rows are done (H in all).
@@ -135,8 +142,9 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
         if opt.fit == "plain":
             ps = photometric_stereo(stack, directions, threads=opt.threads, progress=progress)
         else:
-            ps = robust_photometric_stereo(stack, directions, method=opt.fit, threads=opt.threads, progress=progress)
-        return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()))
+            ps = robust_photometric_stereo(stack, directions, method=_robust_method(opt.fit), lobe=opt.fit == "lobe",
+                                           threads=opt.threads, progress=progress)
+        return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()), ps.lobe.summary() if ps.lobe else None)
     if opt.fit == "plain":
         coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
         if opt.normals == "ptm":
@@ -144,7 +152,7 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
         else:
             normals = debiased_normals(coefficients, hemisphere_coefficients(directions))
     else:
-        fitted = robust_ptm(stack, directions, method=opt.fit, threads=opt.threads, progress=progress)
+        fitted = robust_ptm(stack, directions, method=_robust_method(opt.fit), threads=opt.threads, progress=progress)
         normals = normals_from_ptm(fitted.ptm.coefficients) if opt.normals == "ptm" else fitted.normals
     return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads))
 
@@ -312,8 +320,8 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     """
     method, why = _integrator(options.integrator, mask)
     if options.intrinsics is not None:
-        if method not in ("masked", "dct"):
-            raise InputError(f"a perspective camera integrates with masked or dct, not {method}")
+        if method == "fc":
+            raise InputError("a perspective camera integrates with masked, bilateral or dct, not fc")
         camera = parse_intrinsics(options.intrinsics)
         height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance)
         unit = "mm" if options.distance else "relative depth"

@@ -1,0 +1,85 @@
+"""Accuracy on real captures with laser-scanned ground truth (``../shared/real/``, when present).
+
+Normals: DiLiGenT's objects (folders with ``light_directions.txt``, ``Normal_gt.*``: the ceramic
+cat in the shared data), read as ``reconstruct run`` reads them (the given light intensities
+divided out). For each normal method, the mean and median angular error inside the object's
+mask, beside the figures published for that object (DiLiGenT's benchmark table: least squares,
+Woodham 1980; ST14, Shi et al., TPAMI 2014, the best classical method there).
+
+Run: ``.venv/bin/python benchmarks/real.py [--real ../shared/real]``; prints Markdown and writes
+``benchmarks/results/real.json``. Skips (exit 0, a message) when the folder is absent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ptmcore.normals import angular_error, photometric_stereo  # noqa: E402
+from ptmcore.psdataset import is_ps_dataset, read_ps_dataset  # noqa: E402
+from ptmcore.robust import robust_photometric_stereo  # noqa: E402
+
+#: Published mean angular errors (°) on DiLiGenT (Shi et al., TPAMI 2019, table of calibrated
+#: methods): least squares and ST14.
+PUBLISHED = {"cat": {"least squares (published)": 8.41, "ST14 (published)": 6.12}}
+
+#: The normal methods: label → function of (stack, directions).
+METHODS = {
+    "least squares, dark samples left out (`--fit plain`)": lambda s, d: photometric_stereo(s, d),
+    "robust, trimmed (`--fit trimmed`)": lambda s, d: robust_photometric_stereo(s, d, method="trimmed"),
+    "robust IRLS (`--fit irls`)": lambda s, d: robust_photometric_stereo(s, d),
+    "IRLS + reflectance lobe (`--fit lobe`, default)": lambda s, d: robust_photometric_stereo(s, d, lobe=True),
+}
+
+
+def normals_table(folders: list[Path]) -> list[dict]:
+    rows = []
+    for folder in folders:
+        ds = read_ps_dataset(folder)
+        dirs = ds.lights.directions
+        name = folder.name.removeprefix("diligent_")
+        for label, method in METHODS.items():
+            t0 = time.perf_counter()
+            ps = method(ds.stack, dirs)
+            seconds = time.perf_counter() - t0
+            err = angular_error(ps.normals, ds.ground_truth_normals, ds.mask)
+            rows.append({"object": name, "method": label, "mean_deg": float(err.mean()),
+                         "median_deg": float(np.median(err)), "seconds": seconds})
+        for label, value in PUBLISHED.get(name, {}).items():
+            rows.append({"object": name, "method": label, "mean_deg": value, "median_deg": None, "seconds": None})
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--real", type=Path, default=ROOT.parent / "shared" / "real")
+    args = ap.parse_args()
+    if not args.real.is_dir():
+        print(f"{args.real} not found: nothing to measure")
+        return
+    folders = sorted(p for p in args.real.iterdir() if p.is_dir() and is_ps_dataset(p))
+    # Compile the kernels outside the timings.
+    robust_photometric_stereo(read_ps_dataset(folders[0]).stack, read_ps_dataset(folders[0]).lights.directions, lobe=True)
+    rows = normals_table(folders)
+    print(f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, Python {platform.python_version()}\n")
+    print("| object | normals | mean ° | median ° | seconds |")
+    print("| --- | --- | ---: | ---: | ---: |")
+    for r in rows:
+        med = "" if r["median_deg"] is None else f"{r['median_deg']:.2f}"
+        sec = "" if r["seconds"] is None else f"{r['seconds']:.2f}"
+        print(f"| {r['object']} | {r['method']} | {r['mean_deg']:.2f} | {med} | {sec} |")
+    out = ROOT / "benchmarks" / "results" / "real.json"
+    out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "normals": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
