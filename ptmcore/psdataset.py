@@ -62,7 +62,8 @@ class PSDataset:
     intensities : ndarray, shape (N, 3), float64
         Each light's strength per channel (R, G, B), as listed.
     intensity_scale : float
-        The stack holds each photograph × ``intensity_scale`` / its intensities. It is 1 unless
+        The stack holds each photograph × ``intensity_scale`` / its intensities (the photographs
+        as stored, and 1, with ``divide_intensities=False``). It is 1 unless
         some intensity is below 1, when it is the smallest intensity: dividing by a value
         below 1 would push bright samples past the stored range. One global factor changes
         only the albedo's scale.
@@ -224,6 +225,7 @@ def read_ps_dataset(
     *,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    divide_intensities: bool = True,
 ) -> PSDataset:
     """Read a photometric-stereo dataset folder (DiLiGenT layout).
 
@@ -235,6 +237,9 @@ def read_ps_dataset(
         Decoding threads; default: the number of CPUs. Each holds one photograph at a time.
     progress : callable, optional
         Called with 1 after each photograph.
+    divide_intensities : bool
+        Divide the photographs by ``light_intensities.txt`` (default). False keeps them as
+        stored: for intensities estimated from the photographs, or given otherwise.
 
     Returns
     -------
@@ -277,8 +282,8 @@ def read_ps_dataset(
 
     # Dividing by an intensity below 1 could push a bright sample past the top of the stored
     # range; one global factor keeps every sample representable and changes only the albedo.
-    scale = float(min(1.0, intensities.min()))
-    gains = scale / intensities  # (N, 3), all ≤ 1
+    scale = float(min(1.0, intensities.min())) if divide_intensities else 1.0
+    gains = scale / intensities if divide_intensities else None  # (N, 3), all ≤ 1
 
     first = read_image(paths[0])
     h, w = first.shape[:2]

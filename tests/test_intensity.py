@@ -1,16 +1,27 @@
 """Per-image light intensity factors: reading, estimating, dividing out."""
 
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
 import numpy as np
 import pytest
 
+from data_synthetic import clay_tablet, dome_lights, render
 from ptmcore.errors import InputError
-from ptmcore.images import LUMA_WEIGHTS, SATURATED
-from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
+from ptmcore.images import LUMA_WEIGHTS, SATURATED, read_image
+from ptmcore.intensity import apply_intensities, estimate_intensities, fit_intensities, read_intensities
 from ptmcore.normals import angular_error, photometric_stereo
 
 from helpers import dome, sphere_normals, stack_from_luminance
 
 H, W = 120, 140
+REAL_CAT = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "diligent_cat"
+
+
+def _relative_errors(estimate, reference):
+    """``|s e / r − 1|`` per photograph, ``s`` the least-squares scale (both are defined up to one)."""
+    q = np.asarray(estimate, float) / np.asarray(reference, float)
+    return np.abs(q * q.sum() / (q * q).sum() - 1.0)
 
 
 def _capture(n=24, seed=0, specular=0.0, noise=0.002):
@@ -191,3 +202,86 @@ def test_estimate_with_a_ring_of_lights_at_one_elevation():
     lum = f[:, None, None] * 0.5 * np.maximum(np.einsum("kc,hwc->khw", dirs, normals), 0.0) * mask
     est = estimate_intensities(stack_from_luminance(lum), dirs)
     np.testing.assert_allclose(est, f / f.mean(), rtol=1e-3)
+
+
+def test_estimate_on_a_glossy_relief_with_cast_shadows():
+    # A clay tablet: mostly flat, so every pixel of its face has its highlight under the same
+    # lights, which a Lambertian fit reads as brighter lights unless the highlights are left
+    # out before the first factors are solved; the wedges cast shadows. Measured: within
+    # 0.3 %; the estimator before the robust first selection was off by 10–50 % here.
+    rng = np.random.default_rng(0)
+    surface = clay_tablet((72, 96), seed=0)
+    dirs = dome_lights(24, 15.0, 75.0, seed=0)
+    factors = rng.uniform(0.6, 1.4, 24)
+    radiance = render(surface, dirs, specular=0.6, shininess=40.0, noise=0.003, seed=0)
+    lum = (radiance @ LUMA_WEIGHTS) * factors[:, None, None] * 0.6
+    fit = fit_intensities(stack_from_luminance(lum, lum >= 1.0), dirs, mask=surface.mask)
+    np.testing.assert_allclose(fit.factors, factors / factors.mean(), rtol=0.01)
+    assert fit.factors.mean() == pytest.approx(1.0)
+    assert fit.rounds >= 2 and np.all(fit.samples >= 20)
+    assert np.all(np.isfinite(fit.spread)) and fit.spread.max() < 0.01
+
+
+def test_estimates_one_factor_per_channel():
+    rng = np.random.default_rng(11)
+    n = 24
+    dirs = dome(n, seed=12)
+    normals, mask = sphere_normals(H, W, radius=55.0)
+    rgb = rng.uniform(0.6, 1.4, n)[:, None] * rng.uniform(0.9, 1.1, (n, 3))
+    albedo = np.array([0.6, 0.45, 0.3]) * mask[..., None]
+    shading = np.maximum(np.einsum("kc,hwc->khw", dirs, normals), 0.0)
+    images = rgb[:, None, None, :] * albedo * shading[..., None] + rng.normal(0.0, 0.002, (n, H, W, 3))
+    images[images >= 1.0] = np.nan  # clipped
+    fit = fit_intensities(images, dirs, mask=mask)
+    assert fit.factors.shape == (n, 3) and fit.spread.shape == (n, 3)
+    np.testing.assert_allclose(fit.factors.mean(axis=0), 1.0)
+    np.testing.assert_allclose(fit.factors, rgb / rgb.mean(axis=0), rtol=0.01)
+    # Integer photographs: a fraction of the type's maximum, which marks a clipped sample.
+    codes = np.round(np.clip(np.nan_to_num(images, nan=1.0), 0.0, 1.0) * 65535).astype(np.uint16)
+    np.testing.assert_allclose(estimate_intensities(codes, dirs, mask=mask), rgb / rgb.mean(axis=0), rtol=0.01)
+
+
+def test_estimate_refuses_lights_in_a_plane_but_one():
+    # Lights in the plane y = 0 plus one elsewhere: a matrix with that plane and that light as
+    # eigenspaces moves the factors of the two groups against each other, unseen.
+    normals, mask = sphere_normals(60, 60, 25.0)
+    az = np.radians(np.linspace(20, 160, 8))
+    dirs = np.stack([np.cos(az), np.zeros(8), np.sin(az)], axis=1)
+    dirs = np.vstack([dirs, [0.0, 0.6, 0.8]])
+    lum = 0.5 * np.maximum(np.einsum("kc,hwc->khw", dirs, normals), 0.0) * mask
+    with pytest.raises(InputError, match="do not determine.*apart from the light of photograph 9"):
+        estimate_intensities(stack_from_luminance(lum), dirs)
+
+
+def test_estimate_refuses_a_flat_surface():
+    # Every normal the same: factors f_k (n·l_k) / (c·l_k) fit as well for any c.
+    rng = np.random.default_rng(2)
+    dirs = dome(24, seed=3)
+    albedo = rng.uniform(0.3, 0.7, (40, 50))
+    lum = rng.uniform(0.6, 1.4, 24)[:, None, None] * albedo * dirs[:, 2, None, None]
+    with pytest.raises(InputError, match="too flat"):
+        estimate_intensities(stack_from_luminance(lum), dirs)
+
+
+@pytest.mark.skipif(not REAL_CAT.is_dir(), reason="real data (../shared/real) not present")
+def test_estimate_on_the_real_diligent_cat():
+    # 96 photographs under LEDs of calibrated RGB intensity (varying sixfold), read as stored,
+    # not divided by the intensities. Measured here: 2.2–2.5 % mean and 6.7–7.1 % largest
+    # relative error per channel and for luminance (benchmarks/intensities.py, 20 000 pixels:
+    # 2.4 % and 6.7 % for luminance); the photographs' ratios to the given intensities under
+    # the laser-scanned normals scatter by about as much (Lambertian fit: 1.7–2.3 % mean).
+    names = (REAL_CAT / "filenames.txt").read_text().split()
+    dirs = np.loadtxt(REAL_CAT / "light_directions.txt")
+    given = np.loadtxt(REAL_CAT / "light_intensities.txt")
+    mask = read_image(REAL_CAT / "mask.png")
+    mask = (mask.max(axis=2) if mask.ndim == 3 else mask) > 0
+    with ThreadPoolExecutor(2) as pool:
+        rgb = np.stack(list(pool.map(read_image, [REAL_CAT / name for name in names])))
+    fit = fit_intensities(rgb, dirs, mask=mask, max_pixels=5000)
+    for c in range(3):
+        err = _relative_errors(fit.factors[:, c], given[:, c])
+        assert err.mean() < 0.03 and err.max() < 0.08, (c, err.mean(), err.max())
+    lum = np.stack([image.astype(np.float32) @ (LUMA_WEIGHTS / 65535) for image in rgb])
+    lum = fit_intensities(lum, dirs, mask=mask, max_pixels=5000)
+    err = _relative_errors(lum.factors, given @ LUMA_WEIGHTS)
+    assert err.mean() < 0.03 and err.max() < 0.08, (err.mean(), err.max())

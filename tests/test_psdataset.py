@@ -289,3 +289,25 @@ def test_corrupt_image(dataset):
 def test_too_few_images(tmp_path):
     _write_dataset(tmp_path / "d", n=2)
     _expect(tmp_path / "d", "light_directions.txt", "at least 3")
+
+
+def test_photographs_as_stored_without_the_division(dataset):
+    folder, (dirs, normals, mask, intens, unit) = dataset
+    ds = read_ps_dataset(folder, divide_intensities=False)
+    assert ds.intensity_scale == 1.0
+    stored = (unit * intens[:, None, None, :]) @ LUMA_WEIGHTS.astype(np.float64)
+    np.testing.assert_allclose(ds.stack.table[ds.stack.luminance], stored, atol=2e-4)
+
+
+def test_run_estimates_intensities_on_the_photographs_as_stored(dataset, tmp_path):
+    # Estimating on photographs already divided by the given intensities would find factors of
+    # about 1 and say nothing of the lamps.
+    from reconstruct.pipeline import RunOptions, load_capture
+
+    folder, (_, _, _, intens, _) = dataset
+    loaded = load_capture(folder, RunOptions(intensities="estimate"))
+    found = np.asarray(loaded.intensities["factors"], dtype=np.float64)
+    given = intens @ LUMA_WEIGHTS.astype(np.float64)
+    ratio = found / given
+    # Divided first, the ratio would vary as the given intensities do (25 % here).
+    assert np.std(ratio) / np.mean(ratio) < 0.05, ratio

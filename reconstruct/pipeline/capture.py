@@ -252,7 +252,9 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
             raise InputError("light positions apply to captures with an .lp file or spheres, "
                              "not to a photometric-stereo dataset", capture)
         with stages("decode"):
-            ds = read_ps_dataset(capture, threads=opt.threads)
+            # Intensities asked for replace the dataset's own (estimated ones are estimated on
+            # the photographs as stored).
+            ds = read_ps_dataset(capture, threads=opt.threads, divide_intensities=opt.intensities is None)
         loaded = Capture(capture, layout, ds.stack, ds.lights, mask=ds.mask)
         if ds.ground_truth_normals is not None:
             gt_mask = ds.mask if ds.mask is not None else np.ones(ds.stack.shape, bool)
@@ -407,7 +409,9 @@ def load_capture(
             factors = estimate_intensities(loaded.stack, directions, mask=loaded.mask)
         else:
             factors = read_intensities(opt.intensities, len(loaded.lights))
-        loaded.stack = apply_intensities(loaded.stack, factors)
+        # Scaled to a minimum of 1: a factor below 1 would push bright samples past the stored
+        # range (marked clipped); only the ratios matter to the normals.
+        loaded.stack = apply_intensities(loaded.stack, factors / np.min(factors))
         loaded.intensities = {"source": opt.intensities, "factors": factors}
     _check_exposure(loaded)
     return loaded
