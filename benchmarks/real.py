@@ -6,7 +6,14 @@ divided out). For each normal method, the mean and median angular error inside t
 mask, beside the figures published for that object (DiLiGenT's benchmark table: least squares,
 Woodham 1980; ST14, Shi et al., TPAMI 2014, the best classical method there).
 
-Run: ``.venv/bin/python benchmarks/real.py [--real ../shared/real]``; prints Markdown and writes
+Depth: BiNI's DiLiGenT objects (``bini_depth/``: perspective normal maps, masks, intrinsics and
+laser depth), masked least squares against bilateral integration, by
+``benchmarks/real_integration.py``'s table (mean absolute depth error after BiNI's median-ratio
+scale; BiNI's paper reports about 1.5 mm averaged over nine DiLiGenT objects).
+
+Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/real.py [--real ../shared/real]``
+(one BLAS thread: scipy's conjugate gradients slow down badly with threaded dot products on a
+busy machine); prints Markdown and writes
 ``benchmarks/results/real.json``. Skips (exit 0, a message) when the folder is absent.
 """
 
@@ -88,6 +95,11 @@ def main() -> None:
         med = "" if r["median_deg"] is None else f"{r['median_deg']:.2f}"
         sec = "" if r["seconds"] is None else f"{r['seconds']:.2f}"
         print(f"| {r['object']} | {r['method']} | {r['mean_deg']:.2f} | {med} | {sec} |")
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from real_integration import real_table
+
+    print("\nPerspective integration of BiNI's ground-truth normals (depth error in mm):\n")
+    print(real_table())
     out = ROOT / "benchmarks" / "results" / "real.json"
     out.write_text(json.dumps({"date": time.strftime("%Y-%m-%d"), "normals": rows}, indent=1))
 

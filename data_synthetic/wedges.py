@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
+
+from .surface import centred_grid
 
 #: Steepest facet of a wedge before smoothing; keeps normals well defined.
 MAX_FACET_SLOPE_DEG = 55.0
@@ -116,7 +119,7 @@ def _random_shapes(rng: np.random.Generator, heads: np.ndarray, scale: float) ->
 
 
 def _pyramid(u: np.ndarray, v: np.ndarray, corners: np.ndarray, apex: np.ndarray,
-             depth: float) -> np.ndarray:
+             depth: float, max_slope_deg: float = MAX_FACET_SLOPE_DEG) -> np.ndarray:
     """Depth of a pyramid over a triangle, deepest at ``apex``, zero outside the triangle.
 
     Parameters
@@ -129,6 +132,8 @@ def _pyramid(u: np.ndarray, v: np.ndarray, corners: np.ndarray, apex: np.ndarray
         (2,) deepest point, strictly inside the triangle.
     depth : float
         Depth at the apex, before the slope limit.
+    max_slope_deg : float
+        Steepest facet: a deeper apex is raised to it.
 
     Returns
     -------
@@ -139,7 +144,7 @@ def _pyramid(u: np.ndarray, v: np.ndarray, corners: np.ndarray, apex: np.ndarray
     inward = np.stack([-edges[:, 1], edges[:, 0]], axis=1)
     inward /= np.linalg.norm(inward, axis=1, keepdims=True)
     apex_dist = np.einsum("ij,ij->i", inward, apex[None, :] - corners)
-    depth = min(depth, np.tan(np.deg2rad(MAX_FACET_SLOPE_DEG)) * apex_dist.min())
+    depth = min(depth, np.tan(np.deg2rad(max_slope_deg)) * apex_dist.min())
     # A pyramid with a given apex is the minimum of its facet planes; each plane is 0 on its
     # edge and 1 at the apex, so the minimum is the depth fraction (negative outside).
     frac = None
@@ -149,7 +154,8 @@ def _pyramid(u: np.ndarray, v: np.ndarray, corners: np.ndarray, apex: np.ndarray
     return depth * np.clip(frac, 0.0, None)
 
 
-def wedge_depth(wedge: Wedge, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def wedge_depth(wedge: Wedge, x: np.ndarray, y: np.ndarray,
+                max_slope_deg: float = MAX_FACET_SLOPE_DEG) -> np.ndarray:
     """Depth (mm, ≥ 0) of one wedge impression at points (x, y) of the centred frame.
 
     Parameters
@@ -158,6 +164,9 @@ def wedge_depth(wedge: Wedge, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         The impression.
     x, y : np.ndarray
         Coordinates in mm, broadcastable to each other.
+    max_slope_deg : float
+        Steepest facet (a stylus pressed deep and at a steep angle leaves walls of 70° and
+        more; the tablet keeps the default).
 
     Returns
     -------
@@ -170,17 +179,19 @@ def wedge_depth(wedge: Wedge, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     v = -dx * s + dy * c
     hl, hw = wedge.head_length, wedge.head_half_width
     apex = np.array([0.3 * hl, 0.0])
-    head = _pyramid(u, v, np.array([[0.0, -hw], [hl, 0.0], [0.0, hw]]), apex, wedge.depth)
+    head = _pyramid(u, v, np.array([[0.0, -hw], [hl, 0.0], [0.0, hw]]), apex, wedge.depth,
+                    max_slope_deg)
     # The tail is a long thin pyramid sharing the head's deepest point, so it reads as a
     # groove running out of the head's tip.
     tw, end = wedge.tail_half_width, hl + wedge.tail_length
     tail = _pyramid(u, v, np.array([[0.1 * hl, -tw], [end, 0.0], [0.1 * hl, tw]]), apex,
-                    0.7 * wedge.depth)
+                    0.7 * wedge.depth, max_slope_deg)
     return np.maximum(head, tail)
 
 
 def rasterize_wedges(wedges: list[Wedge], x: np.ndarray, y: np.ndarray,
-                     pixel_size: float) -> np.ndarray:
+                     pixel_size: float,
+                     max_slope_deg: float = MAX_FACET_SLOPE_DEG) -> np.ndarray:
     """Combined depth of overlapping wedges on the pixel grid.
 
     Parameters
@@ -192,6 +203,8 @@ def rasterize_wedges(wedges: list[Wedge], x: np.ndarray, y: np.ndarray,
         shapes (1, W) and (H, 1).
     pixel_size : float
         Millimetres per pixel.
+    max_slope_deg : float
+        Steepest facet of every wedge (:func:`wedge_depth`).
 
     Returns
     -------
@@ -209,6 +222,50 @@ def rasterize_wedges(wedges: list[Wedge], x: np.ndarray, y: np.ndarray,
         c0, c1 = max(0, int(col - reach)), min(w, int(col + reach) + 2)
         if r0 >= r1 or c0 >= c1:
             continue
-        box = wedge_depth(wedge, x[:, c0:c1], y[r0:r1, :])
+        box = wedge_depth(wedge, x[:, c0:c1], y[r0:r1, :], max_slope_deg)
         np.maximum(depth[r0:r1, c0:c1], box, out=depth[r0:r1, c0:c1])
     return depth
+
+
+def wedge_plate(
+    shape: tuple[int, int] = (256, 320),
+    pixel_size: float = 0.05,
+    *,
+    max_slope_deg: float = 75.0,
+    depth_scale: float = 3.0,
+    seed: int = 0,
+) -> np.ndarray:
+    """Height (mm, ≤ 0) of a flat plate covered in steep-walled wedge impressions.
+
+    The inscription of :func:`random_inscription` at scale 1 over the whole frame, its depths
+    multiplied by `depth_scale` and its facets allowed up to `max_slope_deg`, smoothed over
+    0.75 pixel like the tablet's: a test of integration on walls much steeper than the
+    tablet's (which keeps :data:`MAX_FACET_SLOPE_DEG`).
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (H, W) in pixels.
+    pixel_size : float
+        Millimetres per pixel.
+    max_slope_deg : float
+        Steepest facet before smoothing.
+    depth_scale : float
+        Factor on the inscription's depths (0.3–1 mm at scale 1).
+    seed : int
+        Drives the inscription.
+
+    Returns
+    -------
+    np.ndarray
+        (H, W) float64 height in mm, 0 on the plate.
+    """
+    rng = np.random.default_rng(seed)
+    x, y = centred_grid(shape, pixel_size)
+    half_w, half_h = shape[1] * pixel_size / 2 - 1.0, shape[0] * pixel_size / 2 - 1.0
+    wedges = [
+        replace(wedge, depth=depth_scale * wedge.depth)
+        for wedge in random_inscription(rng, (-half_w, half_w), (-half_h, half_h), 1.0)
+    ]
+    depth = rasterize_wedges(wedges, x, y, pixel_size, max_slope_deg)
+    return -ndimage.gaussian_filter(depth, 0.75)

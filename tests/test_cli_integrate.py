@@ -87,13 +87,25 @@ def test_auto_integrator_follows_the_mask_and_bilateral_runs(tmp_path, capsys, s
     import json
 
     folder, _, _ = sphere_maps
-    for name, extra, used in [("plain", [], "dct"), ("masked", ["--mask", folder / "n8.png"], "masked"),
-                              ("bilateral", ["--integrator", "bilateral"], "bilateral")]:
+    # A mask of at most a megapixel: bilateral (it keeps steps and occluding contours).
+    for name, extra, used in [("plain", [], "dct"), ("masked", ["--mask", folder / "n8.png"], "bilateral"),
+                              ("bilateral", ["--integrator", "bilateral"], "bilateral"),
+                              ("least-squares", ["--mask", folder / "n8.png", "--integrator", "masked"], "masked")]:
         out = tmp_path / name
         code, _, err = _run(["integrate", folder / "n16.tif", "-o", out, "-q", *extra], capsys)
         assert code == 0, err
         mesh = json.loads((out / "report.json").read_text())["mesh"]
         assert mesh["integrator"] == used and mesh["integrator_reason"]
+
+
+def test_auto_integrator_takes_least_squares_for_large_masks():
+    from reconstruct.pipeline.stages import AUTO_BILATERAL_PIXELS, _integrator
+
+    side = int(np.ceil(np.sqrt(AUTO_BILATERAL_PIXELS))) + 1
+    method, why = _integrator("auto", np.ones((side, side), bool))
+    assert method == "masked" and "--integrator bilateral" in why
+    assert _integrator("auto", np.ones((10, 10), bool))[0] == "bilateral"
+    assert _integrator("auto", None)[0] == "dct"
 
 
 def test_perspective_camera_option(tmp_path, capsys, sphere_maps):

@@ -120,7 +120,8 @@ class RunOptions:
         Least squares on the mask only ("masked", conjugate gradients preconditioned by the
         bounding box's DCT solver), the same with bilateral weights that keep steps sharp
         ("bilateral"), Poisson with Neumann boundary by DCT on the whole frame ("dct"), or
-        Frankot–Chellappa. "auto": masked when a mask is known, else dct.
+        Frankot–Chellappa. "auto": bilateral when a mask of at most
+        ``stages.AUTO_BILATERAL_PIXELS`` (a megapixel) is known, masked for a larger one, else dct.
     step : int or None
         Mesh subsampling; None picks the smallest step that keeps the mesh under
         :data:`reconstruct.pipeline.stages.AUTO_MESH_VERTICES` vertices.

@@ -9,8 +9,9 @@ one of four integrators:
   squares with the Neumann boundary solved by the DCT (the default), and
   :func:`frankot_chellappa`;
 * on the mask only (:mod:`reconstruct.surface.masked`): :func:`masked_poisson`, least squares
-  with a free boundary, and :func:`discontinuity_preserving`, bilateral integration that
-  keeps creases and steps.
+  with a free boundary, and (:mod:`reconstruct.surface.bilateral`)
+  :func:`discontinuity_preserving`, bilateral normal integration (BiNI) that keeps creases and
+  steps.
 """
 
 from __future__ import annotations
@@ -20,7 +21,8 @@ import math
 import numpy as np
 
 from reconstruct.surface.fourier import frankot_chellappa, poisson_dct
-from reconstruct.surface.masked import discontinuity_preserving, masked_poisson
+from reconstruct.surface.bilateral import discontinuity_preserving
+from reconstruct.surface.masked import masked_poisson
 
 __all__ = ["gradients_from_normals", "integrate"]
 
@@ -101,9 +103,9 @@ def integrate(
         ``"dct"``: least squares with Neumann boundary (:func:`poisson_dct`), the default.
         ``"fc"``: Frankot–Chellappa with mirrored borders (:func:`frankot_chellappa`).
         ``"masked"``: least squares on the mask only, free boundary
-        (:func:`masked_poisson`). ``"bilateral"``: discontinuity-preserving bilateral
-        integration on the mask (:func:`discontinuity_preserving`). Both use the whole image
-        (minus non-finite normals) when there is no mask.
+        (:func:`masked_poisson`). ``"bilateral"``: bilateral normal integration on the
+        mask, keeping steps (:func:`discontinuity_preserving`, Cao et al. 2022). Both use
+        the whole image (minus non-finite normals) when there is no mask.
     mask : numpy.ndarray, optional
         ``(H, W)`` bool, True for pixels of the object. Without a mask, pixels whose normal
         is not finite are treated as outside the object.

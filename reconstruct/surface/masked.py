@@ -1,13 +1,10 @@
 """Least-squares integration of a gradient field on an arbitrary masked domain.
 
-Unlike the whole-rectangle integrators of :mod:`reconstruct.surface.fourier`, these use only
-the gradient equations between two pixels of the mask, so nothing is assumed about what lies
-outside it:
-
-* :func:`masked_poisson` — weighted least squares with a free boundary, solved by
-  preconditioned conjugate gradients.
-* :func:`discontinuity_preserving` — bilateral normal integration (Cao et al. 2022):
-  iteratively reweighted least squares that stops smoothing across creases and steps.
+Unlike the whole-rectangle integrators of :mod:`reconstruct.surface.fourier`,
+:func:`masked_poisson` uses only the gradient equations between two pixels of the mask, so
+nothing is assumed about what lies outside it: weighted least squares with a free boundary,
+solved by preconditioned conjugate gradients. Bilateral normal integration (:mod:`reconstruct.surface.bilateral`), which keeps creases and
+steps, reuses the edge solver of this module with its own weights.
 
 The unknowns are the heights of the mask's bounding box; pixels outside the mask have no
 gradient equation, hence a zero row and column in the normal equations, so whatever values
@@ -18,7 +15,6 @@ coarsen by 2×2 reshapes.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import numpy as np
@@ -29,7 +25,7 @@ import scipy.sparse.linalg
 from reconstruct.surface.fourier import _dct_eigenvalues, _prepare, poisson_dct
 from reconstruct.surface.multigrid import _Grid, _Multigrid
 
-__all__ = ["discontinuity_preserving", "masked_poisson"]
+__all__ = ["masked_poisson"]
 
 
 def _edge_masks(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -310,6 +306,10 @@ def masked_poisson(
     """
     p_arr = np.asarray(p)
     g_row, g_col, m, box = _masked_inputs(p, q, mask, pixel_size)
+    if not m.any():
+        empty = np.full(p_arr.shape, np.nan, dtype=np.float32)
+        info = {"iterations": 0, "residual": 0.0, "component_means": np.zeros(0)}
+        return (empty, info) if return_info else empty
     wx, wy = _edge_weights(weights, m, box, p_arr.shape)
     del p_arr
     tx = 0.5 * (g_col[:, :-1].astype(np.float64) + g_col[:, 1:])
@@ -325,118 +325,3 @@ def masked_poisson(
     info["component_means"] = means * pixel_size
     height = _embed(z, m, box, np.shape(p), pixel_size)
     return (height, info) if return_info else height
-
-
-def _sigmoid(t: np.ndarray) -> np.ndarray:
-    return 0.5 * (1.0 + np.tanh(0.5 * t))  # overflow-free logistic
-
-
-def discontinuity_preserving(
-    p: np.ndarray,
-    q: np.ndarray,
-    mask: np.ndarray | None = None,
-    *,
-    pixel_size: float = 1.0,
-    k: float = 2.0,
-    iterations: int = 50,
-    tol: float = 1e-6,
-    maxiter: int = 200,
-    min_weight: float = 1e-3,
-    workers: int | None = -1,
-) -> np.ndarray:
-    """Bilateral normal integration (Cao et al., ECCV 2022) on a masked domain.
-
-    Each pixel i has two one-sided equations per axis, z_{i+1} − z_i = g_i (forward) and
-    z_i − z_{i−1} = g_i (backward), weighted w⁺ and w⁻ = 1 − w⁺ with
-    w⁺ = σ(k·(r⁻² − r⁺²)), r± being the residuals of the two equations at the current
-    height: the side that agrees with the pixel's own gradient wins, so a crease (slope
-    discontinuity) or a step (height discontinuity, visible as a non-integrable gradient
-    field) is no longer smeared by equations reaching across it. The weights are updated
-    from the previous solution (iteratively reweighted least squares), starting from
-    w⁺ = w⁻ = ½, which is :func:`masked_poisson` exactly. Both equations of an edge share
-    its difference operator, so each pass is one :func:`masked_poisson`-type solve with
-    edge weight w⁺_i + w⁻_{i+1} and target (w⁺_i g_i + w⁻_{i+1} g_{i+1}) / (w⁺_i + w⁻_{i+1}).
-
-    Parameters
-    ----------
-    p, q : numpy.ndarray
-        ``(H, W)`` gradients ∂z/∂x and ∂z/∂y (y up) in height per horizontal unit.
-    mask : numpy.ndarray, optional
-        ``(H, W)`` bool domain; the whole image when omitted.
-    pixel_size : float
-        Size of a pixel; heights come out in its unit.
-    k : float
-        Sharpness of the sigmoid, in 1/pixel² (the residuals are in pixel units whatever
-        `pixel_size` is): a difference of residual² of 1/k pixel² between the two sides
-        gives weights 0.73/0.27. Small k (→ 0) gives plain least squares; large k a hard
-        choice of side, sensitive to noise. The default 2 is Cao et al.'s.
-        With 0.5 % gradient noise, values 1–10 behave alike on the test surfaces.
-    iterations : int
-        Reweighting passes after the initial least-squares solve (each warm-started).
-    tol, maxiter : float, int
-        CG stopping rule of each solve, as in :func:`masked_poisson`.
-    min_weight : float
-        Floor of the edge weights, which keeps the system well conditioned (a zero weight
-        would split a component and leave its constant free).
-    workers : int or None
-        Threads for scipy.fft.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(H, W)`` float32 heights, mean 0 on each 4-connected component of the mask, NaN
-        outside it.
-    """
-    if not (math.isfinite(k) and k >= 0):
-        raise ValueError(f"k must be a non-negative number, not {k}")
-    g_row, g_col, m, box = _masked_inputs(p, q, mask, pixel_size)
-    ex, ey = _edge_masks(m)
-    gc = g_col.astype(np.float64)
-    gr = g_row.astype(np.float64)
-    del g_row, g_col
-    wx = ex.astype(np.float64)
-    wy = ey.astype(np.float64)
-    tx = 0.5 * (gc[:, :-1] + gc[:, 1:])
-    ty = 0.5 * (gr[:-1, :] + gr[1:, :])
-    z = _warm_start(gr, gc, m) if m.size else np.zeros(m.shape)
-    for it in range(iterations + 1):
-        z, _ = _solve_edges(
-            wx, tx, wy, ty, m, z, tol=tol, maxiter=maxiter,
-            preconditioner="multigrid", workers=workers,
-        )
-        if it == iterations:
-            break
-        wx, tx = _bilateral_axis(z, gc, ex, k, min_weight, axis=1)
-        wy, ty = _bilateral_axis(z, gr, ey, k, min_weight, axis=0)
-    z, _, _ = _component_means_removed(z, m)
-    return _embed(z, m, box, np.shape(p), pixel_size)
-
-
-def _bilateral_axis(
-    z: np.ndarray, g: np.ndarray, edges: np.ndarray, k: float, floor: float, axis: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Edge weights and targets along one axis from the one-sided residuals at z."""
-    diff = np.diff(z, axis=axis)  # z_{i+1} − z_i on each edge
-    lo = [slice(None)] * 2
-    hi = [slice(None)] * 2
-    lo[axis] = slice(None, -1)
-    hi[axis] = slice(1, None)
-    lo, hi = tuple(lo), tuple(hi)
-    # r⁺_i = diff_i − g_i (pixel i's forward equation); r⁻_i = diff_{i−1} − g_i.
-    big = np.inf
-    r_fwd = np.full(g.shape, big)
-    r_bwd = np.full(g.shape, big)
-    r_fwd[lo] = np.where(edges, diff - g[lo], big)
-    r_bwd[hi] = np.where(edges, diff - g[hi], big)
-    with np.errstate(invalid="ignore"):
-        t = k * (r_bwd**2 - r_fwd**2)
-    # A missing side (inf) makes the other one certain; both missing: no equation anyway.
-    t = np.nan_to_num(t, nan=0.0, posinf=50.0, neginf=-50.0)
-    w_fwd = _sigmoid(t)
-    w_bwd = 1.0 - w_fwd
-    a = w_fwd[lo]  # pixel i's forward weight on edge (i, i+1)
-    b = w_bwd[hi]  # pixel i+1's backward weight on the same edge
-    weight = a + b
-    target = (a * g[lo] + b * g[hi]) / np.maximum(weight, 1e-300)
-    weight = np.where(edges, np.maximum(weight, floor), 0.0)
-    return weight, target

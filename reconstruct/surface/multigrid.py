@@ -51,9 +51,11 @@ def masked_laplacian(wx: np.ndarray, wy: np.ndarray) -> "scipy.sparse.csr_matrix
     diag[1:] += right
     diag[:-w] += down
     diag[w:] += down
-    return scipy.sparse.diags(
-        [diag, -right, -right, -down, -down], [0, 1, -1, w, -w], shape=(n, n), format="csr"
-    )
+    diagonals, offsets = [diag, -down, -down], [0, w, -w]
+    if w > 1:  # a one-column grid has no horizontal pair (and w = 1 would repeat an offset)
+        diagonals += [-right, -right]
+        offsets += [1, -1]
+    return scipy.sparse.diags(diagonals, offsets, shape=(n, n), format="csr")
 
 
 class _Grid:

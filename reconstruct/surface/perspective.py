@@ -20,11 +20,11 @@ r = (u/fx, −v/fy, −1). See :func:`perspective_gradients` for the log-depth g
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
 from reconstruct.calibration.camera import Intrinsics
+from reconstruct.surface.bilateral import discontinuity_preserving
 from reconstruct.surface.fourier import poisson_dct
 from reconstruct.surface.masked import masked_poisson
 
@@ -78,6 +78,15 @@ def perspective_gradients(
     ValueError
         If `normals` is not ``(H, W, 3)`` or `max_slope_deg` is not in (0, 90).
     """
+    p, q, _ = _log_depth_terms(normals, intrinsics, max_slope_deg)
+    return p.astype(np.float32), q.astype(np.float32)
+
+
+def _log_depth_terms(
+    normals: np.ndarray, intrinsics: Intrinsics, max_slope_deg: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """float64 p, q of :func:`perspective_gradients` and the cosine between each normal and
+    its line of sight (after the slope limit), BiNI's weight of the pixel's equations."""
     normals = np.asarray(normals, dtype=np.float64)
     if normals.ndim != 3 or normals.shape[2] != 3:
         raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
@@ -92,14 +101,14 @@ def perspective_gradients(
     # t = −s = n·(−r) is the cosine of the viewing angle times |n||r|; bounding it from below
     # bounds the gradients by tan(max)/f-ish instead of letting them explode at contours.
     t = nz - nx * rx - ny * ry
-    floor = np.sqrt(nx**2 + ny**2 + nz**2) * np.sqrt(rx**2 + ry**2 + 1.0)
-    floor *= math.cos(math.radians(max_slope_deg))
-    t = np.maximum(t, floor)
+    norms = np.sqrt(nx**2 + ny**2 + nz**2) * np.sqrt(rx**2 + ry**2 + 1.0)
+    t = np.maximum(t, norms * math.cos(math.radians(max_slope_deg)))
     with np.errstate(divide="ignore", invalid="ignore"):
         p = nx / (k.fx * t)  # −nx/(fx·s)
         q = ny / (k.fy * t)  # −∂ζ/∂v = −ny/(fy·s)
+        cosine = t / norms
     # 0/0 only for a zero normal; NaN marks it as unknown like a non-finite normal.
-    return p.astype(np.float32), q.astype(np.float32)
+    return p, q, cosine
 
 
 def integrate_perspective(
@@ -110,12 +119,14 @@ def integrate_perspective(
     method: str = "masked",
     distance: float | None = None,
     max_slope_deg: float = 85.0,
+    k: float = 2.0,
     workers: int | None = -1,
 ) -> np.ndarray:
     """Height map from a normal map taken with a pinhole camera.
 
     Integrates the log-depth gradients of :func:`perspective_gradients` with the existing
-    least-squares solvers and exponentiates. A perspective reconstruction from normals is
+    least-squares solvers, or with bilateral normal integration, and exponentiates. A
+    perspective reconstruction from normals is
     defined up to a global scale (a scaled copy of the scene, scaled about the camera
     centre, has the same normals in every pixel), so the depth is fixed by `distance`.
 
@@ -128,16 +139,25 @@ def integrate_perspective(
     mask : numpy.ndarray, optional
         ``(H, W)`` bool, True for pixels of the object. Without one, pixels with a
         non-finite normal are treated as outside the object.
-    method : {"masked", "dct"}
+    method : {"masked", "dct", "bilateral"}
         Solver for the log-depth: :func:`reconstruct.surface.masked.masked_poisson` (default,
-        free boundary on the mask) or :func:`reconstruct.surface.fourier.poisson_dct` (whole
-        rectangle, zero gradient off the mask).
+        free boundary on the mask), :func:`reconstruct.surface.fourier.poisson_dct` (whole
+        rectangle, zero gradient off the mask), or
+        :func:`reconstruct.surface.bilateral.discontinuity_preserving`: BiNI in its own
+        perspective form (Cao et al. 2022, eq. for the pinhole camera), which keeps depth
+        discontinuities. Its unknown is the log-depth times √(fx·fy), so that its one-sided
+        differences are in pixel footprints like the orthographic heights in pixels, and each
+        pixel's equations weigh the square of the cosine between its normal and its line of
+        sight (BiNI's nz·∂z + nx = 0 form).
     distance : float, optional
         Depth along the optical axis, in mm, of the median-depth pixel of the object
         (for a roughly fronto-parallel object, the camera-to-object distance). Without it
         the depth is relative: the median depth is 1.
     max_slope_deg : float
         Passed to :func:`perspective_gradients`.
+    k : float
+        Sharpness of the bilateral weights (``method="bilateral"`` only), 1/pixel²; 2 is
+        Cao et al.'s.
     workers : int or None
         Threads for scipy.fft (−1: all CPUs).
 
@@ -157,18 +177,24 @@ def integrate_perspective(
 
     Notes
     -----
-    The scale is fixed once for the whole object. With ``method="masked"`` each
-    4-connected component of the mask gets its own free constant in log-depth (the
-    solver's zero-mean rule), so separate pieces have arbitrary relative scales.
+    The scale is fixed once for the whole object. With ``method="masked"`` or
+    ``"bilateral"`` each 4-connected component of the mask gets its own free constant in
+    log-depth (the solver's zero-mean rule), so separate pieces have arbitrary relative
+    scales; so do parts that the bilateral weights cut off from the rest all around.
+
+    Measured on the DiLiGenT objects distributed with BiNI (``benchmarks/real_integration.py``,
+    mean absolute depth error after the median-ratio scale): cat 2.24 mm ("masked") and
+    0.08 mm ("bilateral"), harvest 8.15 and 2.70 mm.
     """
-    if method not in ("masked", "dct"):
+    if method not in ("masked", "dct", "bilateral"):
         raise ValueError(
-            f"unknown perspective integration method {method!r}; use 'masked' or 'dct'"
+            f"unknown perspective integration method {method!r}; "
+            "use 'masked', 'dct' or 'bilateral'"
         )
     if distance is not None and not (math.isfinite(distance) and distance > 0):
         raise ValueError(f"distance must be a positive number of mm, not {distance}")
     normals = np.asarray(normals)
-    p, q = perspective_gradients(normals, intrinsics, max_slope_deg=max_slope_deg)
+    p, q, cosine = _log_depth_terms(normals, intrinsics, max_slope_deg)
     finite = np.isfinite(p) & np.isfinite(q)
     if mask is None:
         if not finite.all():
@@ -177,10 +203,17 @@ def integrate_perspective(
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != p.shape:
             raise ValueError(f"mask has shape {mask.shape}, the normals {p.shape}")
-    if method == "masked":
-        log_d = masked_poisson(p, q, mask=mask, pixel_size=1.0, workers=workers)
+    if method == "bilateral":
+        f = math.sqrt(intrinsics.fx * intrinsics.fy)
+        cosines = (cosine * (intrinsics.fx / f), cosine * (intrinsics.fy / f))
+        log_d = discontinuity_preserving(
+            p * f, q * f, mask, cosines=cosines, k=k, workers=workers
+        ) / np.float32(f)
     else:
-        log_d = poisson_dct(p, q, mask=mask, pixel_size=1.0, workers=workers)
+        del cosine
+        p, q = p.astype(np.float32), q.astype(np.float32)
+        solver = masked_poisson if method == "masked" else poisson_dct
+        log_d = solver(p, q, mask=mask, pixel_size=1.0, workers=workers)
     # The masked solver also blanks non-finite gradients; the DCT one only blanks off-mask.
     log_d = np.where(finite, log_d, np.nan)
     inside = np.isfinite(log_d)
