@@ -166,9 +166,10 @@ def _pinhole_scene(spheres, focal_px: float, shape: tuple[int, int]
 
 def _paint_spheres(img: np.ndarray, background: np.ndarray, patch: tuple, light: np.ndarray,
                    highlight: bool, shininess: float, specular: float,
-                   sphere_albedo: float) -> None:
+                   sphere_albedo: float, lobe: str = "phong", n_dot_l: bool = False) -> None:
     """Shade the sub-samples of a :func:`_sphere_patch` under a distant light and average
-    them into `img` in place; sub-samples off the spheres see the `background`.
+    them into `img` in place; sub-samples off the spheres see the `background`. With
+    `n_dot_l` the lobe is multiplied by n·l.
 
     Boxes may overlap: each box starts again from the background and covers every sphere
     within it. Without `highlight` (an occluded flash) the spheres get no specular lobe.
@@ -178,12 +179,20 @@ def _paint_spheres(img: np.ndarray, background: np.ndarray, patch: tuple, light:
     ndotl = n_sph @ light
     sphere_rad = sphere_albedo * np.clip(ndotl, 0, None)
     if highlight:
-        # Phong: r·v with r = 2(n·l)n − l the mirror direction; v = +z when orthographic.
-        if view is None:
-            rdotv = np.clip(2.0 * ndotl * n_sph[:, 2] - light[2], 0, None)
+        # v = +z when orthographic, else each sub-sample's own direction to the camera.
+        ndotv = n_sph[:, 2] if view is None else np.sum(n_sph * view, axis=1)
+        vdotl = light[2] if view is None else view @ light
+        if lobe == "phong":
+            # r·v with r = 2(n·l)n − l the mirror direction of the light.
+            cosine = 2.0 * ndotl * ndotv - vdotl
         else:
-            rdotv = np.clip(2.0 * ndotl * np.sum(n_sph * view, axis=1) - view @ light, 0, None)
-        sphere_rad = sphere_rad + specular * np.where(ndotl > 0, rdotv ** shininess, 0.0)
+            # n·h with h = (l + v)/|l + v|, the half vector.
+            cosine = (ndotl + ndotv) / np.sqrt(2.0 + 2.0 * vdotl)
+        cosine = np.clip(cosine, 0, None)
+        spec = np.where(ndotl > 0, cosine ** shininess, 0.0)
+        if n_dot_l:
+            spec *= np.clip(ndotl, 0, None)
+        sphere_rad = sphere_rad + specular * spec
     fine = np.repeat(np.repeat(background[r0:r1, c0:c1], ss, 0), ss, 1)
     fine[on_sphere] = sphere_rad[:, None]
     img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
@@ -224,15 +233,24 @@ def render_sphere_capture(
     focal_px: float | None = None,
     background_tint: tuple[float, float, float] = (0.55, 0.47, 0.38),
     background_texture: float = 0.15,
+    lobe: str = "phong",
+    min_elevation_deg: float = 15.0,
+    max_elevation_deg: float = 75.0,
+    n_dot_l: bool = False,
 ) -> SphereCaptureInfo:
     """Render and write a highlight-RTI capture with black glossy spheres.
 
     The scene is a dull Lambertian plane with a low textured relief and a varying albedo,
-    plus the spheres: albedo ``sphere_albedo`` and a white Phong lobe
-    ``specular · max(0, r·v)^shininess`` (r the mirror reflection of the light, v = +z), so
-    the highlight sits where the sphere normal bisects light and view. Pixels are averaged
-    over a 3×3 supersampling grid so sphere limbs are anti-aliased like a real lens would.
-    Shadows cast by the spheres are not rendered.
+    plus the spheres: albedo ``sphere_albedo`` and a white specular lobe on the side facing
+    the light, either Phong ``specular · max(0, r·v)^shininess`` (r the mirror reflection of
+    the light, v = +z) or Blinn–Phong ``specular · max(0, n·h)^shininess`` (h the half
+    vector of light and view, as :func:`data_synthetic.render.render` shades surfaces), so
+    the highlight is brightest where the sphere normal bisects light and view. A Blinn–Phong
+    exponent is about four times a Phong one of the same width (n·h = cos δ where r·v = cos
+    2δ); exponents of 10–50 give the broad highlights of spheres that are glossy rather than
+    polished, and ``specular`` above 1 clips the highlight's core, as an overexposed flash
+    does. Pixels are averaged over a 3×3 supersampling grid so sphere limbs are anti-aliased
+    like a real lens would. Shadows cast by the spheres are not rendered.
 
     With ``focal_px`` the camera is a pinhole at the origin looking along −z, principal
     point at the image centre ((W − 1)/2, (H − 1)/2). Sphere (cx, cy, r) then has its centre
@@ -250,7 +268,7 @@ def render_sphere_capture(
     shape : tuple of int
         (H, W) of the photographs.
     n_lights : int
-        Number of photographs; directions from :func:`dome_lights` (15°–75°, jittered).
+        Number of photographs; directions from :func:`dome_lights` (jittered).
     spheres : sequence of (cx, cy, r)
         Sphere centres (cx = column, cy = row) and radii in pixels.
     seed : int
@@ -261,7 +279,7 @@ def render_sphere_capture(
     encoding : {"png", "jpeg"}
         8-bit sRGB PNG (lossless) or JPEG (quality 95).
     shininess, specular, sphere_albedo, noise : float
-        Phong exponent and peak, diffuse albedo of the spheres, sensor noise (std, full
+        Lobe exponent and peak, diffuse albedo of the spheres, sensor noise (std, full
         scale 1).
     focal_px : float, optional
         Focal length in pixels of a pinhole camera; None (default) for an orthographic
@@ -270,6 +288,15 @@ def render_sphere_capture(
         Mean linear RGB albedo of the background plane.
     background_texture : float
         Relative amplitude of the background's albedo mottling (0 for a plain albedo).
+    lobe : {"phong", "blinn-phong"}
+        The specular lobe's model.
+    n_dot_l : bool
+        Multiply the lobe by max(0, n·l), as a physically based renderer shades a BRDF lit
+        by a distant light (radiance = BRDF × n·l), instead of taking the lobe as the
+        radiance. The lobe is then brightest a little off the mirror point, towards the
+        light, and dimmer by about h·l the lower the light.
+    min_elevation_deg, max_elevation_deg : float
+        Elevations of the dome's lowest and highest rings (0 < min ≤ max ≤ 90).
 
     Returns
     -------
@@ -287,6 +314,10 @@ def render_sphere_capture(
         raise InputError(f"need at least 3 lights, got {n_lights}")
     if encoding not in ("png", "jpeg"):
         raise InputError(f"unknown encoding {encoding!r}; choose png or jpeg")
+    if lobe not in ("phong", "blinn-phong"):
+        raise InputError(f"unknown lobe {lobe!r}; choose phong or blinn-phong")
+    if not (np.isfinite(shininess) and shininess > 0):
+        raise InputError(f"shininess must be a positive exponent, got {shininess!r}")
     sph = check_spheres(spheres, (h, w))
     camera, centres, outlines = None, None, tuple((cx, cy, r, r, 0.0) for cx, cy, r in sph)
     if focal_px is not None:
@@ -302,7 +333,10 @@ def render_sphere_capture(
         raise InputError(f"cannot create the capture folder: {exc.strerror}", out) from None
 
     rng = np.random.default_rng(seed)
-    lights = dome_lights(n_lights, seed=seed)
+    try:
+        lights = dome_lights(n_lights, min_elevation_deg, max_elevation_deg, seed=seed)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
 
     # Background: a gently rolling plane with a mottled albedo, shaded at pixel resolution
     # (it has no sharp edges); only the spheres' boxes are supersampled.
@@ -326,7 +360,7 @@ def render_sphere_capture(
         img = background.copy()
         for patch in patches:
             _paint_spheres(img, background, patch, light, k not in hidden,
-                           shininess, specular, sphere_albedo)
+                           shininess, specular, sphere_albedo, lobe, n_dot_l)
         img += rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
         if encoding == "png":

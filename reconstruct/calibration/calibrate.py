@@ -1,10 +1,11 @@
 """Light directions from the highlights on black glossy spheres ("highlight RTI").
 
-A hand-held flash lights the object from a different direction in each photograph; one or
-more black glossy spheres beside the object show a small mirror highlight where the sphere
-normal bisects the light and the viewing direction. With an orthographic camera (a distant
-lens, view v = (0, 0, 1)) the light follows from the highlight position alone; with a pinhole
-camera (:class:`reconstruct.calibration.camera.Intrinsics`, e.g. from EXIF) the view is each
+A hand-held flash lights the object from a different direction in each photograph; one or more
+black glossy spheres beside the object show a mirror highlight (small on a polished sphere,
+broad on a glossy one) centred where the sphere normal bisects the light and the viewing
+direction. With an orthographic camera (a distant lens, view v = (0, 0, 1)) the light follows
+from the highlight position alone; with a pinhole camera
+(:class:`reconstruct.calibration.camera.Intrinsics`, e.g. from EXIF) the view is each
 highlight's own ray and the sphere's position comes from its outline
 (:func:`reconstruct.calibration.reflection.sphere_centre_3d`).
 
@@ -23,7 +24,7 @@ disagreement lowers the confidence.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +34,7 @@ from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, linear_to_srgb, load_stack
 from ptmcore.lp import write_lp
 from reconstruct.calibration.camera import Intrinsics
-from reconstruct.calibration.highlights import find_highlights
+from reconstruct.calibration.highlights import sphere_highlights
 from reconstruct.calibration.reflection import Sphere, light_from_highlight
 from reconstruct.calibration.spheres import detect_spheres, stack_statistics
 
@@ -76,6 +77,11 @@ class Calibration:
         The pinhole camera used for the reflection; None for the orthographic view.
     shape : (H, W) or None
         Size of the photographs in pixels.
+    lobe_cosine : float
+        The exponent q of the factor (n·l)^q on the spheres' specular lobe the highlights
+        were placed with: 0 for a lobe that is the radiance, 1 for a BRDF lit by a light;
+        estimated from the highlights
+        (:func:`reconstruct.calibration.highlights.sphere_highlights`).
     """
 
     directions: np.ndarray
@@ -89,6 +95,7 @@ class Calibration:
     flagged: list[str] = field(default_factory=list)
     intrinsics: Intrinsics | None = None
     shape: tuple[int, int] | None = None
+    lobe_cosine: float = 0.0
 
     @property
     def view_model(self) -> str:
@@ -104,14 +111,17 @@ class Calibration:
         return np.isfinite(self.directions).all(axis=1)
 
 
-def _sphere_crops(stack: ImageStack, sphere: Sphere) -> tuple[np.ndarray, int, int]:
+def _sphere_crops(stack: ImageStack, sphere: Sphere, reach: float = 1.0
+                  ) -> tuple[np.ndarray, int, int]:
     """Every photograph's linear luminance in the sphere's bounding box, and the box's corner.
 
     Only these few thousand pixels per photograph are needed to find highlights, so the
-    whole stack is never converted to float.
+    whole stack is never converted to float. ``reach`` scales the radius (a pinhole's
+    outline is an ellipse longer than its mean radius).
     """
     h, w = stack.shape
     cx, cy, r = sphere
+    r = reach * r
     x0, x1 = max(0, int(cx - r) - 2), min(w, int(np.ceil(cx + r)) + 3)
     y0, y1 = max(0, int(cy - r) - 2), min(h, int(np.ceil(cy + r)) + 3)
     values, _ = stack.band(y0, y1, x0, x1)
@@ -218,13 +228,23 @@ def calibrate_stack(
     sdirs = np.full((m, n, 3), np.nan)
     sconf = np.zeros((m, n))
     hl = np.full((m, n, 2), np.nan)
+    crops, corners, local, cameras = [], [], [], []
+    for sph in spheres:
+        crop, x0, y0 = _sphere_crops(stack, sph, 1.0 if intrinsics is None else 1.1)
+        crops.append(crop)
+        corners.append((x0, y0))
+        local.append((sph[0] - x0, sph[1] - y0, sph[2]))
+        cameras.append(None if intrinsics is None else replace(
+            intrinsics, cx=intrinsics.cx - x0, cy=intrinsics.cy - y0))
+    # The spheres share the lights: the lobe's factor (n·l)^q is estimated from them all.
+    found, lobe_cosine = sphere_highlights(crops, local, intrinsics=cameras)
+    del crops
     for i, sph in enumerate(spheres):
-        crops, x0, y0 = _sphere_crops(stack, sph)
-        local = (sph[0] - x0, sph[1] - y0, sph[2])
-        for k, found in enumerate(find_highlights(crops, local)):
-            if found is not None:
-                hl[i, k] = found[0] + x0, found[1] + y0
-                sconf[i, k] = found[2]
+        x0, y0 = corners[i]
+        for k, one in enumerate(found[i]):
+            if one is not None:
+                hl[i, k] = one[0] + x0, one[1] + y0
+                sconf[i, k] = one[2]
         seen = np.isfinite(hl[i, :, 0])
         if seen.any():
             sdirs[i, seen] = light_from_highlight(hl[i, seen, 0], hl[i, seen, 1], sph,
@@ -252,7 +272,7 @@ def calibrate_stack(
     return Calibration(directions=combined, confidence=conf, sphere_directions=sdirs,
                        sphere_confidence=sconf, highlights=hl, disagreement_deg=disagree,
                        spheres=[tuple(s) for s in spheres], names=names, flagged=flagged,
-                       intrinsics=intrinsics, shape=stack.shape)
+                       intrinsics=intrinsics, shape=stack.shape, lobe_cosine=lobe_cosine)
 
 
 def calibrate(
