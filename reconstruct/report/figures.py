@@ -452,11 +452,12 @@ def mesh_render(
         raise RuntimeError(f"off-screen rendering needs pyvista ({exc})") from exc
 
     try:
-        if isinstance(mesh, tuple):
-            vertices, faces = mesh
-            surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float32), faces)
-        else:
-            surface = pv.read(str(mesh))
+        with rendering.VTK_LOCK:
+            if isinstance(mesh, tuple):
+                vertices, faces = mesh
+                surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float32), faces)
+            else:
+                surface = pv.read(str(mesh))
     except Exception as exc:  # pyvista's readers raise assorted types
         raise RuntimeError(f"cannot read the mesh ({exc})") from exc
 

@@ -10,9 +10,16 @@ crashes VTK; a wrong class segfaults where its library is missing).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
-__all__ = ["plotter", "render_image"]
+__all__ = ["VTK_LOCK", "plotter", "render_image"]
+
+#: Held while VTK reads or renders. VTK is not thread-safe: a batch makes the reports of two
+#: objects in two threads of one worker, and a mesh read in one while the other rendered
+#: aborted the process (seen once in a fresh test run).
+VTK_LOCK = threading.RLock()
 
 
 def plotter(size: tuple[int, int], *, off_screen: bool = True, **kwargs):
@@ -68,17 +75,18 @@ def render_image(draw, size: tuple[int, int], **kwargs) -> np.ndarray:
         types), or an empty image.
     """
     result = None
-    try:
-        result = plotter(size, **kwargs)
-        draw(result)
-        image = result.screenshot(return_img=True)
-    except RuntimeError:
-        raise
-    except Exception as exc:
-        raise RuntimeError(f"off-screen rendering failed ({exc})") from exc
-    finally:
-        if result is not None:
-            result.close()
+    with VTK_LOCK:
+        try:
+            result = plotter(size, **kwargs)
+            draw(result)
+            image = result.screenshot(return_img=True)
+        except RuntimeError:
+            raise
+        except Exception as exc:
+            raise RuntimeError(f"off-screen rendering failed ({exc})") from exc
+        finally:
+            if result is not None:
+                result.close()
     if image is None or image.size == 0 or np.ptp(image) == 0:
         raise RuntimeError("off-screen rendering is not available (the render is empty)")
     return np.ascontiguousarray(image[..., :3])
