@@ -80,6 +80,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
               f"spheres for {len(found.names)} of {len(paths)} photographs (median distance "
               f"{typical_distance(found.positions, stack.shape):.0f} px); `run` gives "
               "every pixel its own light direction")
+    # The highlights' dimming with elevation says whether the spheres' lobe is shaded × n·l
+    # (reconstruct.calibration.highlights); shown because it moves broad highlights by degrees.
+    print(f"  highlight model: lobe × (n·l)^{result.lobe_cosine:.2f}, read from how the highlights dim "
+          "as the lights get lower")
     for line in found.left_out:
         print(f"  warning: {line}; left out")
     if args.diagnostic is not None:

@@ -14,7 +14,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
     submod_attrs={
         "calibrate": ["Calibration", "calibrate", "calibrate_stack", "calibration_camera", "write_calibration_lp", "write_diagnostic"],
         "camera": ["Intrinsics", "intrinsics_from_exif", "parse_intrinsics"],
-        "highlights": ["find_highlight", "find_highlights"],
+        "highlights": ["find_highlight", "find_highlights", "sphere_highlights"],
         "lightcheck": ["LightReport", "check_lights", "plot_positions", "report_text", "write_polar_plot"],
         "reflection": ["Sphere", "light_from_highlight"],
         "spheres": ["detect_spheres", "fit_circle", "refine_circle", "stack_statistics"],
