@@ -55,6 +55,8 @@ def normals_table(folders: list[Path]) -> list[dict]:
         ds = read_ps_dataset(folder)
         dirs = ds.lights.directions
         name = folder.name.removeprefix("diligent_")
+        if not rows:  # compile the kernels outside the timings
+            robust_photometric_stereo(ds.stack, dirs, lobe=True)
         for label, method in METHODS.items():
             t0 = time.perf_counter()
             ps = method(ds.stack, dirs)
@@ -85,8 +87,6 @@ def main() -> None:
         print(f"{args.real} not found: nothing to measure")
         return
     folders = sorted(p for p in args.real.iterdir() if p.is_dir() and is_ps_dataset(p))
-    # Compile the kernels outside the timings.
-    robust_photometric_stereo(read_ps_dataset(folders[0]).stack, read_ps_dataset(folders[0]).lights.directions, lobe=True)
     rows = normals_table(folders)
     print(f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, Python {platform.python_version()}\n")
     print("| object | normals | mean ° | median ° | seconds |")

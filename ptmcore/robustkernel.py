@@ -31,6 +31,8 @@ import math
 import numba
 import numpy as np
 
+from .lobe import FACTOR_RANGE
+
 __all__ = ["robust_ps_rows"]
 
 # Indices into the float64 parameter vector (numba compiles one function for every option
@@ -53,8 +55,6 @@ _LANES = 16
 _FAST = {"contract", "arcp", "nsz"}
 #: Division by zero gives inf or NaN instead of raising: the check for it on every division
 #: keeps a loop from vectorising (the kernel never divides by zero).
-#: As :data:`ptmcore.lobe.FACTOR_RANGE`.
-_FACTOR_RANGE = (0.3, 3.0)
 _JIT = {"nogil": True, "cache": True, "fastmath": _FAST, "error_model": "numpy"}
 
 
@@ -295,7 +295,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     den = np.empty(chunk, np.float32)
     total = np.empty(chunk, np.float32)
     pn = np.empty((3, chunk), np.float32)
-    lo_f, hi_f = np.float32(_FACTOR_RANGE[0]), np.float32(_FACTOR_RANGE[1])
+    lo_f, hi_f = np.float32(FACTOR_RANGE[0]), np.float32(FACTOR_RANGE[1])
     for row in range(r0, r1):
         for c0 in range(0, width, chunk):
             inside = min(chunk, width - c0)
