@@ -37,6 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from data_synthetic.tablet import clay_tablet  # noqa: E402
+from procinfo import cpu_model  # noqa: E402
 from reconstruct.surface import gradients_from_normals  # noqa: E402
 from reconstruct.surface.masked import (  # noqa: E402
     _component_means_removed,
@@ -147,9 +148,7 @@ def main() -> None:
     ap.add_argument("--sizes", type=int, nargs="*", default=[1000, 2000])
     ap.add_argument("--preconditioners", nargs="*", default=["dct", "multigrid"])
     args = ap.parse_args()
-    cpu = next((ln.split(":", 1)[1].strip() for ln in
-                Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model name")),
-               platform.processor())
+    cpu = cpu_model()
     print(f"# CG solver: hand loop vs scipy.sparse.linalg.cg\n\n"
           f"{datetime.date.today().isoformat()} — {cpu}, {platform.machine()}, "
           f"{os.cpu_count()} cores, Python {platform.python_version()}, NumPy {np.__version__}, "

@@ -52,6 +52,7 @@ from data_synthetic.sphere import sphere_cap  # noqa: E402
 from data_synthetic.surface import normals_from_height  # noqa: E402
 from data_synthetic.wedges import wedge_plate  # noqa: E402
 from helpers import dome, stack_from_luminance  # noqa: E402
+from procinfo import cpu_model, status_mb  # noqa: E402
 from ptmcore.robust import robust_photometric_stereo  # noqa: E402
 from reconstruct.surface import gradients_from_normals  # noqa: E402
 from test_integrate_masked import (  # noqa: E402
@@ -179,21 +180,14 @@ def _scaling_problem(mp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return z.astype(np.float32), p.astype(np.float32), q.astype(np.float32), mask
 
 
-def _vmhwm_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def child(mp: float, preconditioner: str) -> None:
     z, p, q, mask = _scaling_problem(mp)
-    base = _vmhwm_mb()
+    base = status_mb("VmHWM")
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak RSS
     t = time.perf_counter()
     height, info = masked_poisson(p, q, mask, preconditioner=preconditioner, return_info=True)
     dt = time.perf_counter() - t
-    peak = _vmhwm_mb()
+    peak = status_mb("VmHWM")
     z = z.astype(np.float64) - z[mask].mean(dtype=np.float64)
     err = float(np.sqrt(np.mean((height[mask] - z[mask]) ** 2)))
     print(f"{mp}|{preconditioner}|{p.shape[0]}x{p.shape[1]}|{int(mask.sum())}|{dt:.2f}|"
@@ -210,10 +204,7 @@ def main() -> None:
     if args.child:
         child(float(args.child[0]), args.child[1])
         return
-    cpu = next((ln.split(":", 1)[1].strip() for ln in
-                Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model name")),
-               platform.processor())
-    print(f"# Integration benchmark\n\n{datetime.date.today().isoformat()} — {cpu}, "
+    print(f"# Integration benchmark\n\n{datetime.date.today().isoformat()} — {cpu_model()}, "
           f"{os.cpu_count()} CPUs, {platform.platform()}, Python {platform.python_version()}, "
           f"NumPy {np.__version__}\n")
     print("## RMSE (pixels), 0.5 % gradient noise, 96×112\n")

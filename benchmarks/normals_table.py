@@ -44,6 +44,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import ptmcore  # noqa: E402
+from procinfo import cpu_model  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
 from data_synthetic.lights import dome_lights, ring_lights  # noqa: E402
 from data_synthetic.render import render  # noqa: E402
@@ -194,14 +195,7 @@ def breakdown(n_lights: int, seed: int, size: int = 256) -> list[dict]:
 
 
 def _machine() -> str:
-    model = platform.processor() or "cpu"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
+    model = cpu_model()
     return (f"{platform.machine()}, {model}, {os.cpu_count()} cores, "
             f"Python {platform.python_version()}, NumPy {np.__version__}")
 

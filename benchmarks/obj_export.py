@@ -49,6 +49,7 @@ from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from procinfo import status_mb  # noqa: E402
 from ptmcore.atomic import atomic_write  # noqa: E402
 from ptmcore.png import encode_png  # noqa: E402
 from reconstruct.mesh.grid import GridMesh, grid_mesh  # noqa: E402
@@ -126,14 +127,6 @@ def _write_numpy(path: Path, mesh: GridMesh, texture: np.ndarray) -> None:
             _numpy_lines(handle, "f %d/%d/%d %d/%d/%d %d/%d/%d\n", corners)
 
 
-def _memory_mb(field: str) -> float:
-    """A memory figure of this process from ``/proc/self/status`` (Linux), in MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith(field + ":"):
-            return int(line.split()[1]) / 1024  # kB
-    raise KeyError(field)
-
-
 def _child(writer: str, data: Path, out: Path) -> None:
     """Load the mesh, run one writer, print its time and peak RSS (MB) as JSON."""
     arrays = {name: np.load(data / f"{name}.npy") for name in _ARRAYS}
@@ -143,7 +136,7 @@ def _child(writer: str, data: Path, out: Path) -> None:
     encode_png(np.zeros((1, 1, 3), np.uint8))
     # Linux: the peak RSS is reset to the current one, so that VmHWM is the writer's.
     Path("/proc/self/clear_refs").write_text("5")
-    before = _memory_mb("VmRSS")
+    before = status_mb("VmRSS")
     t0 = time.perf_counter()
     if writer == "ours":
         write_obj(out / "mesh.obj", mesh, texture)
@@ -152,7 +145,7 @@ def _child(writer: str, data: Path, out: Path) -> None:
     else:
         _write_numpy(out / "mesh.obj", mesh, texture)
     seconds = time.perf_counter() - t0
-    peak = _memory_mb("VmHWM")
+    peak = status_mb("VmHWM")
     print(json.dumps({"seconds": seconds, "peak": peak, "over": peak - before}))
 
 

@@ -49,6 +49,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from procinfo import cpu_model, status_mb  # noqa: E402
 from ptmcore.images import read_image  # noqa: E402
 from reconstruct.calibration.camera import Intrinsics  # noqa: E402
 from reconstruct.surface import integrate_perspective, read_normal_map  # noqa: E402
@@ -179,28 +180,14 @@ def synthetic_table() -> str:
 # ---------------------------------------------------------------- 24 Mpixel
 
 
-def _vmhwm_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmHWM"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
-def _vmrss_mb() -> float:
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def child(h: int, w: int, method: str) -> None:
     camera, depth, mask = tablet_scene((h, w))
     normals = depth_normals(depth, camera)
     gc.collect()
-    before = _vmrss_mb()
+    before = status_mb("VmRSS")
     Path("/proc/self/clear_refs").write_text("5")  # reset the peak RSS
     height, wall, cpu = timed(normals, camera, mask, method)
-    peak = _vmhwm_mb()
+    peak = status_mb("VmHWM")
     print(f"{h}x{w}|{int(mask.sum())}|{method}|{wall:.1f}|{cpu:.1f}|{peak:.0f}|{before:.0f}|"
           f"{made(height, depth, mask) * 1000:.2f}")
 
@@ -227,11 +214,8 @@ def main() -> None:
     if args.child:
         child(int(args.child[0]), int(args.child[1]), args.child[2])
         return
-    cpu = next((ln.split(":", 1)[1].strip() for ln in
-                Path("/proc/cpuinfo").read_text().splitlines() if ln.startswith("model name")),
-               platform.processor())
     print(f"# Perspective integration: masked least squares and bilateral (BiNI)\n\n"
-          f"{datetime.date.today().isoformat()} — {cpu}, {os.cpu_count()} CPUs, "
+          f"{datetime.date.today().isoformat()} — {cpu_model()}, {os.cpu_count()} CPUs, "
           f"Python {platform.python_version()}, NumPy {np.__version__}, "
           f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}\n")
     print("## Real: DiLiGenT objects of BiNI (MADE after the median-ratio scale)\n")

@@ -317,6 +317,18 @@ def _numpy_pass(stack: ImageStack, lights: Lights, opt: RobustOptions, out: Phot
     run_bands(h, band_height(n, w), work, threads=threads, progress=progress)
 
 
+def _mean_directions(a: np.ndarray, b: np.ndarray, threads: int | None) -> None:
+    """``a`` ← the unit vector halfway between ``a`` and ``b`` (H, W, 3), in bands of rows."""
+    h, w = a.shape[:2]
+
+    def work(r0: int, r1: int) -> None:
+        mean = a[r0:r1] + b[r0:r1]
+        mean /= np.maximum(np.linalg.norm(mean, axis=2, keepdims=True), np.float32(1e-12))
+        a[r0:r1] = mean
+
+    run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads)
+
+
 def _in_thirds(progress: Callable[[int], None]) -> Callable[[int], None]:
     """A progress callback for three passes over the rows that reports whole rows of one."""
     done = [0, 0]  # rows done in all passes, rows reported
@@ -445,12 +457,7 @@ def robust_photometric_stereo(
     second = empty_result((h, w))
     run(second, result.normals, lobe.coefficients, thirds)
 
-    def damp(r0: int, r1: int) -> None:
-        mean = result.normals[r0:r1] + second.normals[r0:r1]
-        mean /= np.maximum(np.linalg.norm(mean, axis=2, keepdims=True), np.float32(1e-12))
-        result.normals[r0:r1] = mean
-
-    run_bands(h, max(1, _KERNEL_PIXELS // w), damp, threads=threads)
+    _mean_directions(result.normals, second.normals, threads)
     del second
     # The prior is read a chunk at a time before the chunk's normals are written over it.
     run(result, result.normals, lobe.coefficients, thirds)

@@ -161,7 +161,7 @@ def _irls(
     if start is None:
         half = np.full(mask.shape, 0.5)
         wf_row = wf_col = half
-        z = _warm_start(g_row, g_col, mask) if mask.size else np.zeros(mask.shape)
+        z = _warm_start(g_row, g_col, mask)
     else:
         z, wf_row, wf_col = start
     energy = math.inf

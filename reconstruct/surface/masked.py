@@ -3,8 +3,9 @@
 Unlike the whole-rectangle integrators of :mod:`reconstruct.surface.fourier`,
 :func:`masked_poisson` uses only the gradient equations between two pixels of the mask, so
 nothing is assumed about what lies outside it: weighted least squares with a free boundary,
-solved by preconditioned conjugate gradients. Bilateral normal integration (:mod:`reconstruct.surface.bilateral`), which keeps creases and
-steps, reuses the edge solver of this module with its own weights.
+solved by preconditioned conjugate gradients. Bilateral normal integration
+(:mod:`reconstruct.surface.bilateral`), which keeps creases and steps, reuses the edge solver
+of this module with its own weights.
 
 The unknowns are the heights of the mask's bounding box; pixels outside the mask have no
 gradient equation, hence a zero row and column in the normal equations, so whatever values
@@ -314,7 +315,7 @@ def masked_poisson(
     del p_arr
     tx = 0.5 * (g_col[:, :-1].astype(np.float64) + g_col[:, 1:])
     ty = 0.5 * (g_row[:-1, :].astype(np.float64) + g_row[1:, :])
-    x0 = _warm_start(g_row, g_col, m) if m.size else np.zeros(m.shape)
+    x0 = _warm_start(g_row, g_col, m)
     del g_row, g_col
     z, info = _solve_edges(
         wx, tx, wy, ty, m, x0, tol=tol, maxiter=maxiter,
