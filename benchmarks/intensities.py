@@ -2,8 +2,8 @@
 
 1. Real: DiLiGenT's cat (``../shared/real/diligent_cat``; skipped when absent), 96 photographs
    under calibrated LEDs whose RGB intensities (``light_intensities.txt``) vary sixfold. The
-   photographs are read as they are, not divided by the intensities as
-   :func:`ptmcore.psdataset.read_ps_dataset` does, and the factors estimated by
+   photographs are read as they are (:func:`ptmcore.psdataset.read_ps_dataset` with
+   ``divide_intensities=False``), and the factors estimated by
    :func:`ptmcore.intensity.fit_intensities`: for luminance from the stack (what
    ``reconstruct run --intensities estimate`` gives a capture with an ``.lp``), and per channel
    from the RGB photographs.
@@ -191,11 +191,10 @@ def lambertian_reference(rgb: np.ndarray, dirs: np.ndarray, normals: np.ndarray,
 def read_cat() -> dict:
     from ptmcore.psdataset import read_ps_dataset
 
-    ds = read_ps_dataset(CAT, threads=2)
+    ds = read_ps_dataset(CAT, threads=2, divide_intensities=False)
     with ThreadPoolExecutor(2) as pool:
         rgb = np.stack(list(pool.map(read_image, ds.lights.paths)))  # (N, H, W, 3) uint16, as stored
-    raw = load_stack(ds.lights.paths, linearize=False, threads=2)  # not divided by the intensities
-    return {"dataset": ds, "rgb": rgb, "raw": raw}
+    return {"dataset": ds, "rgb": rgb, "raw": ds.stack}
 
 
 def cat_normals(cat: dict, lum_factors: np.ndarray, rgb_factors: np.ndarray) -> list[dict]:
@@ -209,8 +208,8 @@ def cat_normals(cat: dict, lum_factors: np.ndarray, rgb_factors: np.ndarray) -> 
         "given intensities, per channel (default)": capture.stack,
         "estimated, per channel": load_stack(ds.lights.paths, linearize=False, threads=2,
                                              channel_gains=rgb_factors.min() / rgb_factors),
-        "given intensities, luminance": apply_intensities(cat["raw"], given_lum / given_lum.min()),
-        "estimated, luminance (--intensities estimate)": apply_intensities(cat["raw"], lum_factors / lum_factors.min()),
+        "given intensities, luminance": apply_intensities(cat["raw"], given_lum, relative=True),
+        "estimated, luminance (--intensities estimate)": apply_intensities(cat["raw"], lum_factors, relative=True),
         "none": cat["raw"],
     }
     rows = []

@@ -69,7 +69,7 @@ def normals_table(folders: list[Path]) -> list[dict]:
         raw = read_ps_dataset(folder, divide_intensities=False)
         t0 = time.perf_counter()
         factors = estimate_intensities(raw.stack, dirs, mask=raw.mask)
-        ps = robust_photometric_stereo(apply_intensities(raw.stack, factors / factors.min()), dirs, lobe=True)
+        ps = robust_photometric_stereo(apply_intensities(raw.stack, factors, relative=True), dirs, lobe=True)
         seconds = time.perf_counter() - t0
         err = angular_error(ps.normals, ds.ground_truth_normals, ds.mask)
         rows.append({"object": name, "method": "`--fit lobe` with `--intensities estimate` (given ones ignored)",

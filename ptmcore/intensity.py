@@ -202,9 +202,10 @@ def _channel_weights(channels: int) -> np.ndarray:
 
 def _sample_pixels(
     images: ImageStack | np.ndarray, mask: np.ndarray | None, max_pixels: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear values ``(N, P, C)`` float64, usability ``(N, P)`` and the half each pixel is in
-    ``(P,)`` bool, of evenly spread pixels.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Linear values ``(N, P, C)`` float64, the signal they are selected on ``(N, P)``
+    (:func:`_channel_weights`), usability ``(N, P)`` and the half each pixel is in ``(P,)``
+    bool, of evenly spread pixels.
 
     A regular subsample is enough: the factors are one number per photograph, measured over
     thousands of pixels, and a grid keeps the result deterministic. Only the sampled pixels are
@@ -250,7 +251,7 @@ def _sample_pixels(
         halves = ((rows - rows.min()) // block + (cols - cols.min()) // block) % 2 == 1
     else:
         halves = np.zeros(0, dtype=bool)
-    return values[:, lit], usable[:, lit], halves
+    return values[:, lit], signal[:, lit], usable[:, lit], halves
 
 
 def _undetermining_lights(dirs: np.ndarray) -> str | None:
@@ -516,10 +517,9 @@ def fit_intensities(
     problem = _undetermining_lights(dirs)
     if problem is not None:
         raise InputError(problem)
-    values, usable, halves = _sample_pixels(images, mask, max(int(max_pixels), 1))
+    values, signal, usable, halves = _sample_pixels(images, mask, max(int(max_pixels), 1))
     if values.shape[1] < _MIN_SAMPLES:
         raise InputError(f"only {values.shape[1]} lit pixels: too few to estimate light intensities")
-    signal = values @ _channel_weights(values.shape[2])
     outer = _light_outer(dirs)
     half = dirs + np.array([0.0, 0.0, 1.0])
     half /= np.linalg.norm(half, axis=1, keepdims=True)
@@ -553,7 +553,7 @@ def fit_intensities(
             rounds = round_ + 1
             break
     forms, measured = kept
-    samples = np.where(measured, (weights > 0).sum(axis=1), 0)
+    samples = np.count_nonzero(weights, axis=1)  # rows of unmeasured photographs are zero
     if isinstance(images, ImageStack) or images.ndim == 3:
         return IntensityFit(factors, _spread(forms, measured, factors), samples, rounds)
     per_channel = np.ones((n, values.shape[2]))
@@ -584,7 +584,7 @@ def estimate_intensities(
     ).factors
 
 
-def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
+def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool = False) -> ImageStack:
     """Divide each photograph's luminance by its light intensity factor.
 
     Parameters
@@ -594,6 +594,9 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
         Positive factors, e.g. from :func:`read_intensities` or :func:`estimate_intensities`.
         Per-channel factors are reduced to their luminance-weighted value, since the stack holds
         luminance only.
+    relative : bool
+        Divide by the factors scaled to a minimum of 1 instead: only their ratios matter to the
+        normals, and no sample is pushed past the stored range (the albedo's scale changes).
 
     Returns
     -------
@@ -601,8 +604,7 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
         A new stack (the input is unchanged) with the same chroma and paths. Clipped samples
         stay clipped; a sample whose divided value exceeds the representable range (a factor
         below 1 on a bright sample) is marked clipped too, since its value cannot be stored.
-        To avoid that, scale the factors so that their minimum is 1: only their ratios matter
-        to the normals.
+        To avoid that, pass ``relative=True``.
 
     Raises
     ------
@@ -617,6 +619,8 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray) -> ImageStack:
         raise ValueError(f"expected {n} intensity factors, got array of shape {np.shape(factors)}")
     if not np.all(np.isfinite(f) & (f > 0)):
         raise ValueError("intensity factors must be positive and finite")
+    if relative:
+        f = f / f.min()
     h, w = stack.shape
     out = np.empty_like(stack.luminance)
     saturated = np.zeros(n, dtype=np.int64)

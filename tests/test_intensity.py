@@ -285,3 +285,11 @@ def test_estimate_on_the_real_diligent_cat():
     lum = fit_intensities(lum, dirs, mask=mask, max_pixels=5000)
     err = _relative_errors(lum.factors, given @ LUMA_WEIGHTS)
     assert err.mean() < 0.03 and err.max() < 0.08, (err.mean(), err.max())
+
+
+def test_relative_factors_keep_bright_samples_in_range():
+    stack = stack_from_luminance(np.full((3, 4, 5), 0.9))
+    out = apply_intensities(stack, np.array([0.5, 1.0, 2.0]), relative=True)
+    # As factors 1, 2, 4: nothing is pushed past the stored range.
+    assert out.saturated.sum() == 0
+    np.testing.assert_allclose(out.table[out.luminance[:, 0, 0]], [0.9, 0.45, 0.225], atol=1e-4)

@@ -409,9 +409,7 @@ def load_capture(
             factors = estimate_intensities(loaded.stack, directions, mask=loaded.mask)
         else:
             factors = read_intensities(opt.intensities, len(loaded.lights))
-        # Scaled to a minimum of 1: a factor below 1 would push bright samples past the stored
-        # range (marked clipped); only the ratios matter to the normals.
-        loaded.stack = apply_intensities(loaded.stack, factors / np.min(factors))
+        loaded.stack = apply_intensities(loaded.stack, factors, relative=True)
         loaded.intensities = {"source": opt.intensities, "factors": factors}
     _check_exposure(loaded)
     return loaded
