@@ -61,7 +61,6 @@ import platform
 import sys
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +72,7 @@ from data_synthetic.spheres import render_sphere_capture
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.images import load_stack, srgb_to_linear
-from reconstruct.calibration.calibrate import _sphere_crops, calibrate_stack
+from reconstruct.calibration.calibrate import _crops_per_sphere, _sphere_crops, calibrate_stack
 from reconstruct.calibration.highlights import find_highlights, sphere_highlights
 from reconstruct.calibration.reflection import ellipse_mean_radius, light_from_highlight, sphere_normal_at
 
@@ -89,32 +88,26 @@ def _sharp(rng: np.random.Generator) -> dict:
     return {}
 
 
-def _broad(rng: np.random.Generator) -> dict:
-    return {"lobe": "blinn-phong", "shininess": _loguniform(rng, 10, 50),
-            "specular": float(rng.uniform(0.5, 0.9)), "sphere_albedo": float(rng.uniform(0.01, 0.05))}
+def _blinn_phong(shininess: tuple[float, float], specular: tuple[float, float],
+                 elevations_deg: tuple[float, float] | None = None):
+    """A draw of black spheres (albedo 0.01–0.05) with a Blinn–Phong lobe: exponent
+    log-uniform and peak uniform in the given ranges, lights at the given elevations (the
+    renderer's 15°–75° when None)."""
+    def draw(rng: np.random.Generator) -> dict:
+        out = {"lobe": "blinn-phong", "shininess": _loguniform(rng, *shininess),
+               "specular": float(rng.uniform(*specular)),
+               "sphere_albedo": float(rng.uniform(0.01, 0.05))}
+        if elevations_deg is not None:
+            out |= {"min_elevation_deg": elevations_deg[0], "max_elevation_deg": elevations_deg[1]}
+        return out
+    return draw
 
 
-def _low(rng: np.random.Generator) -> dict:
-    return {"lobe": "blinn-phong", "shininess": _loguniform(rng, 50, 200),
-            "specular": float(rng.uniform(0.5, 0.9)), "sphere_albedo": float(rng.uniform(0.01, 0.05)),
-            "min_elevation_deg": 20.0, "max_elevation_deg": 35.0}
-
-
-def _saturated(rng: np.random.Generator) -> dict:
-    return {"lobe": "blinn-phong", "shininess": _loguniform(rng, 30, 300),
-            "specular": float(rng.uniform(2.0, 5.0)), "sphere_albedo": float(rng.uniform(0.01, 0.05))}
-
-
-def _held_out_like(rng: np.random.Generator) -> dict:
-    return {"lobe": "blinn-phong", "shininess": _loguniform(rng, 15, 60),
-            "specular": float(rng.uniform(0.6, 1.6)), "sphere_albedo": float(rng.uniform(0.01, 0.05)),
-            "min_elevation_deg": 20.0, "max_elevation_deg": 90.0}
-
-
-def _broad_saturated(rng: np.random.Generator) -> dict:
-    return {"lobe": "blinn-phong", "shininess": _loguniform(rng, 10, 30),
-            "specular": float(rng.uniform(2.0, 4.0)), "sphere_albedo": float(rng.uniform(0.01, 0.05)),
-            "min_elevation_deg": 20.0, "max_elevation_deg": 90.0}
+_broad = _blinn_phong((10, 50), (0.5, 0.9))
+_low = _blinn_phong((50, 200), (0.5, 0.9), (20.0, 35.0))
+_saturated = _blinn_phong((30, 300), (2.0, 5.0))
+_held_out_like = _blinn_phong((15, 60), (0.6, 1.6), (20.0, 90.0))
+_broad_saturated = _blinn_phong((10, 30), (2.0, 4.0), (20.0, 90.0))
 
 
 def _times_n_dot_l(draw):
@@ -244,7 +237,7 @@ def _old_directions(stack, cal) -> tuple[np.ndarray, int, float]:
     finds no candidate), how many highlights its area limit would have refused, and the
     seconds it took."""
     n = len(stack)
-    out = np.full((len(cal.spheres), n, 3), np.nan)
+    positions = np.full((len(cal.spheres), n, 2), np.nan)
     refused = 0
     seconds = 0.0
     for i, sph in enumerate(cal.spheres):
@@ -256,40 +249,33 @@ def _old_directions(stack, cal) -> tuple[np.ndarray, int, float]:
             seconds += time.perf_counter() - t0
             refused += int(no and np.isfinite(cal.highlights[i, k, 0]))
             if pos is not None:
-                out[i, k] = light_from_highlight(pos[0] + x0, pos[1] + y0, sph, cal.intrinsics)
-    return out, refused, seconds
+                positions[i, k] = pos[0] + x0, pos[1] + y0
+    return _lights(positions, cal), refused, seconds
 
 
-def _crops(stack, cal):
-    """The calibration's crops around each sphere, as :func:`calibrate_stack` takes them."""
-    crops, corners, local, cameras = [], [], [], []
-    for sph in cal.spheres:
-        crop, x0, y0 = _sphere_crops(stack, sph, 1.0 if cal.intrinsics is None else 1.1)
-        crops.append(crop)
-        corners.append((x0, y0))
-        local.append((sph[0] - x0, sph[1] - y0, sph[2]))
-        cameras.append(None if cal.intrinsics is None else replace(
-            cal.intrinsics, cx=cal.intrinsics.cx - x0, cy=cal.intrinsics.cy - y0))
-    return crops, corners, local, cameras
+def _lights(positions: np.ndarray, cal) -> np.ndarray:
+    """(S, N, 3) light directions of (S, N, 2) highlight positions in the photographs on the
+    calibration's spheres (NaN where NaN), one call per sphere."""
+    return np.stack([light_from_highlight(p[:, 0], p[:, 1], sph, cal.intrinsics)
+                     for p, sph in zip(positions, cal.spheres)])
 
 
 def _highlight_directions(stack, cal, lobe_cosine: float | None
                           ) -> tuple[np.ndarray, np.ndarray, float]:
     """(S, N, 3) directions and (S, N) confidences of the mean of normals with the given q
     (None: estimated) on the calibration's spheres, and the seconds it took."""
-    crops, corners, local, cameras = _crops(stack, cal)
+    crops, corners, local, cameras = _crops_per_sphere(stack, cal.spheres, cal.intrinsics)
     t0 = time.perf_counter()
     found, _ = sphere_highlights(crops, local, intrinsics=cameras, lobe_cosine=lobe_cosine)
     seconds = time.perf_counter() - t0
-    out = np.full((len(cal.spheres), len(stack), 3), np.nan)
-    conf = np.zeros(out.shape[:2])
-    for i, sph in enumerate(cal.spheres):
-        x0, y0 = corners[i]
+    positions = np.full((len(cal.spheres), len(stack), 2), np.nan)
+    conf = np.zeros(positions.shape[:2])
+    for i, (x0, y0) in enumerate(corners):
         for k, one in enumerate(found[i]):
             if one is not None:
-                out[i, k] = light_from_highlight(one[0] + x0, one[1] + y0, sph, cal.intrinsics)
+                positions[i, k] = one[0] + x0, one[1] + y0
                 conf[i, k] = one[2]
-    return out, conf, seconds
+    return _lights(positions, cal), conf, seconds
 
 
 def _combine(sdirs: np.ndarray, weights: np.ndarray) -> np.ndarray:

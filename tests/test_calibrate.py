@@ -18,7 +18,7 @@ from reconstruct.calibration.calibrate import (
     write_diagnostic,
 )
 from reconstruct.calibration.highlights import find_highlight, find_highlights
-from reconstruct.calibration.reflection import light_from_highlight
+from reconstruct.calibration.reflection import light_from_highlight, sphere_normal_at
 from reconstruct.calibration.spheres import detect_spheres, fit_circle
 
 HIDDEN = (3, 10)
@@ -266,9 +266,8 @@ def _analytic_sphere(light, shininess, peak, albedo, radius=60.0, supersample=3,
     sub = (np.arange(supersample) + 0.5) / supersample - 0.5
     coords = (np.arange(size)[:, None] + sub[None, :]).ravel()
     xx, yy = np.meshgrid(coords, coords)
-    sx, sy = (xx - sphere[0]) / radius, (sphere[1] - yy) / radius
-    on = sx * sx + sy * sy < 1
-    n = np.stack([sx, sy, np.sqrt(np.clip(1 - sx * sx - sy * sy, 0, None))], axis=-1)
+    on = np.hypot(xx - sphere[0], yy - sphere[1]) < radius
+    n = sphere_normal_at(xx, yy, sphere)
     half = (light + [0.0, 0.0, 1.0]) / np.linalg.norm(light + [0.0, 0.0, 1.0])
     ndotl = n @ light
     lobe = np.where(ndotl > 0, np.clip(n @ half, 0, None) ** shininess, 0.0)

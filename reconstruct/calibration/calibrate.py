@@ -34,7 +34,7 @@ from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, linear_to_srgb, load_stack
 from ptmcore.lp import write_lp
 from reconstruct.calibration.camera import Intrinsics
-from reconstruct.calibration.highlights import sphere_highlights
+from reconstruct.calibration.highlights import PINHOLE_REACH, sphere_highlights
 from reconstruct.calibration.reflection import Sphere, light_from_highlight
 from reconstruct.calibration.spheres import detect_spheres, stack_statistics
 
@@ -127,6 +127,34 @@ def _sphere_crops(stack: ImageStack, sphere: Sphere, reach: float = 1.0
     values, _ = stack.band(y0, y1, x0, x1)
     return values, x0, y0
 
+
+def _crops_per_sphere(stack: ImageStack, spheres: list[Sphere], intrinsics: Intrinsics | None
+                      ) -> tuple[list[np.ndarray], list[tuple[int, int]], list[Sphere],
+                                 list[Intrinsics | None]]:
+    """Every sphere's crops (:func:`_sphere_crops`; 10 % wider through a pinhole), as the
+    highlights are looked for in them.
+
+    Returns
+    -------
+    crops : list of ndarray
+        Per sphere, (N, h, w) linear luminance of every photograph.
+    corners : list of (x0, y0)
+        Per sphere, the crop's corner in the photographs.
+    local : list of (cx, cy, r)
+        Per sphere, its outline in the crop's pixels.
+    cameras : list of Intrinsics or None
+        Per sphere, the pinhole camera with its principal point in the crop's pixels; None
+        when orthographic.
+    """
+    crops, corners, local, cameras = [], [], [], []
+    for sph in spheres:
+        crop, x0, y0 = _sphere_crops(stack, sph, 1.0 if intrinsics is None else PINHOLE_REACH)
+        crops.append(crop)
+        corners.append((x0, y0))
+        local.append((sph[0] - x0, sph[1] - y0, sph[2]))
+        cameras.append(None if intrinsics is None else replace(
+            intrinsics, cx=intrinsics.cx - x0, cy=intrinsics.cy - y0))
+    return crops, corners, local, cameras
 
 def calibration_camera(
     photograph: str | os.PathLike,
@@ -228,14 +256,7 @@ def calibrate_stack(
     sdirs = np.full((m, n, 3), np.nan)
     sconf = np.zeros((m, n))
     hl = np.full((m, n, 2), np.nan)
-    crops, corners, local, cameras = [], [], [], []
-    for sph in spheres:
-        crop, x0, y0 = _sphere_crops(stack, sph, 1.0 if intrinsics is None else 1.1)
-        crops.append(crop)
-        corners.append((x0, y0))
-        local.append((sph[0] - x0, sph[1] - y0, sph[2]))
-        cameras.append(None if intrinsics is None else replace(
-            intrinsics, cx=intrinsics.cx - x0, cy=intrinsics.cy - y0))
+    crops, corners, local, cameras = _crops_per_sphere(stack, spheres, intrinsics)
     # The spheres share the lights: the lobe's factor (n·l)^q is estimated from them all.
     found, lobe_cosine = sphere_highlights(crops, local, intrinsics=cameras)
     del crops

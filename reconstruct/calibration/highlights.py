@@ -82,12 +82,16 @@ from reconstruct.calibration.camera import Intrinsics
 from reconstruct.calibration.reflection import (
     Sphere,
     mirror,
-    ray_sphere_distance,
     sphere_centre_3d,
     sphere_normal_at,
+    sphere_normal_through,
 )
 
-__all__ = ["MAX_LOBE_COSINE", "REGION_LEVEL", "SATURATION", "find_highlight", "find_highlights",
+#: Through a pinhole a sphere's outline is an ellipse a few per cent longer than its mean
+#: radius: its pixels are looked for this many radii from the centre.
+PINHOLE_REACH = 1.1
+
+__all__ = ["MAX_LOBE_COSINE", "PINHOLE_REACH", "REGION_LEVEL", "SATURATION", "find_highlight", "find_highlights",
            "sphere_highlights"]
 
 #: The highlight's region is where the excess over the background exceeds this fraction of
@@ -176,9 +180,7 @@ def _normals_at(xx: np.ndarray, yy: np.ndarray, sphere: Sphere, intrinsics: Intr
         normals = sphere_normal_at(xx, yy, sphere)
         return normals, normals, normals[..., 2], None
     rays = intrinsics.rays(xx, yy)
-    t, _ = ray_sphere_distance(rays, centre)
-    normals = t[..., None] * rays - centre
-    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = sphere_normal_through(rays, centre)
     mapped = mirror(normals, -rays) + view
     mapped /= np.linalg.norm(mapped, axis=-1, keepdims=True)
     return normals, mapped, -np.sum(normals * rays, axis=-1), -rays
@@ -188,8 +190,7 @@ def _disc(sphere: Sphere, shape: tuple[int, int], intrinsics: Intrinsics | None)
     """The geometry of ``sphere``'s pixels in images of ``shape``; None if it is too small."""
     cx, cy, r = sphere
     h, w = shape
-    # Through a pinhole the outline is an ellipse a few per cent longer than its mean radius.
-    reach = r if intrinsics is None else 1.1 * r
+    reach = r if intrinsics is None else PINHOLE_REACH * r
     r0, r1 = max(int(np.floor(cy - reach)), 0), min(int(np.ceil(cy + reach)) + 1, h)
     c0, c1 = max(int(np.floor(cx - reach)), 0), min(int(np.ceil(cx + reach)) + 1, w)
     if r1 - r0 < 3 or c1 - c0 < 3:
@@ -365,10 +366,8 @@ def sphere_highlights(
         q = _estimate_lobe_cosine(discs, lobes)
     else:
         q = float(lobe_cosine)
-        for disc, row in zip(discs, lobes):
-            for lobe in row:
-                if lobe is not None and q > 0:
-                    lobe.normal = _settled_normal(lobe, disc, q)
+        if q > 0:  # the lobes were placed for q = 0
+            _settle(discs, lobes, q)
     found = []
     for disc, row, sphere, camera in zip(discs, lobes, spheres, intrinsics):
         found.append([None if lobe is None else _placed(lobe, disc, sphere, camera)
@@ -544,6 +543,14 @@ def _settled_normal(lobe: _Lobe, disc: _Disc, q: float) -> np.ndarray:
     return normal
 
 
+def _settle(discs: list[_Disc | None], lobes: list[list[_Lobe | None]], q: float) -> None:
+    """Place every lobe's normal for lobes × (n·l)^q (:func:`_settled_normal`)."""
+    for disc, row in zip(discs, lobes):
+        for lobe in row:
+            if lobe is not None:
+                lobe.normal = _settled_normal(lobe, disc, q)
+
+
 def _log_height(lobe: _Lobe, disc: _Disc, q: float) -> tuple[float, float]:
     """Log of the lobe's height at the mirror normal, divided by (n·l)^q as in
     :func:`_level_mean`, and its variance (NaN when it cannot be measured).
@@ -616,10 +623,7 @@ def _estimate_lobe_cosine(discs: list[_Disc | None], lobes: list[list[_Lobe | No
         new = float(np.clip(new, 0.0, MAX_LOBE_COSINE))
         settled = abs(new - q) < 0.01
         q = new
-        for disc, row in zip(discs, lobes):
-            for lobe in row:
-                if lobe is not None:
-                    lobe.normal = _settled_normal(lobe, disc, q)
+        _settle(discs, lobes, q)
         if settled:
             break
     return q

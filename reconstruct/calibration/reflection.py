@@ -188,6 +188,15 @@ def ray_sphere_distance(rays: np.ndarray, centre: np.ndarray) -> tuple[np.ndarra
     return dc - np.sqrt(np.clip(disc, 0.0, None)), disc > 0
 
 
+def sphere_normal_through(rays: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Unit normals (…, 3) where ``rays`` (…, 3), from the pinhole, meet the sphere of radius 1
+    centred at ``centre`` (:func:`sphere_centre_3d`); rays that miss it take their closest
+    point (:func:`ray_sphere_distance`)."""
+    t, _ = ray_sphere_distance(rays, centre)
+    normal = t[..., None] * rays - centre
+    return normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+
+
 def mirror(normal: np.ndarray, view: np.ndarray | None = None) -> np.ndarray:
     """Unit direction l = 2(n·v)n − v that a mirror of normal n reflects the view v into.
 
@@ -235,10 +244,7 @@ def light_from_highlight(hx, hy, sphere: Sphere,
         return mirror(sphere_normal_at(hx, hy, sphere))
     centre = sphere_centre_3d(sphere, intrinsics)
     rays = intrinsics.rays(hx, hy)
-    t, _ = ray_sphere_distance(rays, centre)
-    normal = t[..., None] * rays - centre
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    return mirror(normal, -rays)
+    return mirror(sphere_normal_through(rays, centre), -rays)
 
 
 __all__ = [
@@ -248,5 +254,6 @@ __all__ = [
     "ray_sphere_distance",
     "sphere_centre_3d",
     "sphere_normal_at",
+    "sphere_normal_through",
     "sphere_outline",
 ]
