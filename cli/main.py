@@ -8,6 +8,9 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import json
+import signal
+import threading
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -150,24 +153,49 @@ def _options(cls: type, args: argparse.Namespace):
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import CompareOptions, RunOptions, run
+    from reconstruct.pipeline.options import default
 
     options = _options(RunOptions, args)
     if args.scan is not None and args.pixel_size is None:
         raise InputError("--scan needs --pixel-size: a scan is compared in millimetres")
-    # With --scan, the comparison writes report.html, once, with the run's report and its own.
-    with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
-        result = run(args.capture, args.output, options, progress=progress, report_page=args.scan is None)
-    compared = None
-    if args.scan is not None:
-        from reconstruct.pipeline import run_compare
-        from reconstruct.report.html import write_report_html
+    if args.scan is None and args.scan_units is not None:
+        raise InputError("--scan-units needs --scan: it is the unit of the scan's coordinates")
+    scan_units = args.scan_units or default(CompareOptions, "scan_units")
+    if args.scan is None:
+        with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
+            result = run(args.capture, args.output, options, progress=progress)
+        _print_summary(result.report, result.output)
+        return 0
+    # With --scan the scan is read before anything else, and the comparison is written into the
+    # run's staged result, so the reconstruction and its comparison are published together.
+    from reconstruct.compare import load_geometry
+    from reconstruct.pipeline.compare_run import compare_into
+    from reconstruct.report.html import write_report_html
 
+    compare_options = CompareOptions(scan_units=scan_units)
+    scan = load_geometry(args.scan, units=scan_units)
+    done: dict = {}
+
+    def compare(staged) -> list[str]:
         try:
-            compared = run_compare(args.output, args.scan, args.output, CompareOptions(scan_units=args.scan_units))
-        except InputError:
-            write_report_html(result.output, report=result.report.to_dict())  # the run's page, without the scan
-            _print_summary(result.report, result.output)
-            raise
+            names, done["report"] = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
+                                                 scan, args.scan, compare_options, also=[staged.staging])
+        except InputError as exc:
+            # The reconstruction is still published, with its own page; the error follows.
+            done["error"] = exc
+            write_report_html(staged.staging, report=json.loads((staged / "report.json").read_text()))
+            return ["report.html"]
+        return names
+
+    with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
+        result = run(args.capture, args.output, options, progress=progress, report_page=False, then=compare)
+    compared = None
+    if "error" in done:
+        _print_summary(result.report, result.output)
+        raise done["error"]
+    from reconstruct.pipeline import CompareResult
+
+    compared = CompareResult(result.output, {n: result.output / n for n in result.files}, done["report"])
     _print_summary(result.report, result.output)
     if compared is not None:
         _compare_summary(compared)
@@ -205,6 +233,25 @@ def _parse_vector(text: str) -> list[float]:
     return values
 
 
+#: The rendering parameters of each relighting mode; one given for another mode would do nothing.
+_MODE_PARAMETERS = {"specular": ("kd", "ks", "exponent"), "diffuse-gain": ("gain",)}
+
+
+def _relight_params(args: argparse.Namespace) -> dict[str, float]:
+    """The rendering parameters given, each checked to belong to ``--mode`` (render() holds
+    the defaults of the others)."""
+    params = {}
+    for mode, names in _MODE_PARAMETERS.items():
+        for name in names:
+            value = getattr(args, name)
+            if value is None:
+                continue
+            if args.mode != mode:
+                raise InputError(f"--{name} needs --mode {mode}: it does nothing in mode {args.mode}")
+            params[name] = value
+    return params
+
+
 def _cmd_relight(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
     from reconstruct.viewer.relighting import (
@@ -215,7 +262,10 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         write_image,
     )
 
-    params = {"kd": args.kd, "ks": args.ks, "exponent": args.exponent, "gain": args.gain}
+    params = _relight_params(args)
+    if args.sweep is not None and (args.light is not None or args.azimuth is not None):
+        raise InputError("--sweep circles the light around the object at --elevation: "
+                         "--light and --azimuth do not go with it")
     if args.sweep is None:
         if (args.light is None) == (args.azimuth is None and args.elevation is None):
             raise InputError("give either --light X,Y,Z or --azimuth and --elevation (or --sweep N)")
@@ -250,6 +300,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
 
     if args.scan is not None:
         raise InputError("--scan is one scan for one object: give each object's scan in the manifest's scan column")
+    if args.scan_units is not None:
+        raise InputError("--scan-units goes with one object's scan: give it in the manifest's scan_units column")
     if not args.sources and args.manifest is None:
         raise InputError("give capture folders, .ptm files or --manifest")
     options = _options(RunOptions, args)
@@ -391,6 +443,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_BAD_INPUT
+    previous = _stop_on_sigterm()
     try:
         commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                     "calibrate": _cmd_calibrate, "preview": _cmd_preview,
@@ -406,6 +459,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Output piped into a command that stopped reading (`| head`): not an error.
         sys.stderr.close()
         return 0
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _interrupt(signum: int, frame) -> None:
+    raise KeyboardInterrupt
+
+
+def _stop_on_sigterm():
+    """Handle SIGTERM (a scheduler's or ``kill``'s stop) as Ctrl-C: the run unwinds, its staging
+    folder and lock go, and the output folder keeps its earlier result. Returns the previous
+    handler, or None where one cannot be set (not the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, _interrupt)
 
 
 if __name__ == "__main__":

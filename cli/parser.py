@@ -8,11 +8,13 @@ Choices and defaults of the run and comparison options come from
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
+from typing import NoReturn
 
 from ptmcore import __version__
 from data_synthetic.capture import ENCODINGS
-from reconstruct.pipeline.options import CompareOptions, RunOptions, choices, default
+from reconstruct.pipeline.options import BOUNDS, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.relighting import MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
 
@@ -55,6 +57,36 @@ example:
 """
 
 
+class _Parser(argparse.ArgumentParser):
+    """``argparse.ArgumentParser`` that takes a comma list starting with a negative number as
+    a value, and reports bad arguments in one line.
+
+    argparse of Python 3.10 to 3.13.0 takes only a plain number such as ``-0.7`` for a value:
+    ``--light -0.7,0,0.71`` (every light from the left) failed with "expected one argument".
+    CPython's later argparse widens the test to the one used here: a ``-`` followed by a digit,
+    or by a point and a digit, is a value. No option of the command looks so, so none is
+    hidden. Subparsers are of this class too (``add_subparsers`` makes them with ``type(self)``).
+    """
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        # Private, but present and used alike from Python 3.10 to 3.14.
+        self._negative_number_matcher = re.compile(r"-\.?\d")
+
+    def error(self, message: str) -> NoReturn:
+        """One line on stderr and exit status 2, like every other bad input; the usage, many
+        lines for ``run``, is what ``--help`` shows."""
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _path(text: str) -> Path:
+    """A path argument; an empty one is refused, as ``Path("")`` is the current folder, which
+    the user never meant (``-o ""`` wrote every output file there)."""
+    if not text:
+        raise argparse.ArgumentTypeError("empty path; give a file or folder name")
+    return Path(text)
+
+
 def _choice(parser: argparse.ArgumentParser, options: type, name: str, **kw) -> None:
     """``--name`` taking the option's own values, with its own default (from the dataclass)."""
     parser.add_argument("--" + name.replace("_", "-"), choices=choices(options, name),
@@ -82,7 +114,7 @@ def _positive_int(text: str) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="reconstruct", description=DESCRIPTION, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--version", action="version", version=f"reconstruct (ptm-reconstruct) {__version__}")
@@ -108,10 +140,10 @@ def _add_run_command(sub: argparse._SubParsersAction) -> None:
         epilog=RUN_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    run.add_argument("capture", type=Path,
+    run.add_argument("capture", type=_path,
                      help="capture folder (photographs and one .lp file), an .lp file, a .ptm file, or a "
                      "photometric-stereo dataset folder (filenames.txt, light_directions.txt, ...)")
-    run.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
+    run.add_argument("-o", "--output", type=_path, required=True, help="output folder (created if needed)")
     _add_run_options(run)
 
 
@@ -145,10 +177,10 @@ def _add_batch_command(sub: argparse._SubParsersAction) -> None:
         epilog=BATCH_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    batch.add_argument("sources", nargs="*", type=Path, metavar="SOURCE",
+    batch.add_argument("sources", nargs="*", type=_path, metavar="SOURCE",
                        help="capture folder, .lp or .ptm file, or a folder of captures")
-    batch.add_argument("-o", "--output", type=Path, required=True, help="the batch's output folder")
-    batch.add_argument("--manifest", type=Path, metavar="CSV", help="one row per object, overriding options")
+    batch.add_argument("-o", "--output", type=_path, required=True, help="the batch's output folder")
+    batch.add_argument("--manifest", type=_path, metavar="CSV", help="one row per object, overriding options")
     batch.add_argument("--workers", type=_positive_int, metavar="N",
                        help="workers of the local cluster (default: as many as cores and memory allow)")
     batch.add_argument("--scheduler", metavar="ADDRESS",
@@ -167,17 +199,19 @@ def _add_relight_command(sub: argparse._SubParsersAction) -> None:
         epilog=RELIGHT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    rel.add_argument("source", type=Path, help=".ptm file or output folder")
-    rel.add_argument("-o", "--output", type=Path, required=True, help="image to write (.png, .jpg, .tif; .gif with --sweep)")
+    rel.add_argument("source", type=_path, help=".ptm file or output folder")
+    rel.add_argument("-o", "--output", type=_path, required=True, help="image to write (.png, .jpg, .tif; .gif with --sweep)")
     rel.add_argument("--light", metavar="X,Y,Z", help="direction towards the light (x right, y up, z towards the camera)")
     rel.add_argument("--azimuth", type=float, metavar="DEG", help="light azimuth: 0 = from the right, 90 = from the top")
     rel.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object (default with --sweep: 30)")
     rel.add_argument("--mode", choices=RELIGHT_MODES, default=RELIGHT_MODES[0],
                      help="default rendering, specular enhancement, or diffuse gain (default: default)")
-    rel.add_argument("--kd", type=float, default=0.4, help="specular enhancement: diffuse weight (default 0.4)")
-    rel.add_argument("--ks", type=float, default=0.7, help="specular enhancement: specular weight (default 0.7)")
-    rel.add_argument("--exponent", type=float, default=75.0, help="specular enhancement: Phong exponent (default 75)")
-    rel.add_argument("--gain", type=float, default=2.0, help="diffuse gain (default 2)")
+    # No defaults here: given with another --mode they would do nothing, which is an error
+    # (cli.main); render() holds the defaults.
+    rel.add_argument("--kd", type=float, help="with --mode specular: diffuse weight (default 0.4)")
+    rel.add_argument("--ks", type=float, help="with --mode specular: specular weight (default 0.7)")
+    rel.add_argument("--exponent", type=float, help="with --mode specular: Phong exponent (default 75)")
+    rel.add_argument("--gain", type=float, help="with --mode diffuse-gain: the gain (default 2)")
     rel.add_argument("--basis", choices=("ptm", "hsh"), default="ptm",
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
@@ -191,11 +225,11 @@ def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
         "highlight on each in every photograph, and write the light directions as an .lp file. "
         "Photographs without a usable highlight are named and left out.",
     )
-    cal.add_argument("capture", type=Path, help="folder of photographs")
-    cal.add_argument("-o", "--output", type=Path, required=True, help="the .lp file to write")
+    cal.add_argument("capture", type=_path, help="folder of photographs")
+    cal.add_argument("-o", "--output", type=_path, required=True, help="the .lp file to write")
     cal.add_argument("--sphere", action="append", metavar="X,Y,R",
                      help="a sphere's centre (column, row) and radius in pixels; repeat for several")
-    cal.add_argument("--diagnostic", type=Path, metavar="PNG",
+    cal.add_argument("--diagnostic", type=_path, metavar="PNG",
                      help="also draw the spheres and highlights on the first photograph, and a polar plot beside it")
     cam = cal.add_argument_group(
         "camera", "the view model of the reflection (default: orthographic, right for long lenses); "
@@ -219,9 +253,9 @@ def _add_compare_command(sub: argparse._SubParsersAction) -> None:
         "Writes comparison.json, distances.ply, histogram.png and overlay.png.",
         epilog="exit status: 0, or 1 when --tolerance is given and too few points are within it; 2 for bad input",
     )
-    cmp_.add_argument("reconstruction", type=Path, help="mesh or output folder of reconstruct run")
-    cmp_.add_argument("scan", type=Path, help="the scan: a mesh or a point cloud")
-    cmp_.add_argument("-o", "--output", type=Path, required=True, help="folder for the comparison files")
+    cmp_.add_argument("reconstruction", type=_path, help="mesh or output folder of reconstruct run")
+    cmp_.add_argument("scan", type=_path, help="the scan: a mesh or a point cloud")
+    cmp_.add_argument("-o", "--output", type=_path, required=True, help="folder for the comparison files")
     _add_compare_options(cmp_)
 
 
@@ -234,8 +268,8 @@ def _add_integrate_command(sub: argparse._SubParsersAction) -> None:
         "height.tif and meshes. Pixels without a valid normal are outside the object unless --mask "
         "says otherwise.",
     )
-    integ.add_argument("normal_map", metavar="normals", type=Path, help="normal map (.png, .tif, .jpg or .npy)")
-    integ.add_argument("-o", "--output", type=Path, required=True, help="output folder (created if needed)")
+    integ.add_argument("normal_map", metavar="normals", type=_path, help="normal map (.png, .tif, .jpg or .npy)")
+    integ.add_argument("-o", "--output", type=_path, required=True, help="output folder (created if needed)")
     integ.add_argument("--mask", metavar="FILE|auto", help="image whose non-zero pixels are the object, or 'auto'")
     integ.add_argument("--pixel-size", type=_positive_float, metavar="MM", help="millimetres per pixel (heights then in mm)")
     _choice(integ, RunOptions, "integrator", help="normal integration method (default: auto = bilateral when a mask of at most 1 megapixel is known, masked for a larger one, else dct)")
@@ -252,8 +286,8 @@ def _add_lights_command(sub: argparse._SubParsersAction) -> None:
         "determined (rank and condition of the light matrix, and why not), the elevation and azimuth "
         "coverage, and a polar plot.",
     )
-    lights.add_argument("lp", type=Path, help=".lp light file")
-    lights.add_argument("-o", "--output", type=Path, help="write a polar plot of the lights (PNG)")
+    lights.add_argument("lp", type=_path, help=".lp light file")
+    lights.add_argument("-o", "--output", type=_path, help="write a polar plot of the lights (PNG)")
 
 
 def _add_demo_command(sub: argparse._SubParsersAction) -> None:
@@ -263,7 +297,7 @@ def _add_demo_command(sub: argparse._SubParsersAction) -> None:
         description="Render a synthetic capture with known ground truth, reconstruct it, and print "
         "where the results are and how accurate they are.",
     )
-    demo.add_argument("-o", "--output", type=Path, default=Path("demo_output"), help="folder for the capture and results (default: demo_output)")
+    demo.add_argument("-o", "--output", type=_path, default=Path("demo_output"), help="folder for the capture and results (default: demo_output)")
     demo.add_argument("--size", default="480x360", help="image size WxH (default: 480x360)")
     demo.add_argument("--lights", type=_positive_int, default=48, help="number of dome lights (default: 48)")
     demo.add_argument("--encoding", choices=tuple(ENCODINGS), default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
@@ -281,22 +315,22 @@ def _add_preview_command(sub: argparse._SubParsersAction) -> None:
         "the relit texture, albedo, normals, height and distance to a scan, and point picking for distances "
         "and height profiles. With --screenshot it renders off-screen to a PNG and exits.",
     )
-    prev.add_argument("source", type=Path, help="output folder, mesh file (PLY, OBJ, STL, GLB, OFF) or .ptm file")
+    prev.add_argument("source", type=_path, help="output folder, mesh file (PLY, OBJ, STL, GLB, OFF) or .ptm file")
     prev.add_argument("--mode", choices=VIEW_MODES,
                       help="first view (default: relit when the source can be relit)")
     prev.add_argument("--light", metavar="X,Y,Z", help="direction towards the light (x right, y up, z towards the camera)")
     prev.add_argument("--azimuth", type=float, metavar="DEG",
                       help="light azimuth: 0 = from the right, 90 = from the top (default 135)")
     prev.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object, 0 to 90 (default 40)")
-    prev.add_argument("--comparison", type=Path, metavar="DIR", help="folder of `reconstruct compare` for the distance view")
-    prev.add_argument("--screenshot", type=Path, metavar="PNG", help="render off-screen to this file and exit")
+    prev.add_argument("--comparison", type=_path, metavar="DIR", help="folder of `reconstruct compare` for the distance view")
+    prev.add_argument("--screenshot", type=_path, metavar="PNG", help="render off-screen to this file and exit")
     prev.add_argument("--size", default="1280x900", help="window or image size WxH (default 1280x900)")
 
 
 def _add_compare_options(p: argparse.ArgumentParser) -> None:
     _choice(p, CompareOptions, "scan_units", help="unit of the scan's coordinates (default mm)")
     p.add_argument("--scale", action="store_true", help="also estimate a global scale (photometric heights may carry one)")
-    p.add_argument("--initial", type=Path, metavar="FILE", help="4×4 matrix (text) taking the scan near the reconstruction")
+    p.add_argument("--initial", type=_path, metavar="FILE", help="4×4 matrix (text) taking the scan near the reconstruction")
     p.add_argument("--no-align", action="store_true", help="the two are already aligned")
     p.add_argument("--tolerance", type=_positive_float, metavar="MM",
                    help="report the share of points within this distance; exit 1 if below --min-fraction")
@@ -311,15 +345,18 @@ def _add_compare_options(p: argparse.ArgumentParser) -> None:
 def _add_camera_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
                    help="perspective camera in pixels, for short lenses (default: orthographic)")
+    lo, hi = BOUNDS["distance"]
     p.add_argument("--distance", type=_positive_float, metavar="MM",
-                   help="with --intrinsics: camera-to-object distance, so heights come out in mm")
+                   help=f"with --intrinsics (needs it): camera-to-object distance, {lo:g} to {hi:g} mm, "
+                   "so heights come out in mm")
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--lp", type=Path, help="light file to use (default: the .lp file in the capture folder)")
+    p.add_argument("--lp", type=_path, help="light file to use (default: the .lp file in the capture folder)")
     p.add_argument(
         "--pixel-size", type=_positive_float, metavar="MM",
-        help="size of one pixel on the object in millimetres; heights and meshes are then in mm (else in pixels)",
+        help="size of one pixel on the object in millimetres (%g to %g); heights and meshes are then in mm "
+        "(else in pixels)" % BOUNDS["pixel_size"],
     )
     _choice(
         p, RunOptions, "normals",
@@ -340,7 +377,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--step", type=_positive_int, metavar="K",
-        help="mesh vertex every K pixels (default: the smallest K keeping the mesh under 4 million vertices)",
+        help="mesh vertex every K pixels, at most %d (default: the smallest K keeping the mesh under 4 million "
+        "vertices)" % BOUNDS["step"][1],
     )
     _choice(p, RunOptions, "ptm_format", help="coefficients.ptm as LRGB (default: one luminance polynomial and a colour per pixel) or RGB (one per channel)")
     _choice(p, RunOptions, "solver", help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "
@@ -357,26 +395,32 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="image whose non-zero pixels are the object, or 'auto' to find the object against its "
                    "background; height and mesh stay inside it")
     _add_camera_options(p)
-    p.add_argument("--scan", type=Path, metavar="FILE",
+    p.add_argument("--scan", type=_path, metavar="FILE",
                    help="compare with a laser scan as the last stage (needs --pixel-size); see `reconstruct compare`")
-    _choice(p, CompareOptions, "scan_units", help="unit of the scan (default mm)")
+    # No default: without --scan it would do nothing, which is an error (cli.main).
+    p.add_argument("--scan-units", choices=choices(CompareOptions, "scan_units"),
+                   help="with --scan: unit of the scan (default mm)")
     p.add_argument("--decimate", type=_positive_int, metavar="FACES",
                    help="reduce the meshes to this many triangles (quadric edge collapse; error in report.json)")
     p.add_argument("--max-error", type=_positive_float, metavar="E",
                    help="reduce the meshes as far as the geometric error stays under E (height unit)")
     p.add_argument("--solid", type=_positive_float, metavar="THICKNESS",
-                   help="also write solid.stl: the relief on a base this thick, watertight, for 3D printing")
+                   help="also write solid.stl: the relief on a base this thick (height unit, %g to %g), "
+                   "watertight, for 3D printing" % BOUNDS["solid"])
     p.add_argument("--glb", action="store_true", help="also write mesh.glb (binary glTF with the texture)")
     _choice(p, RunOptions, "flatten", help="remove low-frequency bending of the height map (from errors in the light directions): "
                    "a plane, a polynomial of order 2 or 3, or long wavelengths")
     p.add_argument("--flatten-cutoff", type=_positive_float, default=default(RunOptions, "flatten_cutoff"), metavar="PX",
-                   help="with --flatten highpass: the wavelength in pixels that keeps half its height (default 200)")
+                   help="with --flatten highpass (needs it): the wavelength in pixels that keeps half its height, "
+                   "%g to %g (default 200)" % BOUNDS["flatten_cutoff"])
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
     p.add_argument("--memory-limit", type=_positive_float, metavar="MB",
-                   help="memory the run may use (default: what is available); a capture whose photographs "
-                        "would not fit is processed from a temporary file in the output folder")
-    p.add_argument("--ground-truth", type=Path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
+                   help="memory the run may use: the photographs' stack stays in memory when the run fits "
+                        "in it, else it goes to a temporary file beside the output folder. Default: a stack of "
+                        "256 MB or more always goes to the file (measured as fast), a smaller one when the run "
+                        "would not fit in the memory available")
+    p.add_argument("--ground-truth", type=_path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
     p.add_argument("--light-positions", default=default(RunOptions, "light_positions"), metavar="FILE|auto|none",
                    help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "
                         "light direction; auto (default): light_positions.csv beside the .lp, or lights triangulated "

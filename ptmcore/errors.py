@@ -8,6 +8,7 @@ one line on stderr and exit status 2; anything else is a bug and keeps its trace
 from __future__ import annotations
 
 import os
+from typing import BinaryIO
 
 
 class InputError(Exception):
@@ -32,9 +33,18 @@ def read_input_file(path: str | os.PathLike, what: str) -> bytes:
 
     ``what`` names the kind of file in the message ("PTM file", "RTI file", ...).
     """
-    try:
-        with open(path, "rb") as f:
+    with open_input_file(path, what) as f:
+        try:
             return f.read()
+        except OSError as exc:
+            raise InputError(f"cannot read {what} ({exc.strerror or exc})", path) from None
+
+
+def open_input_file(path: str | os.PathLike, what: str) -> BinaryIO:
+    """A user's file open for reading in binary, or an :class:`InputError` that says why not
+    (see :func:`read_input_file`)."""
+    try:
+        return open(path, "rb")
     except FileNotFoundError:
         raise InputError(f"{what} not found", path) from None
     except IsADirectoryError:

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from .diskstack import release_rows
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -73,6 +74,18 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.0031308, v * 12.92, curve).astype(v.dtype, copy=False)
 
 
+#: The largest image read, in pixels: OpenCV's own limit (2^30, e.g. 32768 × 32768). A header
+#: that claims more (a decompression bomb, or a corrupt header) is refused before any memory
+#: is allocated for it.
+MAX_PIXELS = 1 << 30
+
+
+def _check_pixels(width: int, height: int, path: Path) -> None:
+    if width * height > MAX_PIXELS:
+        raise InputError(f"the image claims {width} × {height} pixels, more than the {MAX_PIXELS:,} this program "
+                         "reads (a corrupt header, or an image too large to process)", path)
+
+
 def _decode_jpeg(data: bytes, path: Path, buffer: np.ndarray | None = None) -> np.ndarray:
     try:
         import simplejpeg
@@ -81,6 +94,7 @@ def _decode_jpeg(data: bytes, path: Path, buffer: np.ndarray | None = None) -> n
     if simplejpeg is not None:
         try:
             height, width, colorspace, _ = simplejpeg.decode_jpeg_header(data)
+            _check_pixels(width, height, path)
             gray = colorspace == "Gray"
             need = height * width * (1 if gray else 3)
             out = buffer[:need] if buffer is not None and buffer.nbytes >= need else None
@@ -96,17 +110,26 @@ def _decode_pillow(path: Path) -> np.ndarray:
 
     try:
         with Image.open(path) as im:
+            _check_pixels(*im.size, path)
             if im.mode not in ("L", "RGB", "I;16", "I;16B", "I;16L"):
                 im = im.convert("RGB")
             return np.asarray(im)
-    except (UnidentifiedImageError, OSError, SyntaxError) as exc:
+    except Image.DecompressionBombError:
+        raise InputError("the image claims more pixels than Pillow reads (a corrupt header, or a "
+                         "decompression bomb)", path) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot decode image ({exc})", path) from None
 
 
 def _decode_png(data: bytes, path: Path) -> np.ndarray:
     import cv2
 
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if len(data) >= 24 and data[12:16] == b"IHDR":
+        _check_pixels(int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), path)
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error:
+        img = None
     if img is None:
         raise InputError("cannot decode PNG image (corrupt or truncated)", path)
     if img.ndim == 3:
@@ -118,7 +141,12 @@ def _decode_tiff(path: Path) -> np.ndarray:
     import tifffile
 
     try:
-        img = tifffile.imread(path, key=0)
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            _check_pixels(page.imagewidth, page.imagelength, path)
+            img = page.asarray()
+    except InputError:
+        raise
     except Exception as exc:  # tifffile raises many types for corrupt files
         raise InputError(f"cannot decode TIFF image ({exc})", path) from None
     if img.ndim == 3 and img.shape[0] in (3, 4) and img.shape[2] not in (3, 4):
@@ -135,7 +163,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     try:
         with Image.open(path) as im:
             return im.size
-    except (OSError, ValueError):
+    except (OSError, ValueError, Image.DecompressionBombError):
         pass
     if Path(path).suffix.lower() not in (".tif", ".tiff"):
         return None
@@ -285,7 +313,11 @@ class ImageStack:
         """
         raw = self.luminance[:, r0:r1, c0:c1]
         saturated = raw == self.saturated_code
-        return self.table[raw], saturated
+        values = self.table[raw]
+        if c0 is None and c1 is None:
+            # Whole rows are converted: a stack on disk no longer needs them in memory.
+            release_rows(self.luminance, r0, r1)
+        return values, saturated
 
 
 def default_table(dtype: np.dtype) -> np.ndarray:
@@ -353,7 +385,7 @@ def load_stack(
     on_disk : path, optional
         A folder with room for the stack (N·H·W bytes, twice that as uint16): the stack is then
         a memory-mapped file there, for captures larger than memory
-        (:func:`ptmcore.reduce.disk_array`; the file is never visible in the folder).
+        (:func:`ptmcore.diskstack.disk_array`; the file is never visible in the folder).
 
     Returns
     -------
@@ -367,6 +399,48 @@ def load_stack(
     return load_stack_and_fits(paths, linearize=linearize, channel_gains=channel_gains,
                                min_photographs=min_photographs, threads=threads, progress=progress,
                                storage=storage, on_disk=on_disk)[0]
+
+
+def _names(paths: Sequence[Path], limit: int = 3) -> str:
+    """A few file names, and how many more."""
+    shown = ", ".join(p.name for p in paths[:limit])
+    return shown + (f" and {len(paths) - limit} more" if len(paths) > limit else "")
+
+
+def _check_depths(paths: list[Path], depths: np.ndarray) -> None:
+    """Refuse photographs of mixed bit depth: an 8-bit one among 16-bit ones is decoded as
+    sRGB and comes out several times darker than its neighbours, with nothing to say so."""
+    values, counts = np.unique(depths, return_counts=True)
+    if len(values) < 2:
+        return
+    common = int(values[np.argmax(counts)])
+    odd = [p for p, d in zip(paths, depths) if d != common]
+    raise InputError(
+        f"photographs of mixed bit depth: {_names(odd)} ({', '.join(f'{int(d)}-bit' for d in values if d != common)}) "
+        f"among {common}-bit ones; convert them alike", paths[0].parent)
+
+
+def check_content(stack: ImageStack, grid: int = 256) -> None:
+    """Refuse a capture whose photographs cannot give a surface: all identical, all black, or
+    all clipped everywhere (on a grid of about ``grid`` × ``grid`` samples, and the clipped
+    counts).
+
+    Raises
+    ------
+    InputError
+        Naming the photographs' folder and what is wrong with them.
+    """
+    n, (h, w) = len(stack), stack.shape
+    where = stack.paths[0].parent if stack.paths else None
+    if np.all(stack.saturated >= h * w):
+        raise InputError(f"all {n} photographs are clipped (white) everywhere: nothing to measure; "
+                         "take them with less exposure", where)
+    step = max(1, min(h, w) // grid)
+    sample = stack.luminance[:, step // 2::step, step // 2::step].reshape(n, -1)
+    if not sample.any():
+        raise InputError(f"all {n} photographs are black: nothing to measure", where)
+    if np.all(sample == sample[:1]):
+        raise InputError(f"all {n} photographs are identical: the light must move between them", where)
 
 
 def load_stack_and_fits(
@@ -415,8 +489,8 @@ def load_stack_and_fits(
         raise InputError("no photographs given")
     if len(paths) < min_photographs:
         raise InputError(
-            f"{len(paths)} photograph(s) given; at least {min_photographs} are needed to recover normals"
-        )
+            f"{len(paths)} photograph(s) given; at least {min_photographs} are needed to recover normals",
+            paths[0].parent)
     if storage not in ("uint16", "auto"):
         raise ValueError(f"storage must be 'uint16' or 'auto', not {storage!r}")
     if channel_gains is not None:
@@ -427,8 +501,10 @@ def load_stack_and_fits(
         fit.matrices(len(paths))  # bad directions fail before any photograph is decoded
     done = reduce_photographs(paths, linearize=linearize, channel_gains=channel_gains, storage=storage,
                               fit=fit, threads=threads, progress=progress, on_disk=on_disk)
+    _check_depths(paths, done.depths)
     stack = ImageStack(done.luminance, done.chroma, paths, int(done.depths.max()), linearize, done.saturated,
                        done.table)
+    check_content(stack)
     if fit is None:
         return stack, None
     fits = EncodedFits(paths, fit, hsh=done.hsh)

@@ -11,6 +11,11 @@ The first line is the count N. Each following line is a file name (which may con
 the last three fields are the vector) and x, y, z in the frame x right, y up, z towards the
 camera. File names are resolved relative to the ``.lp`` file; absolute Windows paths, as
 RTIBuilder writes them, are taken by their base name.
+
+Some tools write light positions rather than unit vectors; they are normalised, as RTIBuilder
+does. A vector that is not finite, (nearly) zero, longer than :data:`MAX_VECTOR_LENGTH`, or at
+or below the horizon is refused, naming its line. A photograph listed twice, or two lines with
+the same direction, are allowed but reported in :attr:`LightSet.warnings`.
 """
 
 from __future__ import annotations
@@ -29,6 +34,23 @@ from .errors import InputError, read_input_text
 #: of a flat object and make the fit ill-conditioned.
 MIN_ELEVATION_DEG = 0.5
 
+#: Longest vector a light file may give. Light positions in millimetres or pixels stay far
+#: below it; a longer vector is a typing or export error, and its square overflows.
+MAX_VECTOR_LENGTH = 1e6
+
+#: Shorter vectors give no direction (``0 0 0``, or rounding of one).
+MIN_VECTOR_LENGTH = 1e-6
+
+#: Photometric stereo needs three lights for the three components of a normal.
+MIN_PHOTOGRAPHS = 3
+
+#: Directions closer than this (in each component, after normalising) count as the same: the
+#: ``.lp`` files written here and by RTIBuilder carry six decimals.
+_SAME_DIRECTION = 1e-6
+
+#: Duplicates named one by one in warnings; the rest are counted.
+_SHOWN = 3
+
 
 @dataclass(frozen=True)
 class LightSet:
@@ -42,11 +64,15 @@ class LightSet:
         Unit vectors towards the lights (x right, y up, z towards the camera).
     source : Path or None
         The ``.lp`` file they came from.
+    warnings : tuple of str
+        What a user should know about the file that does not stop a run: a photograph listed
+        twice, or two photographs with the same light direction, naming the lines.
     """
 
     paths: list[Path]
     directions: np.ndarray
     source: Path | None = None
+    warnings: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -58,29 +84,100 @@ def _resolve(name: str, base: Path) -> Path:
     if PureWindowsPath(name).drive or "\\" in name:
         return base / PureWindowsPath(name).name
     p = Path(name)
-    if p.is_absolute() and not p.exists():
+    if p.is_absolute() and not _exists(p):
         return base / p.name
     return p if p.is_absolute() else base / p
 
 
-def read_lp(path: str | os.PathLike) -> LightSet:
+def _exists(p: Path) -> bool:
+    # A name too long for the file system cannot be there (Path.exists raises for it).
+    try:
+        return p.exists()
+    except OSError:
+        return False
+
+
+def unit_directions(
+    vectors: np.ndarray, lines: list[int], path: str | os.PathLike, labels: list[str] | None = None
+) -> np.ndarray:
+    """Unit light directions from the vectors of a light file, each checked.
+
+    Parameters
+    ----------
+    vectors : ndarray, shape (N, 3)
+        The vectors as read (unit vectors, or light positions to be normalised).
+    lines : list of int
+        The 1-based line number of each vector, for messages.
+    path : str or PathLike
+        The file, for messages.
+    labels : list of str, optional
+        What each vector belongs to (a photograph's name); default "light K".
+
+    Returns
+    -------
+    ndarray, shape (N, 3), float64
+        Unit vectors.
+
+    Raises
+    ------
+    InputError
+        At the first vector (in line order) that is not finite, is (nearly) zero or longer
+        than :data:`MAX_VECTOR_LENGTH`, or points at or below the horizon.
+    """
+    v = np.asarray(vectors, dtype=np.float64).reshape(-1, 3)
+    finite = np.isfinite(v).all(axis=1)
+    safe = np.where(finite[:, None], v, 0.0)
+    # Scaled by the largest component first, so that the length of a 1e200-long vector does
+    # not overflow (it would normalise to zero, and be called "below the horizon").
+    big = np.abs(safe).max(axis=1)
+    scaled = safe / np.where(big > 0, big, 1.0)[:, None]
+    norm = np.linalg.norm(scaled, axis=1)
+    with np.errstate(over="ignore"):
+        length = big * norm
+    unit = scaled / np.where(norm > 0, norm, 1.0)[:, None]
+    low = unit[:, 2] <= math.sin(math.radians(MIN_ELEVATION_DEG))
+    bad = ~finite | (length < MIN_VECTOR_LENGTH) | (length > MAX_VECTOR_LENGTH) | low
+    if not bad.any():
+        return unit
+    k = int(np.argmax(bad))
+    what = f"light direction of {labels[k]!r}" if labels is not None else f"light direction {k + 1}"
+    shown = " ".join(f"{x:g}" for x in v[k])
+    if not finite[k]:
+        problem = f"{what} ({shown}) is not finite"
+    elif length[k] < MIN_VECTOR_LENGTH:
+        problem = f"{what} ({shown}) has zero length"
+    elif length[k] > MAX_VECTOR_LENGTH:
+        problem = (f"{what} ({shown}) is not a direction of sensible length: its length is "
+                   f"{length[k]:.3g} (expected a unit vector, or a light position within {MAX_VECTOR_LENGTH:g})")
+    else:
+        elev = math.degrees(math.asin(float(np.clip(unit[k, 2], -1.0, 1.0))))
+        problem = (f"{what} is at or below the horizon (elevation {elev:.1f}°; "
+                   "z must point towards the camera)")
+    raise InputError(f"line {lines[k]}: {problem}", path)
+
+
+def read_lp(path: str | os.PathLike, *, min_photographs: int = MIN_PHOTOGRAPHS) -> LightSet:
     """Read an ``.lp`` light file.
 
     Parameters
     ----------
     path : str or PathLike
         The ``.lp`` file.
+    min_photographs : int
+        Fewest photographs the file may list (default 3, the fewest that determine a normal).
 
     Returns
     -------
     LightSet
-        Image paths resolved relative to the file's folder and unit light directions.
+        Image paths resolved relative to the file's folder, unit light directions, and
+        warnings about duplicate entries.
 
     Raises
     ------
     InputError
         If the file is missing or unreadable, the count does not match the lines, a line does
-        not parse, a vector is zero, not finite, or at or below the horizon.
+        not parse or has no file name, a vector is (nearly) zero, not finite, absurdly long,
+        or at or below the horizon, or the file lists fewer than ``min_photographs``.
     """
     path = Path(path)
     text = read_input_text(path, "light file")
@@ -99,37 +196,73 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         raise InputError(f"declares {count} photographs but lists {len(entries)}", path)
 
     base = path.parent
+    names: list[str] = []
     paths: list[Path] = []
-    dirs = np.empty((count, 3), dtype=np.float64)
+    vectors = np.empty((count, 3), dtype=np.float64)
     for k, (no, line) in enumerate(entries):
         fields = line.split()
         if len(fields) < 4:
             raise InputError(f"line {no}: expected 'filename x y z', got {line[:60]!r}", path)
         try:
-            vec = [float(f) for f in fields[-3:]]
+            vectors[k] = [float(f) for f in fields[-3:]]
         except ValueError:
             raise InputError(f"line {no}: light direction is not three numbers: {line[:60]!r}", path) from None
         # Names may contain spaces: the name is everything before the last three fields.
         name = line.rsplit(maxsplit=3)[0]
-        v = np.asarray(vec)
-        norm = float(np.linalg.norm(v))
-        if not np.all(np.isfinite(v)):
-            raise InputError(f"line {no}: light direction is not finite", path)
-        if norm < 1e-6:
-            raise InputError(f"line {no}: light direction of {name!r} has zero length", path)
-        # Some tools write light positions rather than unit vectors; RTIBuilder normalises
-        # them too.
-        v = v / norm
-        if v[2] <= math.sin(math.radians(MIN_ELEVATION_DEG)):
-            elev = math.degrees(math.asin(max(-1.0, min(1.0, v[2]))))
-            raise InputError(
-                f"line {no}: light of {name!r} is at or below the horizon (elevation {elev:.1f}°; "
-                "z must point towards the camera)",
-                path,
-            )
-        dirs[k] = v
-        paths.append(_resolve(name, base))
-    return LightSet(paths=paths, directions=dirs, source=path)
+        resolved = _resolve(name, base)
+        if not resolved.name:
+            raise InputError(f"line {no}: no file name in {line[:60]!r}", path)
+        names.append(name)
+        paths.append(resolved)
+    numbers = [no for no, _ in entries]
+    directions = unit_directions(vectors, numbers, path, names)
+    if count < min_photographs:
+        raise InputError(
+            f"lists {count} photograph{'s' if count != 1 else ''}; at least {min_photographs} "
+            "are needed to recover normals",
+            path,
+        )
+    return LightSet(paths=paths, directions=directions, source=path,
+                    warnings=duplicate_warnings(paths, directions, numbers))
+
+
+def duplicate_warnings(paths: list[Path], directions: np.ndarray, lines: list[int]) -> tuple[str, ...]:
+    """Warnings for a photograph listed on several lines and for lines sharing one direction.
+
+    Neither stops a run (repeated exposures under one light are legitimate), but a photograph
+    given two different directions is surely a mistake, and a repeated line usually is one:
+    both weigh that light twice in every fit.
+    """
+    out: list[str] = []
+    by_path: dict[Path, list[int]] = {}
+    for k, p in enumerate(paths):
+        by_path.setdefault(p, []).append(k)
+    twice = [ks for ks in by_path.values() if len(ks) > 1]
+    for ks in twice[:_SHOWN]:
+        same = np.ptp(directions[ks], axis=0).max() <= _SAME_DIRECTION
+        how = "with the same direction" if same else "with different directions"
+        out.append(f"{_line_list([lines[k] for k in ks])} list the same photograph {paths[ks[0]].name} {how}")
+    if len(twice) > _SHOWN:
+        out.append(f"{len(twice) - _SHOWN} more photograph(s) are listed more than once")
+    # Lines that repeat one photograph were reported above; here, different photographs.
+    first = {ks[0] for ks in by_path.values()}
+    keep = np.array(sorted(first))
+    key = np.round(directions[keep] / _SAME_DIRECTION).astype(np.int64)
+    _, group, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    shared = [keep[group.ravel() == g] for g in np.flatnonzero(counts > 1)]
+    shared.sort(key=lambda ks: ks[0])
+    for ks in shared[:_SHOWN]:
+        out.append(f"{_line_list([lines[k] for k in ks])} give the same light direction "
+                   f"({', '.join(paths[k].name for k in ks[:3])}{', ...' if len(ks) > 3 else ''})")
+    if len(shared) > _SHOWN:
+        out.append(f"{len(shared) - _SHOWN} more light direction(s) are shared by several photographs")
+    return tuple(out)
+
+
+def _line_list(numbers: list[int]) -> str:
+    """``lines 3 and 7`` or ``lines 3, 7 and 9``."""
+    shown = [str(n) for n in numbers]
+    return f"lines {', '.join(shown[:-1])} and {shown[-1]}"
 
 
 def as_directions(directions: np.ndarray, count: int, dtype: type = np.float64) -> np.ndarray:

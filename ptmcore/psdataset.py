@@ -22,7 +22,6 @@ multi-view data, provided they all exist.
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ import numpy as np
 from .errors import InputError, read_input_text
 from .images import ImageStack, load_stack, read_image
 from .intensity import check_positive, read_numeric_rows
-from .lp import MIN_ELEVATION_DEG, LightSet
+from .lp import LightSet, unit_directions
 
 FILENAMES = "filenames.txt"
 DIRECTIONS = "light_directions.txt"
@@ -132,22 +131,8 @@ def _read_filenames(folder: Path, count: int) -> list[Path]:
 def _read_directions(path: Path) -> np.ndarray:
     """Unit light directions from ``light_directions.txt``, checked to be above the horizon."""
     values, lines = read_numeric_rows(path, "light direction file", (3,))
-    norm = np.linalg.norm(values, axis=1)
-    zero = np.flatnonzero(norm < 1e-6)
-    if zero.size:
-        raise InputError(f"line {lines[zero[0]]}: light direction has zero length", path)
     # Some tools write light positions rather than unit vectors; only the direction matters.
-    dirs = values / norm[:, None]
-    low = np.flatnonzero(dirs[:, 2] <= math.sin(math.radians(MIN_ELEVATION_DEG)))
-    if low.size:
-        k = int(low[0])
-        elev = math.degrees(math.asin(float(np.clip(dirs[k, 2], -1.0, 1.0))))
-        raise InputError(
-            f"line {lines[k]}: light {k + 1} is at or below the horizon (elevation {elev:.1f}°; "
-            "z must point towards the camera)",
-            path,
-        )
-    return dirs
+    return unit_directions(values, lines, path)
 
 
 def _read_intensities(path: Path, count: int) -> np.ndarray:
@@ -275,7 +260,8 @@ def read_ps_dataset(
         )
     intensities = _read_intensities(folder / INTENSITIES, n)
     if n < 3:
-        raise InputError(f"{n} image(s): at least 3 are needed to recover normals", directions_path)
+        raise InputError(f"lists {n} light(s); at least 3 photographs are needed to recover normals",
+                         directions_path)
     for p in paths:
         if not p.is_file():
             raise InputError("image not found (listed in filenames.txt)", p)

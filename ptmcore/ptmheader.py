@@ -55,7 +55,7 @@ class HeaderCursor:
         if i == j:
             raise self.fail(f"header ends before the {what}")
         if j - i > _HEADER_TOKEN_MAX:
-            raise self.fail(f"the {what} hold something too long to be a number")
+            raise self.fail(f"the {what} field holds a value too long to be a number")
         self.pos = j
         return data[i:j]
 

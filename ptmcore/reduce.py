@@ -34,7 +34,6 @@ band), so ``threads`` is respected and numba's threading layer is not involved. 
 from __future__ import annotations
 
 import os
-import tempfile
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -45,12 +44,13 @@ from numba import types
 from numba.extending import overload
 
 from .bands import run_bands
+from .diskstack import disk_array, release_rows
 from .errors import InputError
 from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, default_table, linear_to_srgb, srgb_to_linear
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
 from .streaming import Photographs, check_same_size, run_in_groups
 
-__all__ = ["Reduced", "disk_array", "reduce_photographs", "srgb8_tables"]
+__all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
 
 #: Photographs per kernel call (and per group, see :func:`ptmcore.streaming.run_in_groups`):
 #: the kernel's tuple of images always has this length, padded, so that numba compiles one
@@ -276,24 +276,6 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
     return counts
 
 
-def disk_array(folder: str | os.PathLike, shape: tuple[int, ...], dtype: type) -> np.ndarray:
-    """An uninitialised array backed by a file in ``folder``, for a stack larger than memory.
-
-    The file is removed from the folder as soon as it is mapped: the mapping keeps its data
-    until the array is released, and nothing is left behind when the process ends, however
-    it ends. The operating system pages the array in and out: a band of rows of every
-    photograph at a time is all the fits touch.
-    """
-    fd, name = tempfile.mkstemp(prefix=".stack-", suffix=".raw", dir=folder)
-    try:
-        os.ftruncate(fd, max(1, int(np.prod(shape)) * np.dtype(dtype).itemsize))
-        array = np.memmap(name, dtype=dtype, mode="r+", shape=shape)
-    finally:
-        os.close(fd)
-        os.unlink(name)
-    return array
-
-
 def srgb8_tables() -> tuple[np.ndarray, np.ndarray]:
     """The 8-bit stack's tables: uint16 code → 8-bit code (65536,), 8-bit code → linear (256,).
 
@@ -489,8 +471,9 @@ def reduce_photographs(
     progress : callable, optional
         Called with 1 for each photograph, when its group is done.
     on_disk : path, optional
-        A folder: the stack is then a memory-mapped file there (:func:`disk_array`) instead of
-        an array in memory.
+        A folder: the stack is then a memory-mapped file there
+        (:func:`ptmcore.diskstack.disk_array`) instead of an array in memory, each band's
+        pages released from the process once written.
 
     Returns
     -------
@@ -589,6 +572,8 @@ def reduce_photographs(
             with counting:
                 clipped[ks] += counts[: len(group)]
             i = j
+        # A stack on disk: the band's new rows leave the process (they stay in the file).
+        release_rows(lum16 if lum16 is not None else lum8, r0, r1, range(k0, k0 + len(prepared)))
 
     rows = max(1, _BAND_PIXELS // w)
     bands = [(r0, min(h, r0 + rows)) for r0 in range(0, h, rows)]

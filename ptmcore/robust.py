@@ -36,6 +36,7 @@ from functools import lru_cache
 import numpy as np
 
 from .bands import band_rows, run_bands
+from .diskstack import release_rows
 from .images import ImageStack
 from .lobe import DEGREE, Lobe, estimate_lobe, lobe_factors
 from .lp import as_directions
@@ -433,6 +434,7 @@ def robust_photometric_stereo(
                 robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs32,
                                halves, par, method == "irls", opt.cos_cone is not None, iterations,
                                out.normals, out.albedo, out.samples, out.valid, prior, coefficients)
+                release_rows(codes, r0, r1)  # a stack on disk: done with these rows
 
             # Bands only spread the rows over the threads: the kernel needs no work arrays.
             run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads, progress=report)

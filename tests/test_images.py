@@ -117,3 +117,20 @@ def test_chroma_of_a_coloured_surface(tmp_path):
     np.testing.assert_allclose(stack.chroma[2, 2], expected, rtol=1e-3)
     values, _ = stack.band(0, 4)
     np.testing.assert_allclose(values[:, 1, 1], np.array([1.0, 0.6, 0.3]) * (rgb @ [0.2126, 0.7152, 0.0722]), rtol=1e-4)
+
+
+def test_a_header_claiming_too_many_pixels_is_refused_before_decoding(tmp_path):
+    import struct
+    import zlib
+
+    from ptmcore.errors import InputError
+    from ptmcore.images import read_image
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    png = tmp_path / "bomb.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 40000, 40000, 8, 0, 0, 0, 0))
+                    + chunk(b"IDAT", zlib.compress(b"\0" * 100)) + chunk(b"IEND", b""))
+    with pytest.raises(InputError, match="claims 40000 × 40000 pixels"):
+        read_image(png)

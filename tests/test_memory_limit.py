@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from data_synthetic import write_capture
-from ptmcore.reduce import disk_array
+from ptmcore.diskstack import disk_array
 from reconstruct.cli.main import main
 from reconstruct.pipeline import RunOptions, load_capture, run_capture
 from reconstruct.pipeline.capture import stack_on_disk
@@ -62,3 +62,67 @@ def test_cli_memory_limit(capture, tmp_path, capsys):
         main(["run", str(capture), "-o", str(tmp_path / "bad"), "--memory-limit", "-3", "-q"])
     assert exc.value.code == 2
     assert "--memory-limit" in capsys.readouterr().err
+
+
+def test_released_rows_leave_the_process_but_not_the_file(tmp_path):
+    from ptmcore.diskstack import release_rows, resident_bytes
+
+    n, h, w = 3, 64, 4096  # a row is a page, so each plane's band is whole pages
+    a = disk_array(tmp_path, (n, h, w), np.uint8)
+    expected = (np.arange(n * h * w, dtype=np.int64) % 251).astype(np.uint8).reshape(n, h, w)
+    a[:] = expected
+    full = resident_bytes(a)
+    assert full >= a.nbytes * 0.9
+    release_rows(a, 0, 32, range(1, 3))  # the first half of planes 1 and 2
+    assert full - resident_bytes(a) >= 2 * 32 * w
+    release_rows(a, 0, h)
+    assert resident_bytes(a) < full / 10
+    np.testing.assert_array_equal(np.asarray(a), expected)  # read back from the file
+
+
+def test_release_never_touches_other_arrays(tmp_path):
+    from ptmcore.diskstack import is_disk_array, release_rows
+
+    plain = np.full((2, 8, 4096), 9, np.uint8)
+    release_rows(plain, 0, 8)
+    assert (plain == 9).all()
+    a = disk_array(tmp_path, (2, 8, 4096), np.uint8)
+    a[:] = 5
+    view, copy = a[1:], np.memmap.__getitem__(a, [0, 1])
+    assert is_disk_array(a) and not is_disk_array(view) and not is_disk_array(copy)
+    copy[:] = 3
+    release_rows(copy, 0, 8)
+    assert (np.asarray(copy) == 3).all() and (np.asarray(a) == 5).all()
+
+
+def test_a_large_stack_goes_to_a_file_by_default(capture, tmp_path, monkeypatch):
+    import reconstruct.pipeline.capture as capture_module
+
+    photographs = sorted(capture.glob("*.png")) or sorted(capture.glob("*.jp*g")) or sorted(capture.glob("*.tif"))
+    assert not stack_on_disk(photographs, RunOptions())  # a small stack stays in memory
+    monkeypatch.setattr(capture_module, "STACK_FILE_MB", 0.0)
+    assert stack_on_disk(photographs, RunOptions())
+    assert not stack_on_disk(photographs, RunOptions(memory_limit=1e6))  # an explicit limit it fits in
+    b = run_capture(capture, tmp_path / "file", RunOptions())
+    a = run_capture(capture, tmp_path / "memory", RunOptions(memory_limit=1e6))
+    np.testing.assert_array_equal(np.load(a.output / "normals.npy"), np.load(b.output / "normals.npy"))
+    report = json.loads((b.output / "report.json").read_text())
+    assert report["inputs"]["stack"] == "file"
+    assert json.loads((a.output / "report.json").read_text())["inputs"]["stack"] == "memory"
+    # Memory was not short: no warning.
+    assert not any("did not fit" in w for w in b.report.warnings)
+
+
+def test_a_full_disk_is_an_input_error(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    from ptmcore.errors import InputError
+
+    def full(fd, offset, length):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full, raising=False)
+    with pytest.raises(InputError, match="no room for the photographs' stack"):
+        disk_array(tmp_path, (4, 1024, 1024), np.uint8)
+    assert list(tmp_path.iterdir()) == []  # the file went with the error

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import threading
 from pathlib import Path
 
@@ -80,21 +81,85 @@ def test_cli_choices_and_defaults_come_from_the_options():
     assert fields <= set(vars(args)), fields - set(vars(args))
 
 
-def test_staged_output_is_unique_and_cleaned(tmp_path):
-    with staged_output(tmp_path / "out") as a, staged_output(tmp_path / "out") as b:
-        assert a.staging != b.staging and a.staging.name.startswith(STAGING_PREFIX)
-        (a / "x.txt").write_text("x")
-        a.publish(["x.txt"])
-        (b / "y.txt").write_text("y")  # never published
-    assert (tmp_path / "out" / "x.txt").read_text() == "x"
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x.txt"]
-    with pytest.raises(RuntimeError), staged_output(tmp_path / "out") as c:
-        (c / "z.txt").write_text("z")
+def _result(staged, *names: str) -> None:
+    """Write a minimal result (a report.json of this project and ``names``) and publish it."""
+    (staged / "report.json").write_text(json.dumps({"versions": {"ptm-reconstruct": "test"}}))
+    for name in names:
+        (staged / name).parent.mkdir(parents=True, exist_ok=True)
+        (staged / name).write_text(name)
+    staged.publish(["report.json", *names])
+
+
+def test_staged_output_locks_swaps_whole_folders_and_cleans(tmp_path):
+    out = tmp_path / "out"
+    with staged_output(out) as a:
+        assert a.staging.parent == tmp_path and a.staging.name.startswith(".out" + STAGING_PREFIX)
+        assert not out.exists()  # nothing appears before the result is complete
+        # One run per folder: a second one refuses, naming the first one's process.
+        with pytest.raises(InputError, match=rf"another reconstruct run \(process {os.getpid()}\)"), \
+                staged_output(out):
+            pass
+        (a / "scratch.raw").write_text("not published")
+        _result(a, "old.txt", "web/a.json")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["old.txt", "report.json", "web", "web/a.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock left
+    # A run that fails leaves the earlier result as it was.
+    with pytest.raises(RuntimeError), staged_output(out) as c:
+        (c / "new.txt").write_text("new")
         raise RuntimeError("a stage failed")
-    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["x.txt"]
+    assert (out / "old.txt").read_text() == "old.txt" and not (out / "new.txt").exists()
+    # A new result replaces the whole folder: no file of the old one survives beside it.
+    with staged_output(out) as d:
+        _result(d, "new.txt")
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt", "report.json"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    # What is not a result of this project is never replaced, and a file is not a folder.
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "thesis.tex").write_text("years of work")
+    with pytest.raises(InputError, match="not a reconstruct result"), staged_output(tmp_path / "mine"):
+        pass
+    assert (tmp_path / "mine" / "thesis.tex").read_text() == "years of work"
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="not a folder"), staged_output(tmp_path / "file"):
         pass
+    with pytest.raises(InputError, match="empty path"), staged_output(""):
+        pass
+
+
+@pytest.mark.parametrize("exchange", [True, False])
+def test_both_swaps_replace_the_result(tmp_path, monkeypatch, exchange):
+    import reconstruct.pipeline.staging as staging
+
+    if not exchange:  # a system without renameat2(RENAME_EXCHANGE): two renames
+        monkeypatch.setattr(staging, "_exchange", lambda a, b: False)
+    out = tmp_path / "out"
+    for name in ("first.txt", "second.txt"):
+        with staged_output(out) as s:
+            _result(s, name)
+    assert sorted(p.name for p in out.iterdir()) == ["report.json", "second.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_staged_output_removes_what_dead_runs_left(tmp_path):
+    out = tmp_path / "out"
+    with staged_output(out) as a:
+        _result(a, "old.txt")
+    # A run killed while building, and one killed between the two renames of the fallback swap.
+    (tmp_path / f".out{STAGING_PREFIX}dead").mkdir()
+    (tmp_path / f".out{STAGING_PREFIX}dead" / "mesh.ply").write_text("half")
+    aside = tmp_path / ".out.old-dead"
+    aside.mkdir()
+    os.rename(out, aside / "result")
+    (tmp_path / ".out.lock").write_text("999999")  # a lock file whose process died
+    with staged_output(out) as b:
+        assert (out / "old.txt").read_text() == "old.txt"  # put back before anything else
+        _result(b, "new.txt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert sorted(p.name for p in out.iterdir()) == ["new.txt", "report.json"]
+    # Parent folders a failed run created go again.
+    with pytest.raises(RuntimeError), staged_output(tmp_path / "a" / "b" / "out"):
+        raise RuntimeError("failed")
+    assert not (tmp_path / "a").exists()
 
 
 def test_two_runs_in_two_threads_of_one_process(capture, tmp_path):

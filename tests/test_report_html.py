@@ -197,11 +197,15 @@ def test_height_figure_scale_bar_measures_the_full_map():
     assert report_figures._nice_length(0.25 * 80 * 4 * 0.05) == 2
 
 
-def test_run_with_an_unreadable_scan_still_writes_its_page(tmp_path):
+def test_run_with_an_unreadable_scan_stops_before_writing_anything(tmp_path, capsys):
+    # Issue 16: every input is checked before the first output byte (the reconstruction is not
+    # made, and an earlier result would stay as it was).
     (tmp_path / "scan.ply").write_text("not a mesh")
     out = tmp_path / "out"
     code = main(["run", str(_small_capture(tmp_path / "cap")), "-o", str(out), "--pixel-size", "0.1", "-q",
                  "--scan", str(tmp_path / "scan.ply")])
     assert code == 2
-    checker = check_page(out / "report.html")
-    assert {"inputs", "relit", "maps"} <= checker.ids and "comparison" not in checker.ids
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scan.ply" in err[0]
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "scan.ply"]

@@ -223,6 +223,24 @@ def calibration_camera(
         raise InputError(f"bad focal length or sensor width: {exc}") from None
 
 
+#: How a user gives the spheres by hand (``reconstruct calibrate``'s option, cli/parser.py).
+_SPHERE_HINT = "give each sphere with `reconstruct calibrate --sphere X,Y,R` (centre column, row and radius in pixels)"
+
+
+def _detect(stack: ImageStack, expected: int | None) -> list[Sphere]:
+    """The spheres found in ``stack``, or an :class:`InputError` naming the photographs' folder
+    and saying how to give the spheres by hand."""
+    folders = {p.parent for p in stack.paths}
+    folder = folders.pop() if len(folders) == 1 else None
+    if len(stack) < 3:
+        raise InputError(f"{len(stack)} photograph(s): at least 3 are needed to detect the spheres; "
+                         f"for fewer, {_SPHERE_HINT}", folder)
+    try:
+        return detect_spheres(*stack_statistics(stack), expected=expected)
+    except InputError as exc:
+        raise InputError(f"{exc.problem}; if the spheres are in view, {_SPHERE_HINT}", folder) from None
+
+
 def calibrate_stack(
     stack: ImageStack,
     *,
@@ -237,10 +255,7 @@ def calibrate_stack(
     n = len(stack)
     names = [p.name for p in stack.paths] if names is None else list(names)
     if spheres is None:
-        if n < 3:
-            raise InputError("need at least 3 photographs to detect the spheres; "
-                             "pass the spheres explicitly for fewer")
-        spheres = detect_spheres(*stack_statistics(stack), expected=expected)
+        spheres = _detect(stack, expected)
     else:
         spheres = [tuple(float(v) for v in s) for s in spheres]
         h, w = stack.shape

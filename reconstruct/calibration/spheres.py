@@ -176,7 +176,7 @@ def detect_spheres(
     rmin = max(6.0, 0.02 * side) if min_radius is None else float(min_radius)
     rmax = 0.5 * side if max_radius is None else float(max_radius)
     if np.ptp(median) <= 0:
-        raise InputError("no spheres found: the photographs have no contrast")
+        raise InputError("no spheres found in the photographs: they have no contrast")
 
     found: list[tuple[float, Sphere]] = []
     for level in _dark_levels(median):
@@ -193,12 +193,11 @@ def detect_spheres(
             if rmin <= r <= rmax and abs(r - rough[2]) < 0.2 * rough[2] and not _seen((cx, cy, r), found):
                 found.append((score, (cx, cy, r)))
     if not found:
-        raise InputError("no spheres found: no dark round disc with a moving highlight "
-                         "(pass the spheres explicitly if they are there)")
+        raise InputError("no spheres found in the photographs: no dark round disc with a moving highlight")
     found.sort(key=lambda item: -item[0])
     if expected is not None:
         if len(found) < expected:
-            raise InputError(f"found {len(found)} sphere(s) but {expected} were expected")
+            raise InputError(f"found {len(found)} sphere(s) in the photographs but {expected} were expected")
         found = found[:expected]
     return sorted((s for _, s in found), key=lambda s: (s[0], s[1]))
 

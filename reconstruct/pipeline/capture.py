@@ -153,16 +153,36 @@ def capture_images(folder: str | os.PathLike) -> list[Path]:
     return paths
 
 
-def read_mask(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    """Read a mask image (non-zero = object) and check it matches the photographs."""
+def read_mask(path: Path, shape: tuple[int, int], against: str = "the photographs") -> np.ndarray:
+    """Read a ``--mask`` image (non-zero = object) and check it matches what it masks.
+
+    Parameters
+    ----------
+    path : Path
+        The mask image (grey or colour; a pixel is the object where any channel is non-zero).
+    shape : tuple of int
+        ``(H, W)`` it must have.
+    against : str
+        What gives that size, for the message ("the photographs", "the normal map", ...).
+
+    Returns
+    -------
+    ndarray, shape (H, W), bool
+
+    Raises
+    ------
+    InputError
+        If the image cannot be read, is of another size, or has no non-zero pixel.
+    """
     m = read_image(path)
     if m.ndim == 3:
         m = m.max(axis=2)
-    if m.shape != shape:
-        raise InputError(f"mask is {m.shape[1]}×{m.shape[0]} but the photographs are {shape[1]}×{shape[0]}", path)
+    if m.shape != tuple(shape):
+        raise InputError(f"the --mask image is {m.shape[1]}×{m.shape[0]} pixels; it must match the size of "
+                         f"{against}, {shape[1]}×{shape[0]}", path)
     m = m > 0
     if not m.any():
-        raise InputError("mask is empty (no non-zero pixel)", path)
+        raise InputError("the --mask image is empty (no non-zero pixel)", path)
     return m
 
 
@@ -265,21 +285,25 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
             photographs = capture_images(capture)
         except InputError as exc:
             raise InputError(f"no .lp light file, and {exc.problem}", capture) from None
+        on_disk, warnings = _stack_place(photographs, opt, scratch)
         with stages("decode", len(photographs)) as advance:
             stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance,
-                               storage=_storage(opt), on_disk=_on_disk(photographs, opt, scratch))
-        return _calibrate_from_spheres(stack, capture, opt)
+                               storage=_storage(opt), on_disk=on_disk)
+        loaded = _calibrate_from_spheres(stack, capture, opt)
+        loaded.warnings[:0] = warnings
+        return loaded
     lp_path = find_lp(capture, opt.lp)
     lights = read_lp(lp_path)
     near = _near_lights_from_file(lights, lp_path, opt.light_positions)
     # The photographs and their lights are known before decoding, so the files viewers open
     # are fitted in the same pass (with near lights too: they use one direction per photograph).
     fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None)
+    on_disk, warnings = _stack_place(lights.paths, opt, scratch)
     with stages("decode", len(lights)) as advance:
         stack, fits = load_stack_and_fits(lights.paths, fit=fit, linearize=opt.linearize, threads=opt.threads,
-                                          progress=advance, storage=_storage(opt),
-                                          on_disk=_on_disk(lights.paths, opt, scratch))
-    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits)
+                                          progress=advance, storage=_storage(opt), on_disk=on_disk)
+    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits,
+                   warnings=[*lights.warnings, *warnings])
 
 
 def _storage(opt: RunOptions) -> str:
@@ -293,38 +317,79 @@ def _storage(opt: RunOptions) -> str:
 #: and texture; benchmarks/speed.py), and for the interpreter and libraries.
 _BYTES_PER_PIXEL = 70
 _BASE_MB = 400
+#: A stack this large (MiB) or larger goes to a file by default (:mod:`ptmcore.diskstack`),
+#: whatever memory is free: read from the page cache it was measured as fast as in memory on
+#: 48 × 24 MP (BENCHMARKS.md), and the run's resident memory drops by its size, so more runs of
+#: a batch fit side by side and a machine short of memory writes it out instead of failing.
+#: Below this the stack is a small part of the run's memory.
+STACK_FILE_MB = 256
 
 
-def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
-    """A bound on the peak memory (MiB) of a run on these photographs: the stack (1 byte per
-    sample for JPEGs stored as 8-bit, 2 otherwise) plus ``_BYTES_PER_PIXEL`` per pixel and
-    ``_BASE_MB``; None when none of the first five has a readable header. ``reconstruct
-    batch`` sizes its cluster by it; :func:`stack_on_disk` compares it with the memory limit."""
+def _sizes_mb(paths: Sequence[Path], opt: RunOptions) -> tuple[float, float] | None:
+    """The stack's size and the rest of a run's peak (MiB), or None when none of the first
+    five photographs has a readable header."""
     # The first photograph whose header reads (a corrupt one is reported by the decoding).
     size = next(filter(None, map(image_size, paths[:5])), None)
     if size is None:
         return None
+    pixels = size[0] * size[1]
     jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
     sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
-    return _BASE_MB + (len(paths) * sample + _BYTES_PER_PIXEL) * size[0] * size[1] / 2**20
+    return len(paths) * sample * pixels / 2**20, _BASE_MB + _BYTES_PER_PIXEL * pixels / 2**20
+
+
+def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
+    """A bound on the peak memory (MiB) of a run on these photographs: ``_BASE_MB``,
+    ``_BYTES_PER_PIXEL`` per pixel, and the stack (1 byte per sample for JPEGs stored as
+    8-bit, 2 otherwise) unless it goes to a file (:func:`stack_on_disk`); None when none of
+    the first five has a readable header. ``reconstruct batch`` sizes its cluster by it."""
+    sizes = _sizes_mb(paths, opt)
+    if sizes is None:
+        return None
+    stack, rest = sizes
+    return rest if stack_on_disk(paths, opt) else rest + stack
+
+
+def _does_not_fit(paths: Sequence[Path], opt: RunOptions) -> bool:
+    """Whether a run holding its stack in memory would exceed ``opt.memory_limit``, or by
+    default the memory available now."""
+    sizes = _sizes_mb(paths, opt)
+    if sizes is None:
+        return False
+    if opt.memory_limit is not None:
+        limit = opt.memory_limit
+    else:
+        import psutil
+
+        limit = psutil.virtual_memory().available / 2**20
+    return sum(sizes) > limit
 
 
 def stack_on_disk(paths: Sequence[Path], opt: RunOptions) -> bool:
-    """Whether a capture's stack should go to a memory-mapped file: when the run's estimated
-    peak (:func:`peak_memory_mb`) exceeds ``opt.memory_limit``, or by default the memory
-    available now."""
-    peak = peak_memory_mb(paths, opt)
-    if peak is None:
+    """Whether a capture's stack should go to a memory-mapped file: when a run holding it in
+    memory would exceed ``opt.memory_limit`` (or, by default, the memory available now), and
+    by default also whenever it is :data:`STACK_FILE_MB` or larger. An explicit
+    ``memory_limit`` the run fits in keeps the stack in memory."""
+    sizes = _sizes_mb(paths, opt)
+    if sizes is None:
         return False
-    if opt.memory_limit is not None:
-        return peak > opt.memory_limit
-    import psutil
-
-    return peak > psutil.virtual_memory().available / 2**20
+    if opt.memory_limit is None and sizes[0] >= STACK_FILE_MB:
+        return True
+    return _does_not_fit(paths, opt)
 
 
-def _on_disk(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None) -> str | os.PathLike | None:
-    return scratch if scratch is not None and stack_on_disk(paths, opt) else None
+def _stack_place(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None
+                 ) -> tuple[str | os.PathLike | None, list[str]]:
+    """Where the stack goes (``scratch`` for a file, None for memory) and, when it goes to a
+    file because memory is short, the warning that says so; decided before decoding, while
+    the memory available is the run's."""
+    if scratch is None or not stack_on_disk(paths, opt):
+        return None, []
+    if not _does_not_fit(paths, opt):
+        return scratch, []
+    limit = "--memory-limit" if opt.memory_limit is not None else "the available memory"
+    return scratch, [f"the photographs' stack did not fit in {limit}: it was processed from a temporary file in "
+                     "the output folder, which is slower when memory is short"]
 
 
 def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
@@ -392,11 +457,6 @@ def load_capture(
     stages = stages or Stages(progress)
     capture = Path(source)
     loaded = _decode(capture, _layout(capture, opt), opt, stages, scratch)
-    if isinstance(loaded.stack.luminance, np.memmap):
-        loaded.warnings.append(
-            f"the photographs ({loaded.stack.luminance.nbytes / 2**30:.1f} GB as a stack) did not fit in "
-            f"{'--memory-limit' if opt.memory_limit else 'the available memory'}: they were processed from "
-            "a temporary file in the output folder, which is slower")
     if opt.mask is not None and opt.mask != "auto":
         given = read_mask(opt.mask, loaded.shape)
         loaded.mask = given if loaded.mask is None or loaded.layout == PS_DATASET else given & loaded.mask

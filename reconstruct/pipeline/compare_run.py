@@ -23,7 +23,7 @@ from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.report import outputs
 from reconstruct.report.html import write_report_html
 
-__all__ = ["CompareResult", "run_compare"]
+__all__ = ["COMPARISON_FILES", "CompareResult", "compare_into", "run_compare"]
 
 SIGN_CONVENTION = "positive: the scan lies on the camera side of the reconstruction"
 
@@ -120,36 +120,53 @@ def run_compare(
     reconstruction coloured by its distance to the scan, or the scan points when the
     reconstruction is a point cloud), ``histogram.png``, ``overlay.png`` (an off-screen
     render; skipped with a warning where the machine cannot render) and ``report.html``
-    (with the reconstruction's own report when it is an output folder).
+    (with the reconstruction's own report when it is an output folder). Written into an
+    earlier result (``output`` is the reconstruction's own folder), the result's other files
+    are kept and those of an earlier comparison replaced, in one step (:func:`staged_output`).
     """
-    from reconstruct.compare import align, distances, load_geometry, within_tolerance
+    from reconstruct.compare import load_geometry
 
     opt = options or CompareOptions()
     given = Path(reconstruction)
+    # Every input is read before the output folder is touched.
     rec_path = _reconstruction_mesh(given)
     rec = load_geometry(rec_path)
     scan_geometry = load_geometry(scan, units=opt.scan_units)
     initial = _read_initial(opt.initial) if opt.initial is not None else None
+    with staged_output(output) as staged:
+        kept = staged.keep_existing(exclude=COMPARISON_FILES)
+        names, report = compare_into(staged, rec, rec_path, scan_geometry, Path(scan), opt, initial=initial,
+                                     also=[staged.staging, *([given] if given.is_dir() else [])])
+        files = staged.publish([*kept, *names])
+    return CompareResult(staged.output, files, report)
+
+
+#: Every file a comparison may write: what a new comparison replaces in a result folder.
+COMPARISON_FILES = ("distances.ply", "histogram.png", "overlay.png", "comparison.json", "report.html")
+
+
+def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan: Path, opt: CompareOptions, *,
+                 initial: np.ndarray | None = None, also: list[Path] | None = None) -> tuple[list[str], CompareReport]:
+    """Compare a loaded scan with a loaded reconstruction and write the comparison's files
+    into ``staged`` (``run --scan`` calls it before the run's files are published, so the
+    reconstruction and its comparison appear together). ``also``: folders whose report.json
+    the page shows beside the comparison. Returns the files' names and the report."""
+    from reconstruct.compare import align, distances, within_tolerance
+
     timer = StageTimer()
     warnings: list[str] = []
-    with staged_output(output) as staged:
-        with timer.stage("align"):
-            alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align)
-        with timer.stage("distances"):
-            result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
-                               max_distance=opt.max_distance)
-        with timer.stage("write"):
-            names, limit = _write_figures(staged, rec, result, opt.tolerance, warnings)
-        fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
-        report = _comparison_report(rec_path, Path(scan), opt, alignment, result,
-                                    limit, fraction, warnings)
-        report.stages = timer.stages  # the same dict: the page's own time joins it
-        # The page also shows the reconstruction's report when the comparison is written
-        # beside it (``run --scan``) or made from its output folder; comparison.json follows
-        # it, with its time.
-        with timer.stage("report"):
-            write_report_html(staged.staging, comparison=report.to_dict(),
-                              also=[staged.output, *([given] if given.is_dir() else [])])
-        outputs.write_json(staged / "comparison.json", report.to_dict())
-        files = staged.publish([*names, "comparison.json", "report.html"])
-    return CompareResult(staged.output, files, report)
+    with timer.stage("align"):
+        alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align)
+    with timer.stage("distances"):
+        result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
+                           max_distance=opt.max_distance)
+    with timer.stage("write"):
+        names, limit = _write_figures(staged, rec, result, opt.tolerance, warnings)
+    fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
+    report = _comparison_report(rec_path, scan, opt, alignment, result, limit, fraction, warnings)
+    report.stages = timer.stages  # the same dict: the page's own time joins it
+    # The page also shows the reconstruction's report; comparison.json follows it, with its time.
+    with timer.stage("report"):
+        write_report_html(staged.staging, comparison=report.to_dict(), also=also or [])
+    outputs.write_json(staged / "comparison.json", report.to_dict())
+    return [*names, "comparison.json", "report.html"], report

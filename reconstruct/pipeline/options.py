@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import types
 import typing
 from dataclasses import dataclass
@@ -19,6 +20,7 @@ from typing import Literal, Union
 from ptmcore.errors import InputError
 
 __all__ = [
+    "BOUNDS",
     "CompareOptions",
     "Fit",
     "Flattening",
@@ -42,6 +44,32 @@ PtmFormat = Literal["lrgb", "rgb"]
 Solver = Literal["pinv", "lstsq", "rohde"]
 Flattening = Literal["plane", "poly2", "poly3", "highpass"]
 ScanUnit = Literal["mm", "cm", "m", "in"]
+
+#: The range, inclusive, of each length (and grid spacing) a run or comparison accepts. Values
+#: outside are slips (a lost decimal point, an exponent's sign) that the run cannot tell from
+#: intent: 1e20 mm per pixel overflows the report's numbers, 1e-300 mm collapses the float32
+#: mesh to a point. Each range is wide enough for any real photograph (1e5 pixels: more than
+#: any camera or stitched panorama across, and OpenCV decodes at most 2**30 pixels).
+BOUNDS: dict[str, tuple[float, float]] = {
+    # mm per pixel: a nanometre (far below what light resolves, ~2e-4 mm) to 10 m (a façade
+    # or an aerial photograph); float32 coordinates of 1e5 pixels keep their precision.
+    "pixel_size": (1e-6, 1e4),
+    # Camera to object, mm: a micrometre (closer than any lens focuses) to a kilometre.
+    "distance": (1e-3, 1e6),
+    # Base of the solid, in the height unit: a micrometre (no printer makes it; within
+    # float32 rounding of the heights) to a kilometre.
+    "solid": (1e-3, 1e6),
+    # Pixels between mesh vertices: at most an image's side (see above).
+    "step": (1, 100_000),
+    # Wavelength in pixels: 2 is the shortest an image holds (Nyquist); beyond an image's
+    # side nothing is removed, and the Gaussian's kernel grows with it (1e300 cannot be
+    # allocated).
+    "flatten_cutoff": (2, 100_000),
+    # Comparison distances, mm: a nanometre (below any scanner's resolution) to a kilometre.
+    "tolerance": (1e-6, 1e6),
+    "max_distance": (1e-6, 1e6),
+}
+
 
 def _flag(name: str) -> str:
     """What an option is called in messages: its command-line spelling."""
@@ -95,11 +123,41 @@ def _positive(options: object, *names: str, unit: str = "") -> None:
             raise InputError(f"{_flag(name)} must be a positive number{unit}, got {value}")
 
 
-def _path_or_word(value: object, words: tuple[str, ...]) -> Path | str | None:
-    """A path option that also takes keywords (``"auto"``, ``"none"``): keywords stay strings."""
+def _within(options: object, name: str, unit: str) -> None:
+    """Option ``name`` is None or a positive number within its range in :data:`BOUNDS`;
+    ``unit`` (a plural noun) is named in the message."""
+    _positive(options, name, unit=f" of {unit}")
+    value = getattr(options, name)
+    low, high = BOUNDS[name]
+    if value is not None and not low <= value <= high:
+        shown = f"{value:g}" if isinstance(value, float) else value
+        raise InputError(f"{_flag(name)} must be between {low:g} and {high:g} {unit}, got {shown}")
+
+
+def _path_or_word(value: object, words: tuple[str, ...], name: str) -> Path | str | None:
+    """A path option that also takes keywords (``"auto"``, ``"none"``): keywords stay strings.
+
+    An empty path is refused: ``Path("")`` is the current folder, which the user never meant.
+    """
     if value is None or (isinstance(value, str) and value in words):
         return value
+    if isinstance(value, (str, os.PathLike)) and os.fspath(value) == "":
+        raise InputError(f"{_flag(name)} is an empty path; give a file name")
     return Path(value)
+
+
+def _check_pairs(options: RunOptions) -> None:
+    """Options that would do nothing without another, or cannot go with it: an error rather
+    than a run that silently ignores what the user asked for."""
+    if options.distance is not None and options.intrinsics is None:
+        raise InputError("--distance needs --intrinsics: it scales a perspective camera's depths to "
+                         "millimetres (for the default orthographic camera give --pixel-size)")
+    if options.flatten != "highpass" and options.flatten_cutoff != default(RunOptions, "flatten_cutoff"):
+        raise InputError("--flatten-cutoff needs --flatten highpass: the other flattenings have no cutoff")
+    if options.intrinsics is not None and options.integrator == "fc":
+        # Checked here too so that the run refuses before it decodes a photograph.
+        raise InputError("--integrator fc cannot integrate through a perspective camera (--intrinsics): "
+                         "choose masked, bilateral, dct or auto")
 
 
 @dataclass
@@ -162,9 +220,10 @@ class RunOptions:
         default is orthographic. Heights are then in millimetres when ``distance`` (the camera's
         distance to the object, mm) is given, else relative to the object's median depth.
     distance : float, optional
-        See ``intrinsics``.
+        See ``intrinsics``; only with ``intrinsics``.
     flatten_cutoff : float
-        For ``flatten="highpass"``: the wavelength in pixels that keeps half its amplitude.
+        For ``flatten="highpass"`` (and only with it): the wavelength in pixels that keeps half
+        its amplitude.
     intensities : str or None
         Per-photograph light intensities: a file (one value or ``r g b`` per photograph, in
         ``.lp`` order) or ``"estimate"`` to estimate them from the photographs; each
@@ -176,9 +235,12 @@ class RunOptions:
     threads : int or None
         Decoding threads (default: all CPUs).
     memory_limit : float or None
-        Megabytes the run may hold in memory (default: the memory available when it starts).
-        A capture whose stack would not fit keeps the stack in a memory-mapped file in the
-        output folder instead (:func:`reconstruct.pipeline.capture.stack_on_disk`).
+        Megabytes the run may hold in memory: the stack stays in memory when the whole run fits
+        in it, else it is a memory-mapped file in the staging folder whose pages leave the
+        process band by band (:mod:`ptmcore.diskstack`). Default (None): a stack of
+        ``STACK_FILE_MB`` (256 MB) or more always goes to the file, a smaller one when the run
+        would not fit in the memory available
+        (:func:`reconstruct.pipeline.capture.stack_on_disk`).
     ground_truth : Path or None
         Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
         default: ``CAPTURE/ground_truth`` when it exists.
@@ -194,7 +256,11 @@ class RunOptions:
     Raises
     ------
     InputError
-        On construction (and on :func:`dataclasses.replace`), for a value the run would reject.
+        On construction (and on :func:`dataclasses.replace`), for a value the run would reject:
+        a length or step outside its range in :data:`BOUNDS`, an empty path, or an option that
+        does nothing without another (``distance`` without ``intrinsics``, ``flatten_cutoff``
+        without ``flatten="highpass"``) or cannot go with it (``integrator="fc"`` with
+        ``intrinsics``, ``decimate`` with ``max_error``).
     """
 
     lp: Path | None = None
@@ -225,12 +291,16 @@ class RunOptions:
 
     def __post_init__(self) -> None:
         _check_choices(self)
-        _positive(self, "pixel_size", "distance", unit=" of millimetres")
-        _positive(self, "solid", "flatten_cutoff", "max_error", "memory_limit")
         for name in ("step", "decimate", "threads"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, int) and value >= 1):
                 raise InputError(f"{_flag(name)} must be a whole number of at least 1, got {value}")
+        _within(self, "pixel_size", "millimetres")
+        _within(self, "distance", "millimetres")
+        _within(self, "solid", "height units")
+        _within(self, "step", "pixels")
+        _within(self, "flatten_cutoff", "pixels")
+        _positive(self, "max_error", "memory_limit")
         if self.decimate is not None and self.max_error is not None:
             raise InputError("give either a triangle count to decimate to or a maximum error, not both")
         if self.intrinsics is not None:
@@ -240,10 +310,13 @@ class RunOptions:
                 parse_intrinsics(self.intrinsics)
             except ValueError as exc:
                 raise InputError(f"--intrinsics: {exc}") from None
-        self.lp = _path_or_word(self.lp, ())
-        self.ground_truth = _path_or_word(self.ground_truth, ())
-        self.mask = _path_or_word(self.mask, ("auto",))
-        self.light_positions = _path_or_word(self.light_positions, ("auto", "none"))
+        _check_pairs(self)
+        if isinstance(self.intensities, str) and not self.intensities:
+            raise InputError("--intensities is an empty path; give a file name or 'estimate'")
+        self.lp = _path_or_word(self.lp, (), "lp")
+        self.ground_truth = _path_or_word(self.ground_truth, (), "ground_truth")
+        self.mask = _path_or_word(self.mask, ("auto",), "mask")
+        self.light_positions = _path_or_word(self.light_positions, ("auto", "none"), "light_positions")
 
 
 @dataclass
@@ -274,7 +347,8 @@ class CompareOptions:
     Raises
     ------
     InputError
-        On construction, for a value the comparison would reject.
+        On construction, for a value the comparison would reject: a distance outside its range
+        in :data:`BOUNDS`, ``min_fraction`` without ``tolerance``, ``scale`` with ``no_align``.
     """
 
     scan_units: ScanUnit = "mm"
@@ -288,7 +362,14 @@ class CompareOptions:
 
     def __post_init__(self) -> None:
         _check_choices(self)
-        _positive(self, "tolerance", "max_distance", unit=" of millimetres")
+        _within(self, "tolerance", "millimetres")
+        _within(self, "max_distance", "millimetres")
         if not (isinstance(self.min_fraction, (int, float)) and 0 < self.min_fraction <= 1):
             raise InputError(f"the fraction needed within tolerance must be in (0, 1], got {self.min_fraction}")
-        self.initial = _path_or_word(self.initial, ())
+        # Options that would be silently ignored without their partner (see _check_pairs).
+        if self.tolerance is None and self.min_fraction != default(CompareOptions, "min_fraction"):
+            raise InputError("--min-fraction needs --tolerance: it is the share of points that must be "
+                             "within the tolerance")
+        if self.no_align and self.scale:
+            raise InputError("--scale does nothing with --no-align: the scale is estimated by the alignment")
+        self.initial = _path_or_word(self.initial, (), "initial")

@@ -84,6 +84,8 @@ class CaptureInputs:
     height: int
     bit_depth: int
     mask: str | None
+    #: Where the stack was held: "memory", or "file" (:func:`reconstruct.pipeline.capture.stack_on_disk`).
+    stack: str = "memory"
 
 
 @dataclass

@@ -30,11 +30,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from ptmcore.diskstack import is_disk_array
 from ptmcore.images import LUMA_WEIGHTS
 from ptmcore.nearlight import write_light_positions
 from ptmcore.normals import normals_from_ptm
@@ -69,6 +71,9 @@ from reconstruct.report.html import contact_sheet_picks
 from reconstruct.report.html import write_report_html
 from reconstruct.surface.accuracy import height_rmse, normal_accuracy
 from reconstruct.surface.normalmaps import read_normal_map, shaded
+
+#: A step after a run that writes files into its staged result: ``then(staged) -> names``.
+Then = Callable[[StagedOutput], list[str]]
 
 __all__ = ["RunResult", "run", "run_capture", "run_normals", "run_ptm"]
 
@@ -110,10 +115,12 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
 
 
 def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list[str], *,
-            page: bool = True, **html) -> dict[str, Path]:
-    """Write report.html (unless ``page`` is False) and report.json, then publish every file.
+            page: bool = True, then: Then | None = None, **html) -> dict[str, Path]:
+    """Write report.html (unless ``page`` is False) and report.json, call ``then(staged)``
+    for the files of a step that follows (its names join the result), then publish every
+    file in one step.
 
-    report.json comes last so that it holds the page's own time.
+    report.json comes after the page so that it holds the page's own time.
     """
     report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     report.peak_rss_scope = stages.timer.scope
@@ -123,7 +130,10 @@ def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list
         names = [*names, "report.html"]
     report.peak_rss_mb = max((s.get("peak_rss_mb", 0.0) for s in report.stages.values()), default=None)
     outputs.write_json(staged / "report.json", report.to_dict())
-    return staged.publish([*names, "report.json"])
+    names = [*names, "report.json"]
+    if then is not None:
+        names += [n for n in then(staged) if n not in names]
+    return staged.publish(names)
 
 
 def run(
@@ -134,14 +144,18 @@ def run(
     progress: ProgressFn | None = None,
     report_page: bool = True,
     fingerprint: str | None = None,
+    then: Then | None = None,
 ) -> RunResult:
     """Reconstruct a capture folder, an ``.lp`` file or an existing ``.ptm`` file.
 
     See :func:`run_capture` and :func:`run_ptm`. ``report_page=False`` leaves report.html
-    to a step that follows (``run --scan``: :func:`reconstruct.pipeline.run_compare` writes it
-    with the comparison). ``fingerprint`` is written into report.json (a batch's, to resume).
+    to a step that follows; ``then(staged)`` is that step: called with the staged result
+    before it is published, it writes files of its own there and returns their names, which
+    are published with the run's in one step (``run --scan``:
+    :func:`reconstruct.pipeline.compare_run.compare_into`, which writes the page with the
+    comparison). ``fingerprint`` is written into report.json (a batch's, to resume).
     """
-    kw = {"progress": progress, "report_page": report_page, "fingerprint": fingerprint}
+    kw = {"progress": progress, "report_page": report_page, "fingerprint": fingerprint, "then": then}
     if Path(source).suffix.lower() == ".ptm" and Path(source).is_file():
         return run_ptm(source, output, options, **kw)
     return run_capture(source, output, options, **kw)
@@ -159,7 +173,8 @@ def _capture_inputs(capture: Capture, mask: np.ndarray | None, opt: RunOptions) 
     h, w = capture.shape
     return CaptureInputs(
         str(capture.source.resolve()), str(capture.lp_path.resolve()) if capture.lp_path else None,
-        capture.layout, len(capture.lights), w, h, capture.stack.bit_depth, _mask_source(opt.mask, mask))
+        capture.layout, len(capture.lights), w, h, capture.stack.bit_depth, _mask_source(opt.mask, mask),
+        "file" if is_disk_array(capture.stack.luminance) else "memory")
 
 
 def run_capture(
@@ -170,6 +185,7 @@ def run_capture(
     progress: ProgressFn | None = None,
     report_page: bool = True,
     fingerprint: str | None = None,
+    then: Then | None = None,
 ) -> RunResult:
     """Reconstruct one capture and write the output folder.
 
@@ -249,7 +265,7 @@ def run_capture(
                                   loaded.near.positions)
             names.append("light_positions.csv")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page,
+        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page, then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
                         thumbnails=thumbnails,
                         previews=figures.previews(normals=found.normals, height=height, albedo=texture))
@@ -287,6 +303,7 @@ def run_ptm(
     progress: ProgressFn | None = None,
     report_page: bool = True,
     fingerprint: str | None = None,
+    then: Then | None = None,
 ) -> RunResult:
     """Normals, height and meshes from an existing ``.ptm`` file (no photographs needed).
 
@@ -302,7 +319,7 @@ def run_ptm(
         with stages("decode"):
             ptm = read_ptm(ptm_path)
         h, w = ptm.coefficients.shape[:2]
-        mask = read_mask(opt.mask, (h, w)) if opt.mask is not None and opt.mask != "auto" else None
+        mask = read_mask(opt.mask, (h, w), "the PTM") if opt.mask is not None and opt.mask != "auto" else None
         with stages("normals", h):
             normals, texture = _ptm_normals_and_texture(ptm)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
@@ -312,7 +329,7 @@ def run_ptm(
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
                            fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
-        files = _finish(staged, report, stages, [*web, *names], page=report_page,
+        files = _finish(staged, report, stages, [*web, *names], page=report_page, then=then,
                         previews=figures.previews(normals=normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 
@@ -342,7 +359,7 @@ def run_normals(
         if opt.mask == "auto":
             mask = resolve_mask("auto", None, shaded(normals).astype(np.float32) / 255, np.nan_to_num(normals), warnings)
         elif opt.mask is not None:
-            mask = read_mask(opt.mask, (h, w))
+            mask = read_mask(opt.mask, (h, w), "the normal map")
             if (mask & ~valid).any():
                 warnings.append(f"{int((mask & ~valid).sum())} pixels inside the mask have no valid normal")
         else:

@@ -1,16 +1,32 @@
-"""Staged output: files are written into a hidden folder and moved into place at the end.
+"""Staged output: a result folder is the complete old result or the complete new one, always.
 
-Every command that writes an output folder (``run``, ``compare``, ``integrate``) does it
-through :func:`staged_output`, so a run that fails leaves the earlier results untouched and
-nothing half-written. The staging folder's name is unique (``.partial-`` and random letters),
-so two runs in one process (threads, a Dask worker) or in two processes never share it.
+Every command that writes an output folder (``run``, ``compare``, ``integrate``) does it through
+:func:`staged_output`. The new result is built in a hidden folder beside the output folder
+(``.NAME.partial-`` and random letters, on the same file system) and put in place by one
+directory rename: where the system can exchange two folders atomically (Linux's
+``renameat2(RENAME_EXCHANGE)``) the old and new results swap in one step, elsewhere the old one
+is renamed aside (``.NAME.old-…``) just before the new one takes its name. Whatever is killed
+when, the output folder never mixes files of two runs; a run killed between the two renames of
+the fallback leaves the old result aside, and the next run on that folder puts it back.
+
+One run at a time per folder: :func:`staged_output` holds an exclusive lock
+(``.NAME.lock`` beside the folder, ``flock``, released by the system when the process dies), and
+a second run refuses with a message naming the first one's process. Holding it, a run removes
+what dead runs left beside the folder. A folder that exists must be an earlier result (its
+``report.json`` or ``comparison.json`` written by this project) or empty: a folder of other
+files is never replaced. A run that fails leaves nothing new behind, not even the folders it
+created to hold the output.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import errno
+import json
 import os
+import secrets
 import shutil
-import tempfile
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -20,7 +36,18 @@ from ptmcore.errors import InputError
 
 __all__ = ["StagedOutput", "staged_output"]
 
+#: Hidden names beside an output folder ``NAME``: ``.NAME.partial-…`` (a result being built),
+#: ``.NAME.old-…`` (an old result renamed aside for a moment), ``.NAME.lock``.
 STAGING_PREFIX = ".partial-"
+_OLD_PREFIX = ".old-"
+_LOCK_SUFFIX = ".lock"
+#: Files that mark a folder as this project's result (with "ptm-reconstruct" in "versions").
+_RESULT_FILES = ("report.json", "comparison.json")
+
+
+def staging_names(output: Path) -> tuple[str, str]:
+    """The prefixes of the hidden folders beside ``output``: being built, renamed aside."""
+    return f".{output.name}{STAGING_PREFIX}", f".{output.name}{_OLD_PREFIX}"
 
 
 @dataclass
@@ -30,9 +57,9 @@ class StagedOutput:
     Attributes
     ----------
     output : Path
-        The folder the files end up in.
+        The folder the result ends up as.
     staging : Path
-        The hidden folder inside ``output`` that they are written to first.
+        The hidden folder beside ``output`` that the files are written to first.
     files : dict
         Each published file's name (relative to ``output``) and final path.
     """
@@ -42,47 +69,255 @@ class StagedOutput:
     files: dict[str, Path] = field(default_factory=dict)
 
     def __truediv__(self, name: str) -> Path:
-        """``staged / "mesh.ply"``: where to write a file that :meth:`publish` will move."""
+        """``staged / "mesh.ply"``: where to write a file that :meth:`publish` will put in place."""
         return self.staging / name
 
+    def keep_existing(self, exclude: Iterable[str] = ()) -> list[str]:
+        """Carry the output folder's current files (all but ``exclude``, top-level names) over
+        into the staging folder, as hard links where the file system allows (copies
+        elsewhere), for a result that adds to an earlier one (a comparison written beside its
+        reconstruction). Returns their names, to publish with the new files."""
+        if not self.output.is_dir():
+            return []
+        skip = set(exclude)
+        kept = []
+        for entry in sorted(self.output.iterdir()):
+            if entry.name in skip or entry.name.startswith(STAGING_PREFIX):
+                continue
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.copytree(entry, self.staging / entry.name, copy_function=_link_or_copy, symlinks=True)
+            else:
+                _link_or_copy(entry, self.staging / entry.name)
+            kept.append(entry.name)
+        return kept
+
     def publish(self, names: Iterable[str]) -> dict[str, Path]:
-        """Move the named files (relative paths; sub-folders allowed) into the output folder."""
-        for name in names:
-            (self.output / name).parent.mkdir(exist_ok=True)
-            os.replace(self.staging / name, self.output / name)
-            self.files[name] = self.output / name
+        """Make the named files (relative paths; sub-folders allowed) the output folder's whole
+        content, in one step: anything else in the staging folder (scratch files) is removed
+        first, then the staging folder takes the output folder's place. Once only."""
+        if self.files:
+            raise RuntimeError(f"{self.output} was already published")
+        keep = {Path(name) for name in names}
+        missing = [str(n) for n in keep if not (self.staging / n).exists()]
+        if missing:
+            raise FileNotFoundError(f"not written, cannot publish: {', '.join(sorted(missing))}")
+        _prune(self.staging, keep)
+        _swap_in(self.staging, self.output)
+        self.files = {str(n): self.output / n for n in sorted(keep, key=str)}
         return self.files
+
+
+def _link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
+    """Hard-link ``src`` as ``dst`` (no copy of a large mesh), or copy it where links fail."""
+    try:
+        os.link(src, dst, follow_symlinks=False)
+    except OSError:
+        shutil.copy2(src, dst, follow_symlinks=False)
+
+
+def _prune(root: Path, keep: set[Path]) -> None:
+    """Remove from ``root`` everything that is neither in ``keep`` nor a folder leading to it."""
+    parents = {p for n in keep for p in n.parents}
+    for path in sorted(root.rglob("*"), key=lambda p: len(p.parts), reverse=True):
+        rel = path.relative_to(root)
+        if rel in keep or rel in parents:
+            continue
+        if any(k in rel.parents for k in keep):  # inside a published folder
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two folders in one step (Linux ``renameat2(RENAME_EXCHANGE)``); False where the
+    system or the file system cannot."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.ENOSYS, errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _swap_in(staging: Path, output: Path) -> None:
+    """Put ``staging`` in place of ``output``; the old result ends up at ``staging``'s name
+    (removed by :func:`staged_output`) or, in the two-rename fallback, is removed here."""
+    if not output.exists():
+        os.rename(staging, output)
+        return
+    if _exchange(staging, output):
+        return
+    aside = _unique_folder(output.parent, staging_names(output)[1])
+    os.rename(output, aside / "result")  # a kill from here …
+    os.rename(staging, output)  # … to here leaves the old result aside: the next run restores it
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def _is_result(folder: Path) -> bool:
+    """Whether ``folder`` is empty or an earlier result of this project (only those are
+    replaced: a folder of other files might be anything of the user's)."""
+    try:
+        entries = [p for p in folder.iterdir() if not p.name.startswith(STAGING_PREFIX)]
+    except OSError:
+        return False
+    if not entries:
+        return True
+    for name in _RESULT_FILES:
+        try:
+            data = json.loads((folder / name).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and "ptm-reconstruct" in (data.get("versions") or {}):
+            return True
+    return False
+
+
+def _recover(output: Path) -> None:
+    """Undo what dead runs left beside ``output`` (called with its lock held): an old result
+    renamed aside comes back when ``output`` is missing; everything else goes."""
+    building, aside = staging_names(output)
+    stale = sorted(output.parent.glob(glob_escape(aside) + "*"), key=lambda p: p.stat().st_mtime)
+    if not output.exists() and not output.is_symlink():
+        for folder in reversed(stale):
+            if (folder / "result").is_dir():
+                os.rename(folder / "result", output)
+                break
+    for leftover in [*stale, *output.parent.glob(glob_escape(building) + "*")]:
+        shutil.rmtree(leftover, ignore_errors=True)
+    if output.is_dir():  # staging folders of earlier versions, inside the result
+        for leftover in output.glob(STAGING_PREFIX + "*"):
+            shutil.rmtree(leftover, ignore_errors=True)
+
+
+def glob_escape(name: str) -> str:
+    """``name`` with glob's special characters taken literally."""
+    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
+
+
+@contextmanager
+def _folder_lock(output: Path) -> Iterator[None]:
+    """Hold ``.NAME.lock`` beside ``output`` exclusively, or raise :class:`InputError` naming
+    the process that holds it. Without ``fcntl`` (Windows) runs are not locked."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path = output.parent / f".{output.name}{_LOCK_SUFFIX}"
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 32).decode(errors="replace").strip()
+            os.close(fd)
+            raise InputError(
+                f"another reconstruct run{f' (process {holder})' if holder else ''} is writing this folder; "
+                "wait for it to finish or choose another output folder", output) from None
+        # The holder before us may have removed the file between our open and our lock.
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # before the unlock, so a waiting run sees it gone and retries
+        os.close(fd)
+
+
+def _unique_folder(parent: Path, prefix: str) -> Path:
+    """A new folder ``parent/prefix…`` with the permissions of any new folder (the umask's;
+    ``tempfile.mkdtemp`` would make it, and so the published result, private)."""
+    while True:
+        path = parent / (prefix + secrets.token_hex(4))
+        try:
+            path.mkdir()
+            return path
+        except FileExistsError:
+            continue
+
+
+def _make_folder(folder: Path) -> list[Path]:
+    """Create ``folder`` and its missing parents; return those created, outermost first."""
+    created = []
+    for p in [*reversed(folder.parents), folder]:
+        if not p.exists():
+            p.mkdir()
+            created.append(p)
+    return created
 
 
 @contextmanager
 def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
-    """Create ``output`` and a unique staging folder inside it; remove the staging folder on exit.
+    """Lock ``output``, build the new result in a staging folder beside it, and remove the
+    staging folder on exit (with the old result in it once :meth:`StagedOutput.publish` has
+    swapped them).
 
     Parameters
     ----------
     output : path
-        The output folder; created if needed.
+        The output folder. Its parent folders are created if needed (and removed again if the
+        run fails); it is created by the publication itself.
 
     Yields
     ------
     StagedOutput
-        Write files to ``staged / name``, then call ``staged.publish(names)``; whatever is
-        not published when the block ends (normally or by an exception) is deleted.
+        Write files to ``staged / name``, then call ``staged.publish(names)``; when the block
+        ends without a publication (an exception), the output folder is as it was.
 
     Raises
     ------
     InputError
-        If ``output`` exists and is not a folder, or cannot be written.
+        If ``output`` is empty, exists and is not a folder, holds files that are not an earlier
+        result, is being written by another run, or its parent cannot be written.
     """
-    out = Path(output)
+    if not os.fspath(output):
+        raise InputError("the output folder is an empty path; give a folder name with -o")
+    out = Path(os.path.abspath(output))
     if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", out)
+        raise InputError("output path exists and is not a folder", output)
+    created: list[Path] = []
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=STAGING_PREFIX, dir=out))
-    except OSError as exc:
-        raise InputError(f"cannot write the output folder ({exc.strerror})", out) from None
-    try:
-        yield StagedOutput(out, staging)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        try:
+            created = _make_folder(out.parent)
+        except OSError as exc:
+            raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
+        with _folder_lock(out):
+            _recover(out)
+            if out.exists() and not _is_result(out):
+                raise InputError(
+                    "the output folder holds files that are not a reconstruct result; it is not replaced: "
+                    "choose a new or empty folder", output)
+            try:
+                staging = _unique_folder(out.parent, staging_names(out)[0])
+            except OSError as exc:
+                raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
+            staged = StagedOutput(out, staging)
+            try:
+                yield staged
+            finally:
+                shutil.rmtree(staging, ignore_errors=True)
+    except BaseException:
+        for folder in reversed(created):
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if still empty
+        raise

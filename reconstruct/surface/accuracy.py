@@ -11,6 +11,7 @@ import numpy as np
 from ptmcore.errors import InputError
 from ptmcore.images import read_image
 from ptmcore.normals import angular_error
+from reconstruct.surface.normalmaps import read_npy
 
 
 @dataclass
@@ -32,20 +33,38 @@ class GroundTruth:
 
 
 def load_ground_truth(folder: str | os.PathLike) -> GroundTruth:
-    """Read ``normals.npy``, ``mask.png`` and (if present) ``height.npy`` from a folder."""
+    """Read ``normals.npy``, ``mask.png`` and (if present) ``height.npy`` from a folder.
+
+    Raises
+    ------
+    InputError
+        If ``normals.npy`` is missing or not an ``(H, W, 3)`` float array (see
+        :func:`reconstruct.surface.normalmaps.read_npy`), or the mask or heights are
+        unreadable or of another size.
+    """
     folder = Path(folder)
-    try:
-        normals = np.load(folder / "normals.npy").astype(np.float32)
-    except (OSError, ValueError) as exc:
-        raise InputError(
-            f"cannot read ground-truth normals ({exc})", folder / "normals.npy"
-        ) from None
+    normals_file = folder / "normals.npy"
+    normals = read_npy(normals_file, "ground-truth normals file")
+    if normals.dtype.kind != "f" or normals.ndim != 3 or normals.shape[2] != 3:
+        raise InputError(f"ground-truth normals must be an H×W×3 float array, got {normals.dtype} "
+                         f"of shape {normals.shape}", normals_file)
+    normals = normals.astype(np.float32)
+    shape = normals.shape[:2]
     mask_file = folder / "mask.png"
-    mask = read_image(mask_file) > 0 if mask_file.exists() else np.ones(normals.shape[:2], bool)
+    mask = read_image(mask_file) > 0 if mask_file.exists() else np.ones(shape, bool)
     if mask.ndim == 3:
         mask = mask.any(axis=2)
+    if mask.shape != shape:
+        raise InputError(f"ground-truth mask is {mask.shape[1]}×{mask.shape[0]} pixels but its normals "
+                         f"are {shape[1]}×{shape[0]}", mask_file)
     height_file = folder / "height.npy"
-    height = np.load(height_file).astype(np.float32) if height_file.exists() else None
+    height = None
+    if height_file.exists():
+        height = read_npy(height_file, "ground-truth height file")
+        if height.dtype.kind not in "iuf" or height.shape != shape:
+            raise InputError(f"ground-truth heights must be a {shape[1]}×{shape[0]} array of numbers "
+                             f"(as its normals), got {height.dtype} of shape {height.shape}", height_file)
+        height = height.astype(np.float32)
     return GroundTruth(normals, mask, height)
 
 

@@ -1,0 +1,98 @@
+"""Issue 16: a result folder is the complete old result or the complete new one at every
+instant, whatever is killed when; one run per folder at a time."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from data_synthetic import write_capture
+
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="kills and locks: POSIX")
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("atomic") / "capture"
+    write_capture(folder, shape=(48, 64), n_lights=12, seed=3)
+    return folder
+
+
+def _run(capture: Path, out: Path, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "reconstruct", "run", str(capture), "-o", str(out), "-q",
+                             "--pixel-size", "0.1", "--threads", "1", *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _state(out: Path) -> tuple[frozenset[str], bool] | None:
+    """The folder's file names and whether its report.json says --hsh; None when missing."""
+    if not out.exists():
+        return None
+    names = frozenset(str(p.relative_to(out)) for p in out.rglob("*"))
+    report = json.loads((out / "report.json").read_text())
+    return names, bool(report["parameters"]["hsh"])
+
+
+def test_a_killed_run_leaves_the_old_or_the_new_result(capture, tmp_path):
+    out = tmp_path / "out"
+    assert _run(capture, out).wait() == 0
+    old = _state(out)
+    probe = _run(capture, tmp_path / "probe", "--hsh")
+    start = time.monotonic()
+    assert probe.wait() == 0
+    took = time.monotonic() - start
+    new = _state(tmp_path / "probe")
+    assert old != new and new[1] and not old[1]
+    rng = random.Random(16)
+    for _ in range(12):
+        proc = _run(capture, out, "--hsh")
+        time.sleep(rng.uniform(0.3, 1.05) * took)  # publishing is in the last tenth or so
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        state = _state(out)
+        assert state in (old, new), state
+        if state == new:  # start again from the old result
+            assert _run(capture, out).wait() == 0
+    # What the killed runs left beside the folder goes with the next run on it.
+    assert _run(capture, out).wait() == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "probe"]
+
+
+def test_sigterm_is_handled_like_ctrl_c(capture, tmp_path):
+    out = tmp_path / "out"
+    assert _run(capture, out).wait() == 0
+    old = _state(out)
+    proc = _run(capture, out, "--hsh")
+    time.sleep(1.5)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate()
+    if proc.returncode == 0:  # finished first on a fast machine
+        pytest.skip("the run finished before SIGTERM")
+    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err
+    assert _state(out) == old
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
+
+
+def test_two_runs_on_one_folder(capture, tmp_path):
+    out = tmp_path / "out"
+    first = _run(capture, out)
+    deadline = time.monotonic() + 60
+    lock = tmp_path / ".out.lock"
+    while not lock.exists() and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    second = _run(capture, out, "--hsh")
+    _, err = second.communicate()
+    assert first.wait() == 0
+    if not lock.exists() and second.returncode == 0:
+        pytest.skip("the first run ended before the second started")
+    assert second.returncode == 2, err
+    assert len(err.strip().splitlines()) == 1 and "another reconstruct run" in err
+    assert _state(out)[1] is False  # the first run's result

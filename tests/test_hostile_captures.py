@@ -1,0 +1,75 @@
+"""Issue 16: captures that cannot give a surface are refused with one line, before any output."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+from PIL import Image
+
+from data_synthetic import write_capture
+from reconstruct.cli.main import main
+
+
+@pytest.fixture(scope="module")
+def good(tmp_path_factory) -> Path:
+    folder = tmp_path_factory.mktemp("hostile") / "capture"
+    write_capture(folder, shape=(32, 40), n_lights=8, seed=4)
+    return folder
+
+
+def _photographs(folder: Path) -> list[Path]:
+    return sorted(folder.glob("*.tif"))
+
+
+def _copy(good: Path, tmp_path: Path) -> Path:
+    folder = tmp_path / "capture"
+    shutil.copytree(good, folder)
+    return folder
+
+
+def _refused(folder: Path, tmp_path: Path, capsys, *words: str) -> None:
+    out = tmp_path / "out"
+    assert main(["run", str(folder), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0], err
+    for word in words:
+        assert word in err[0], err[0]
+    assert not out.exists()
+
+
+def test_identical_photographs(good, tmp_path, capsys):
+    folder = _copy(good, tmp_path)
+    first, *rest = _photographs(folder)
+    for p in rest:
+        shutil.copy(first, p)
+    _refused(folder, tmp_path, capsys, "identical", str(folder))
+
+
+@pytest.mark.parametrize("value", [0, 65535])
+def test_black_or_clipped_photographs(good, tmp_path, capsys, value):
+    folder = _copy(good, tmp_path)
+    for p in _photographs(folder):
+        img = tifffile.imread(p)
+        tifffile.imwrite(p, np.full_like(img, value))
+    _refused(folder, tmp_path, capsys, "black" if value == 0 else "clipped", str(folder))
+
+
+def test_an_8_bit_photograph_in_a_16_bit_capture(good, tmp_path, capsys):
+    folder = _copy(good, tmp_path)
+    odd = _photographs(folder)[2]
+    img = tifffile.imread(odd)
+    tifffile.imwrite(odd, (img >> 8).astype(np.uint8))
+    _refused(folder, tmp_path, capsys, "mixed bit depth", odd.name, "8-bit", "16-bit")
+
+
+def test_two_photographs_name_the_folder(tmp_path, capsys):
+    folder = tmp_path / "capture"
+    folder.mkdir()
+    for k in range(2):
+        Image.fromarray(np.full((8, 8), 40 + k, np.uint8)).save(folder / f"p{k}.png")
+    (folder / "lights.lp").write_text("2\np0.png 0 0 1\np1.png 0.5 0 0.866\n")
+    _refused(folder, tmp_path, capsys, str(folder))
