@@ -8,7 +8,6 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import signal
 import threading
 import sys
@@ -168,34 +167,16 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return 0
     # With --scan the scan is read before anything else, and the comparison is written into the
     # run's staged result, so the reconstruction and its comparison are published together.
-    from reconstruct.compare import load_geometry
-    from reconstruct.pipeline.compare_run import compare_into
-    from reconstruct.report.html import write_report_html
+    from reconstruct.pipeline.compare_run import ScanStep
 
-    compare_options = CompareOptions(scan_units=scan_units)
-    scan = load_geometry(args.scan, units=scan_units)
-    done: dict = {}
-
-    def compare(staged) -> list[str]:
-        try:
-            names, done["report"] = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
-                                                 scan, args.scan, compare_options, also=[staged.staging])
-        except InputError as exc:
-            # The reconstruction is still published, with its own page; the error follows.
-            done["error"] = exc
-            write_report_html(staged.staging, report=json.loads((staged / "report.json").read_text()))
-            return ["report.html"]
-        return names
-
+    step = ScanStep(args.scan, CompareOptions(scan_units=scan_units))
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
-        result = run(args.capture, args.output, options, progress=progress, report_page=False, then=compare)
-    compared = None
-    if "error" in done:
+        result = run(args.capture, args.output, options, progress=progress, report_page=False, then=step)
+    try:
+        compared = step.result(result.output, result.files)
+    except InputError:
         _print_summary(result.report, result.output)
-        raise done["error"]
-    from reconstruct.pipeline import CompareResult
-
-    compared = CompareResult(result.output, {n: result.output / n for n in result.files}, done["report"])
+        raise
     _print_summary(result.report, result.output)
     if compared is not None:
         _compare_summary(compared)

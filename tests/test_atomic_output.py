@@ -52,7 +52,7 @@ def test_a_killed_run_leaves_the_old_or_the_new_result(capture, tmp_path):
     new = _state(tmp_path / "probe")
     assert old != new and new[1] and not old[1]
     rng = random.Random(16)
-    for _ in range(12):
+    for _ in range(20):
         proc = _run(capture, out, "--hsh")
         time.sleep(rng.uniform(0.3, 1.05) * took)  # publishing is in the last tenth or so
         proc.send_signal(signal.SIGKILL)

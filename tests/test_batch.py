@@ -92,7 +92,9 @@ def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collect
     (out / "tablet_b" / "report.json").unlink()
     (out / "tablet_b" / ".partial-dead").mkdir()
     (out / "tablet_b" / ".partial-dead" / "mesh.ply").write_text("half")
-    # Killed between the two renames that swap a new result in: the old one is put back.
+    (out / ".tablet_b.partial-dead").mkdir()  # the staging folder of this version, beside it
+    (out / ".tablet_b.partial-dead" / "mesh.ply").write_text("half")
+    # An earlier version's batch killed between its two renames: the old result is put back.
     os.rename(out / "tablet_a", out / ".replaced-tablet_a")
     (out / ".running-tablet_a").mkdir()
     (out / ".running-tablet_a" / "mesh.ply").write_text("half")
@@ -101,6 +103,7 @@ def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collect
     assert {r.name: r.status for r in rows} == {"tablet_a": "skipped", "tablet_b": "done"}
     assert not list((out / "tablet_b").glob(".partial-*"))
     assert not list(out.glob(".running-*")) and not list(out.glob(".replaced-*"))
+    assert not list(out.glob(".tablet_*"))
     assert time.perf_counter() - t0 < 30
     # A photograph changed: only that object runs again; --force redoes all.
     photo = captures / "tablet_a" / "img_000.tif"

@@ -73,3 +73,60 @@ def test_two_photographs_name_the_folder(tmp_path, capsys):
         Image.fromarray(np.full((8, 8), 40 + k, np.uint8)).save(folder / f"p{k}.png")
     (folder / "lights.lp").write_text("2\np0.png 0 0 1\np1.png 0.5 0 0.866\n")
     _refused(folder, tmp_path, capsys, str(folder))
+
+
+def test_a_ptm_whose_scales_are_all_zero(tmp_path, shared_fixture):
+    from ptmcore.errors import InputError
+    from ptmcore.ptmfile import read_ptm
+
+    src = sorted(shared_fixture.glob("*.ptm"))[0]
+    lines = src.read_bytes().split(b"\n")
+    lines[4] = b"0.000000 0.000000 0.000000 0.000000 0.000000 0.000000 "  # the scales' line
+    bad = tmp_path / "zero.ptm"
+    bad.write_bytes(b"\n".join(lines))
+    with pytest.raises(InputError, match="all six scales are 0"):
+        read_ptm(bad)
+
+
+def test_no_triangles_is_an_error(good, tmp_path, capsys):
+    mask = tmp_path / "dot.png"
+    img = np.zeros((32, 40), np.uint8)
+    img[10, 10] = 255
+    Image.fromarray(img).save(mask)
+    out = tmp_path / "out"
+    assert main(["run", str(good), "-o", str(out), "-q", "--mask", str(mask)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no triangles" in err[0]
+    assert not out.exists()
+    normals = tmp_path / "n.npy"
+    np.save(normals, np.array([[[0, 0, 1]]], np.float32))
+    assert main(["integrate", str(normals), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Traceback" not in err[0]
+    assert not out.exists()
+
+
+def _snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_a_failed_run_leaves_an_earlier_result_byte_identical(good, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["run", str(good), "-o", str(out), "-q"]) == 0
+    before = _snapshot(out)
+    folder = _copy(good, tmp_path)
+    first, *rest = _photographs(folder)
+    for p in rest:
+        shutil.copy(first, p)
+    assert main(["run", str(folder), "-o", str(out), "-q", "--hsh"]) == 2
+    assert _snapshot(out) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["capture", "out"]
+
+
+def test_the_capture_folder_is_never_the_output(good, tmp_path, capsys):
+    folder = _copy(good, tmp_path)
+    before = _snapshot(folder)
+    assert main(["run", str(folder), "-o", str(folder), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a reconstruct result" in err[0]
+    assert _snapshot(folder) == before

@@ -22,7 +22,6 @@ from pathlib import Path
 from ptmcore.errors import InputError
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchItem, BatchRow
 from reconstruct.pipeline.report import json_safe
-from reconstruct.pipeline.staging import STAGING_PREFIX
 
 __all__ = ["choose_workers", "estimate_peak_mb", "fingerprint", "is_complete", "run_object"]
 
@@ -115,24 +114,25 @@ def _limit_threads(stack: ExitStack, threads: int) -> None:
     stack.callback(cv2.setNumThreads, previous)
 
 
-def _reconstruct(item: BatchItem, work: Path, folder: Path, print_: str) -> None:
-    """``reconstruct run`` of one object into ``work``, swapped in as ``folder``, then the
-    comparison with its scan written into ``folder`` (which it names in comparison.json)."""
-    from reconstruct.pipeline import CompareOptions, run, run_compare
+def _reconstruct(item: BatchItem, folder: Path, print_: str) -> None:
+    """``reconstruct run`` of one object into ``folder``, with the comparison with its scan
+    published in the same step (:func:`reconstruct.pipeline.staging.staged_output` swaps the
+    whole folder in, so a batch killed at any moment leaves it old or new, never mixed)."""
+    from reconstruct.pipeline import CompareOptions, run
+    from reconstruct.pipeline.compare_run import ScanStep
 
-    run(item.source, work, item.options, report_page=item.scan is None, fingerprint=print_)
-    _swap_in(work, folder)
-    if item.scan is not None:
-        run_compare(folder, item.scan, folder, CompareOptions(scan_units=item.scan_units))
+    if item.scan is None:
+        run(item.source, folder, item.options, fingerprint=print_)
+        return
+    step = ScanStep(item.scan, CompareOptions(scan_units=item.scan_units))
+    result = run(item.source, folder, item.options, report_page=False, fingerprint=print_, then=step)
+    step.result(result.output, result.files)
 
 
 def _recover(out: Path, name: str) -> None:
-    """Undo what a batch killed in the middle of this object left behind.
-
-    An object is made in ``.running-<name>`` and swapped in place of ``<name>`` at the end; a
-    kill between the two renames leaves the earlier result as ``.replaced-<name>``, which is put
-    back (never lost), and a kill before them leaves a ``.running-<name>``, which goes.
-    """
+    """Put back an earlier result that a batch of an earlier version, killed between its two
+    renames, left as ``.replaced-<name>``, and remove its ``.running-<name>``; what a killed
+    run of this version leaves, :func:`reconstruct.pipeline.staging.staged_output` handles."""
     folder, replaced = out / name, out / f".replaced-{name}"
     if replaced.exists():
         if folder.exists():
@@ -140,19 +140,6 @@ def _recover(out: Path, name: str) -> None:
         else:
             os.rename(replaced, folder)
     shutil.rmtree(out / f".running-{name}", ignore_errors=True)
-    if folder.is_dir():
-        for stale in folder.glob(STAGING_PREFIX + "*"):  # a ``reconstruct run`` killed in it
-            shutil.rmtree(stale, ignore_errors=True)
-
-
-def _swap_in(work: Path, folder: Path) -> None:
-    """Put the finished ``work`` folder in place of ``folder``: two renames, so that a reader (or
-    a kill) sees the old result or the new one, never a mixture."""
-    replaced = folder.with_name(f".replaced-{folder.name}")
-    if folder.exists():
-        os.rename(folder, replaced)
-    os.rename(work, folder)
-    shutil.rmtree(replaced, ignore_errors=True)
 
 
 def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
@@ -161,15 +148,15 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
 
     Never raises for the object's own problems: a bad capture or a failing stage is a
     ``failed`` row with the message, and an earlier result of the object stays as it was. The
-    object is made in a hidden folder beside its own and swapped in when complete, so a batch
-    killed at any moment leaves each object's folder whole (old or new); the batch's lock says
-    no one else is writing there.
+    object is made in a hidden folder beside its own and swapped in when complete
+    (:func:`reconstruct.pipeline.staging.staged_output`), so a batch killed at any moment leaves
+    each object's folder whole (old or new); the batch's lock says no one else is writing there.
     """
     from reconstruct.batch.gallery import write_thumbnails
     from reconstruct.pipeline.profiling import StageTimer
 
     out = Path(out)
-    folder, work = out / item.name, out / f".running-{item.name}"
+    folder = out / item.name
     print_ = fingerprint(item)
     _recover(out, item.name)
     if not force and is_complete(folder, item, print_):
@@ -180,9 +167,8 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
         with ExitStack() as stack:
             _limit_threads(stack, threads)
             stack.enter_context(timer.stage("object"))
-            _reconstruct(item, work, folder, print_)
+            _reconstruct(item, folder, print_)
     except Exception as exc:  # noqa: BLE001 - a stage's bug must not stop the other objects
-        shutil.rmtree(work, ignore_errors=True)
         message = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
         return BatchRow(item.name, str(item.source), FAILED, message, round(time.perf_counter() - t0, 3))
     write_thumbnails(folder, out / "thumbnails", item.name)

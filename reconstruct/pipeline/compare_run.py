@@ -23,7 +23,7 @@ from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.report import outputs
 from reconstruct.report.html import write_report_html
 
-__all__ = ["COMPARISON_FILES", "CompareResult", "compare_into", "run_compare"]
+__all__ = ["COMPARISON_FILES", "CompareResult", "ScanStep", "compare_into", "run_compare"]
 
 SIGN_CONVENTION = "positive: the scan lies on the camera side of the reconstruction"
 
@@ -170,3 +170,47 @@ def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan:
         write_report_html(staged.staging, comparison=report.to_dict(), also=also or [])
     outputs.write_json(staged / "comparison.json", report.to_dict())
     return [*names, "comparison.json", "report.html"], report
+
+
+class ScanStep:
+    """The comparison of ``run --scan`` (and a batch's scan column) as the last step of a run.
+
+    Made before the run, it reads the scan, so an unreadable scan stops the run before any
+    output. Passed as ``run(..., report_page=False, then=step)``, it compares the scan with the
+    staged ``mesh.ply`` and writes its files beside the run's, published together. When the
+    comparison itself fails (no overlap, say) the reconstruction is still published with its
+    own page, and :meth:`result` raises the comparison's error after it.
+
+    Parameters
+    ----------
+    scan : path
+        The scan file.
+    options : CompareOptions, optional
+    """
+
+    def __init__(self, scan: str | os.PathLike, options: CompareOptions | None = None) -> None:
+        from reconstruct.compare import load_geometry
+
+        self.scan = Path(scan)
+        self.options = options or CompareOptions()
+        self.geometry = load_geometry(self.scan, units=self.options.scan_units)
+        self.report: CompareReport | None = None
+        self.error: InputError | None = None
+
+    def __call__(self, staged: StagedOutput) -> list[str]:
+        from reconstruct.compare import load_geometry
+
+        try:
+            names, self.report = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
+                                              self.geometry, self.scan, self.options, also=[staged.staging])
+        except InputError as exc:
+            self.error = exc
+            write_report_html(staged.staging, report=json.loads((staged / "report.json").read_text()))
+            return ["report.html"]
+        return names
+
+    def result(self, output: Path, files: dict[str, Path]) -> CompareResult:
+        """The comparison written into the published ``output``; raises its error if it failed."""
+        if self.error is not None:
+            raise self.error
+        return CompareResult(output, files, self.report)

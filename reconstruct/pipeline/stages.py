@@ -361,6 +361,13 @@ def make_mesh(surface: Surface, texture: np.ndarray, normals: np.ndarray,
 
     step = options.step or auto_step(surface.height.shape)
     mesh = grid_mesh(surface.height, texture=texture, step=step, pixel_size=options.pixel_size, normals=normals)
+    if len(mesh.faces) == 0:
+        h, w = surface.height.shape
+        known = int(np.isfinite(surface.height).sum())
+        raise InputError(
+            f"the mesh would have no triangles: {known} pixel(s) of height on a {w}×{h} image"
+            + (f" at a step of {step} pixels (--step)" if step > 1 else "")
+            + "; a mesh needs at least 2×2 neighbouring pixels of the object")
     decimation = None
     if options.decimate is not None or options.max_error is not None:
         mesh, decimation = decimate(mesh, target_faces=options.decimate, max_error=options.max_error)

@@ -23,6 +23,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import errno
+import fnmatch
 import json
 import os
 import secrets
@@ -43,6 +44,13 @@ _OLD_PREFIX = ".old-"
 _LOCK_SUFFIX = ".lock"
 #: Files that mark a folder as this project's result (with "ptm-reconstruct" in "versions").
 _RESULT_FILES = ("report.json", "comparison.json")
+#: The names a result folder holds (README, "Output folder"; ``compare``'s files): a folder of
+#: these alone is an earlier result even without its report (a run of an earlier version killed
+#: while publishing, or a report deleted by hand).
+_OUTPUT_NAMES = ("coefficients.ptm", "coefficients.rti", "web", "solid.stl", "mesh.glb", "normals.npy",
+                 "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj", "mesh.mtl",
+                 "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "report.json",
+                 "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png")
 
 
 def staging_names(output: Path) -> tuple[str, str]:
@@ -163,13 +171,14 @@ def _swap_in(staging: Path, output: Path) -> None:
 
 
 def _is_result(folder: Path) -> bool:
-    """Whether ``folder`` is empty or an earlier result of this project (only those are
-    replaced: a folder of other files might be anything of the user's)."""
+    """Whether ``folder`` is empty or an earlier result of this project: its report says so,
+    or it holds nothing but the names results hold. Only those are replaced: a folder of other
+    files might be anything of the user's."""
     try:
         entries = [p for p in folder.iterdir() if not p.name.startswith(STAGING_PREFIX)]
     except OSError:
         return False
-    if not entries:
+    if all(any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES) for p in entries):
         return True
     for name in _RESULT_FILES:
         try:
