@@ -421,26 +421,42 @@ def _check_depths(paths: list[Path], depths: np.ndarray) -> None:
 
 
 def check_content(stack: ImageStack, grid: int = 256) -> None:
-    """Refuse a capture whose photographs cannot give a surface: all identical, all black, or
-    all clipped everywhere (on a grid of about ``grid`` × ``grid`` samples, and the clipped
-    counts).
+    """Refuse photographs that cannot take part in a fit: black or clipped everywhere (a flash
+    that did not fire, a gross overexposure), or the same as another (a file copied over
+    another), judged on a grid of about ``grid`` × ``grid`` samples and the clipped counts.
 
     Raises
     ------
     InputError
-        Naming the photographs' folder and what is wrong with them.
+        Naming the photographs' folder, the photographs and what is wrong with them.
     """
     n, (h, w) = len(stack), stack.shape
     where = stack.paths[0].parent if stack.paths else None
-    if np.all(stack.saturated >= h * w):
-        raise InputError(f"all {n} photographs are clipped (white) everywhere: nothing to measure; "
-                         "take them with less exposure", where)
+    clipped = [p for p, c in zip(stack.paths, stack.saturated) if c >= h * w]
+    if clipped:
+        raise InputError(f"{_names(clipped)} {'is' if len(clipped) == 1 else 'are'} clipped (white) everywhere"
+                         f"{f', all {n} photographs' if len(clipped) == n else ''}: leave "
+                         f"{'it' if len(clipped) == 1 else 'them'} out or take them with less exposure", where)
     step = max(1, min(h, w) // grid)
-    sample = stack.luminance[:, step // 2::step, step // 2::step].reshape(n, -1)
-    if not sample.any():
-        raise InputError(f"all {n} photographs are black: nothing to measure", where)
-    if np.all(sample == sample[:1]):
+    sample = np.ascontiguousarray(stack.luminance[:, step // 2::step, step // 2::step]).reshape(n, -1)
+    black = [p for p, s in zip(stack.paths, sample) if not s.any()]
+    if black:
+        raise InputError(f"{_names(black)} {'is' if len(black) == 1 else 'are'} black everywhere"
+                         f"{f', all {n} photographs' if len(black) == n else ''}: leave "
+                         f"{'it' if len(black) == 1 else 'them'} out", where)
+    seen: dict[bytes, Path] = {}
+    same = []
+    for p, s in zip(stack.paths, sample):
+        key = s.tobytes()
+        if key in seen:
+            same.append(f"{p.name} = {seen[key].name}")
+        else:
+            seen[key] = p
+    if len(seen) == 1:
         raise InputError(f"all {n} photographs are identical: the light must move between them", where)
+    if same:
+        shown = "; ".join(same[:3]) + (f" and {len(same) - 3} more" if len(same) > 3 else "")
+        raise InputError(f"photographs identical to another ({shown}): one was copied over the other", where)
 
 
 def load_stack_and_fits(
@@ -504,7 +520,6 @@ def load_stack_and_fits(
     _check_depths(paths, done.depths)
     stack = ImageStack(done.luminance, done.chroma, paths, int(done.depths.max()), linearize, done.saturated,
                        done.table)
-    check_content(stack)
     if fit is None:
         return stack, None
     fits = EncodedFits(paths, fit, hsh=done.hsh)

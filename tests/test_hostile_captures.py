@@ -130,3 +130,13 @@ def test_the_capture_folder_is_never_the_output(good, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "not a reconstruct result" in err[0]
     assert _snapshot(folder) == before
+
+
+def test_one_black_photograph_or_one_copied_over_another_is_named(good, tmp_path, capsys):
+    folder = _copy(good, tmp_path)
+    photos = _photographs(folder)
+    tifffile.imwrite(photos[3], np.zeros_like(tifffile.imread(photos[3])))
+    _refused(folder, tmp_path, capsys, photos[3].name, "black everywhere")
+    shutil.copy(good / photos[3].name, photos[3])
+    shutil.copy(photos[1], photos[5])
+    _refused(folder, tmp_path, capsys, f"{photos[5].name} = {photos[1].name}", "identical")

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.images import ImageStack, image_size, load_stack, load_stack_and_fits, read_image
+from ptmcore.images import ImageStack, check_content, image_size, load_stack, load_stack_and_fits, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
@@ -457,6 +457,8 @@ def load_capture(
     stages = stages or Stages(progress)
     capture = Path(source)
     loaded = _decode(capture, _layout(capture, opt), opt, stages, scratch)
+    # Photographs black or clipped everywhere, or copied over another, are refused first.
+    check_content(loaded.stack)
     if opt.mask is not None and opt.mask != "auto":
         given = read_mask(opt.mask, loaded.shape)
         loaded.mask = given if loaded.mask is None or loaded.layout == PS_DATASET else given & loaded.mask
