@@ -8,6 +8,7 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import threading
 import sys
@@ -19,6 +20,8 @@ from ptmcore.errors import InputError
 from reconstruct.cli.parser import build_parser
 
 EXIT_BAD_INPUT = 2
+#: Ended by SIGTERM: 128 + 15, as a shell reports a process the signal killed.
+EXIT_TERMINATED = 143
 
 
 def _compare_summary(result) -> None:
@@ -445,17 +448,24 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
-def _interrupt(signum: int, frame) -> None:
-    raise KeyboardInterrupt
+def _terminate(signum: int, frame) -> None:
+    """SIGTERM (a scheduler's or ``kill``'s stop): remove what the runs in progress staged and
+    end at once. Not an exception unwinding the stack, as Ctrl-C is: one raised wherever the
+    main thread happens to be (inside an import, say) can leave a lock held and the process
+    hung. Output folders keep their earlier results: they only change by one rename."""
+    from reconstruct.pipeline.staging import abandon_runs
+
+    abandon_runs()
+    print("reconstruct: stopped (SIGTERM); output folders keep their earlier results", file=sys.stderr, flush=True)
+    os._exit(EXIT_TERMINATED)
 
 
 def _stop_on_sigterm():
-    """Handle SIGTERM (a scheduler's or ``kill``'s stop) as Ctrl-C: the run unwinds, its staging
-    folder and lock go, and the output folder keeps its earlier result. Returns the previous
-    handler, or None where one cannot be set (not the main thread)."""
+    """Install :func:`_terminate` for SIGTERM; returns the previous handler, or None where one
+    cannot be set (not the main thread)."""
     if threading.current_thread() is not threading.main_thread():
         return None
-    return signal.signal(signal.SIGTERM, _interrupt)
+    return signal.signal(signal.SIGTERM, _terminate)
 
 
 if __name__ == "__main__":

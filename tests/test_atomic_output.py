@@ -66,18 +66,21 @@ def test_a_killed_run_leaves_the_old_or_the_new_result(capture, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out", "probe"]
 
 
-def test_sigterm_is_handled_like_ctrl_c(capture, tmp_path):
+@pytest.mark.parametrize("delay", [0.3, 1.0, 1.5, 2.0, 2.5])
+def test_sigterm_stops_cleanly(capture, tmp_path, delay):
     out = tmp_path / "out"
     assert _run(capture, out).wait() == 0
     old = _state(out)
     proc = _run(capture, out, "--hsh")
-    time.sleep(1.5)
+    time.sleep(delay)  # from the imports to the report
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate()
+    _, err = proc.communicate(timeout=60)
     if proc.returncode == 0:  # finished first on a fast machine
         pytest.skip("the run finished before SIGTERM")
-    assert proc.returncode == 130 and "interrupted" in err and "Traceback" not in err
-    assert _state(out) == old
+    assert proc.returncode in (143, -signal.SIGTERM), err  # before the CLI's handler: the default
+    assert "Traceback" not in err
+    # The old result, or the new one when the signal came after the publication.
+    assert _state(out) in (old, (old[0] | {"coefficients.rti"}, True))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
 
 

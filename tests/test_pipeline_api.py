@@ -100,18 +100,18 @@ def test_staged_output_locks_swaps_whole_folders_and_cleans(tmp_path):
                 staged_output(out):
             pass
         (a / "scratch.raw").write_text("not published")
-        _result(a, "old.txt", "web/a.json")
-    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["old.txt", "report.json", "web", "web/a.json"]
+        _result(a, "mesh.ply", "web/info.json")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == ["mesh.ply", "report.json", "web", "web/info.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock left
     # A run that fails leaves the earlier result as it was.
     with pytest.raises(RuntimeError), staged_output(out) as c:
-        (c / "new.txt").write_text("new")
+        (c / "height.tif").write_text("new")
         raise RuntimeError("a stage failed")
-    assert (out / "old.txt").read_text() == "old.txt" and not (out / "new.txt").exists()
+    assert (out / "mesh.ply").read_text() == "mesh.ply" and not (out / "height.tif").exists()
     # A new result replaces the whole folder: no file of the old one survives beside it.
     with staged_output(out) as d:
-        _result(d, "new.txt")
-    assert sorted(p.name for p in out.iterdir()) == ["new.txt", "report.json"]
+        _result(d, "height.tif")
+    assert sorted(p.name for p in out.iterdir()) == ["height.tif", "report.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     # What is not a result of this project is never replaced, and a file is not a folder.
     (tmp_path / "mine").mkdir()
@@ -119,6 +119,11 @@ def test_staged_output_locks_swaps_whole_folders_and_cleans(tmp_path):
     with pytest.raises(InputError, match="not a reconstruct result"), staged_output(tmp_path / "mine"):
         pass
     assert (tmp_path / "mine" / "thesis.tex").read_text() == "years of work"
+    # Nor is a result beside which the user put a file of their own.
+    (out / "notes.txt").write_text("the left edge is a modern repair")
+    with pytest.raises(InputError, match="not a reconstruct result: it holds notes.txt"), staged_output(out):
+        pass
+    assert (out / "notes.txt").exists() and (out / "height.tif").exists()
     (tmp_path / "file").write_text("")
     with pytest.raises(InputError, match="not a folder"), staged_output(tmp_path / "file"):
         pass
@@ -133,17 +138,17 @@ def test_both_swaps_replace_the_result(tmp_path, monkeypatch, exchange):
     if not exchange:  # a system without renameat2(RENAME_EXCHANGE): two renames
         monkeypatch.setattr(staging, "_exchange", lambda a, b: False)
     out = tmp_path / "out"
-    for name in ("first.txt", "second.txt"):
+    for name in ("mesh.ply", "height.tif"):
         with staged_output(out) as s:
             _result(s, name)
-    assert sorted(p.name for p in out.iterdir()) == ["report.json", "second.txt"]
+    assert sorted(p.name for p in out.iterdir()) == ["height.tif", "report.json"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
 def test_staged_output_removes_what_dead_runs_left(tmp_path):
     out = tmp_path / "out"
     with staged_output(out) as a:
-        _result(a, "old.txt")
+        _result(a, "mesh.ply")
     # A run killed while building, and one killed between the two renames of the fallback swap.
     (tmp_path / f".out{STAGING_PREFIX}dead").mkdir()
     (tmp_path / f".out{STAGING_PREFIX}dead" / "mesh.ply").write_text("half")
@@ -152,10 +157,10 @@ def test_staged_output_removes_what_dead_runs_left(tmp_path):
     os.rename(out, aside / "result")
     (tmp_path / ".out.lock").write_text("999999")  # a lock file whose process died
     with staged_output(out) as b:
-        assert (out / "old.txt").read_text() == "old.txt"  # put back before anything else
-        _result(b, "new.txt")
+        assert (out / "mesh.ply").read_text() == "mesh.ply"  # put back before anything else
+        _result(b, "height.tif")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
-    assert sorted(p.name for p in out.iterdir()) == ["new.txt", "report.json"]
+    assert sorted(p.name for p in out.iterdir()) == ["height.tif", "report.json"]
     # Parent folders a failed run created go again.
     with pytest.raises(RuntimeError), staged_output(tmp_path / "a" / "b" / "out"):
         raise RuntimeError("failed")

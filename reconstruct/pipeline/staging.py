@@ -12,9 +12,9 @@ the fallback leaves the old result aside, and the next run on that folder puts i
 One run at a time per folder: :func:`staged_output` holds an exclusive lock
 (``.NAME.lock`` beside the folder, ``flock``, released by the system when the process dies), and
 a second run refuses with a message naming the first one's process. Holding it, a run removes
-what dead runs left beside the folder. A folder that exists must be an earlier result (its
-``report.json`` or ``comparison.json`` written by this project) or empty: a folder of other
-files is never replaced. A run that fails leaves nothing new behind, not even the folders it
+what dead runs left beside the folder. A folder that exists must be empty or hold only the
+files results hold: a folder with any other file (the user's notes, the photographs) is never
+replaced. A run that fails leaves nothing new behind, not even the folders it
 created to hold the output.
 """
 
@@ -24,7 +24,6 @@ import contextlib
 import ctypes
 import errno
 import fnmatch
-import json
 import os
 import secrets
 import shutil
@@ -35,22 +34,37 @@ from pathlib import Path
 
 from ptmcore.errors import InputError
 
-__all__ = ["StagedOutput", "staged_output"]
+__all__ = ["StagedOutput", "abandon_runs", "staged_output"]
 
 #: Hidden names beside an output folder ``NAME``: ``.NAME.partial-…`` (a result being built),
 #: ``.NAME.old-…`` (an old result renamed aside for a moment), ``.NAME.lock``.
 STAGING_PREFIX = ".partial-"
 _OLD_PREFIX = ".old-"
 _LOCK_SUFFIX = ".lock"
-#: Files that mark a folder as this project's result (with "ptm-reconstruct" in "versions").
-_RESULT_FILES = ("report.json", "comparison.json")
-#: The names a result folder holds (README, "Output folder"; ``compare``'s files): a folder of
-#: these alone is an earlier result even without its report (a run of an earlier version killed
-#: while publishing, or a report deleted by hand).
+#: The names a result folder holds (README, "Output folder"; ``compare``'s files): only a folder
+#: of these alone (or an empty one) is replaced by a new result. Later versions add names here,
+#: never rename them, as the README promises of the files.
 _OUTPUT_NAMES = ("coefficients.ptm", "coefficients.rti", "web", "solid.stl", "mesh.glb", "normals.npy",
                  "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj", "mesh.mtl",
                  "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "report.json",
                  "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png")
+
+
+#: The staging folders and lock files of this process's runs in progress, for
+#: :func:`abandon_runs` alone: a signal handler cannot reach them through the call stack.
+_LIVE: set[Path] = set()
+
+
+def abandon_runs() -> None:
+    """Remove the staging folders and lock files of every run in progress in this process,
+    leaving each output folder as it is (for a SIGTERM handler that then ends the process:
+    a result is only ever changed by one rename, so stopping anywhere else loses nothing)."""
+    for path in list(_LIVE):
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            with contextlib.suppress(OSError):
+                path.unlink()
 
 
 def staging_names(output: Path) -> tuple[str, str]:
@@ -170,24 +184,13 @@ def _swap_in(staging: Path, output: Path) -> None:
     shutil.rmtree(aside, ignore_errors=True)
 
 
-def _is_result(folder: Path) -> bool:
-    """Whether ``folder`` is empty or an earlier result of this project: its report says so,
-    or it holds nothing but the names results hold. Only those are replaced: a folder of other
-    files might be anything of the user's."""
-    try:
-        entries = [p for p in folder.iterdir() if not p.name.startswith(STAGING_PREFIX)]
-    except OSError:
-        return False
-    if all(any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES) for p in entries):
-        return True
-    for name in _RESULT_FILES:
-        try:
-            data = json.loads((folder / name).read_text(encoding="utf-8"))
-        except (OSError, ValueError):
-            continue
-        if isinstance(data, dict) and "ptm-reconstruct" in (data.get("versions") or {}):
-            return True
-    return False
+def _foreign(folder: Path) -> list[str]:
+    """The entries of ``folder`` that no result holds (:data:`_OUTPUT_NAMES`): a folder with
+    any is not replaced, since they would go with the old result and might be anything of the
+    user's (notes put beside a result, or the photographs themselves)."""
+    return sorted(p.name for p in folder.iterdir()
+                  if not p.name.startswith(STAGING_PREFIX)
+                  and not any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES))
 
 
 def _recover(output: Path) -> None:
@@ -243,6 +246,7 @@ def _folder_lock(output: Path) -> Iterator[None]:
         if same:
             break
         os.close(fd)
+    _LIVE.add(path)
     try:
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
@@ -250,6 +254,7 @@ def _folder_lock(output: Path) -> Iterator[None]:
     finally:
         with contextlib.suppress(OSError):
             os.unlink(path)  # before the unlock, so a waiting run sees it gone and retries
+        _LIVE.discard(path)
         os.close(fd)
 
 
@@ -312,19 +317,23 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
             raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
         with _folder_lock(out):
             _recover(out)
-            if out.exists() and not _is_result(out):
+            foreign = _foreign(out) if out.is_dir() else []
+            if foreign:
+                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
                 raise InputError(
-                    "the output folder holds files that are not a reconstruct result; it is not replaced: "
-                    "choose a new or empty folder", output)
+                    f"the output folder is not a reconstruct result: it holds {shown}, which a new result would "
+                    "replace; move them, or choose a new or empty folder", output)
             try:
                 staging = _unique_folder(out.parent, staging_names(out)[0])
             except OSError as exc:
                 raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
             staged = StagedOutput(out, staging)
+            _LIVE.add(staging)
             try:
                 yield staged
             finally:
                 shutil.rmtree(staging, ignore_errors=True)
+                _LIVE.discard(staging)
     except BaseException:
         for folder in reversed(created):
             with contextlib.suppress(OSError):
