@@ -149,6 +149,23 @@ def test_bad_arguments_are_one_line_and_write_nothing(shared, tmp_path, monkeypa
     assert _tree(tmp_path, shared["root"]) == before
 
 
+INTO_RESULT = [(a, n) for a, n in BAD if a[0] in ("run", "integrate", "compare") and "{out}" in a]
+
+
+@pytest.mark.parametrize("argv, needles", INTO_RESULT, ids=[" ".join(a[:1] + a[2:])[:60] for a, _ in INTO_RESULT])
+def test_bad_arguments_leave_an_earlier_result_byte_identical(shared, tmp_path, capsys, argv, needles):
+    import shutil
+
+    earlier = tmp_path / "earlier"
+    shutil.copytree(shared["res"], earlier)
+    before = {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()}
+    paths = {k: str(v) for k, v in shared.items()} | {"out": str(earlier)}
+    code, _, err = _call([a.format(**paths) for a in argv], capsys)
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert {str(p.relative_to(earlier)): p.read_bytes() for p in earlier.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["earlier"]
+
+
 # --- negative numbers in comma lists ----------------------------------------------------------
 
 @pytest.mark.parametrize("argv, option, value", [
