@@ -29,7 +29,8 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
-from .diskstack import release_rows
+from .bands import run_bands
+from .diskstack import is_disk_array, release_rows
 from .errors import InputError
 
 if TYPE_CHECKING:
@@ -298,6 +299,29 @@ class ImageStack:
         return ImageStack(self.luminance[keep], self.chroma, [p for p, k in zip(self.paths, keep) if k],
                           self.bit_depth, self.linearized, self.saturated[keep], self.table)
 
+    def grid(self, step: int) -> np.ndarray:
+        """The codes of every ``step``-th row and column of every photograph (from the middle
+        of the first step), (N, ⌈H/step⌉, ⌈W/step⌉), a copy.
+
+        A stack on disk is read a few rows at a time, each stretch's pages dropped before the
+        next: the system maps 64 KB around each page read, so a sparse grid read at once
+        would map most of the stack into the run's memory.
+        """
+        if not is_disk_array(self.luminance):
+            return np.array(self.luminance[:, step // 2::step, step // 2::step])
+        h = self.shape[0]
+        rows = np.arange(step // 2, h, step)
+        out = np.empty((len(self), len(rows), len(range(step // 2, self.shape[1], step))), self.luminance.dtype)
+        per = max(1, (1 << 20) // (len(self) * self.shape[1]) // step)  # about a megabyte of rows
+        done = 0
+        for i in range(0, len(rows), per):
+            out[:, i:i + per] = self.luminance[:, rows[i:i + per]][:, :, step // 2::step]
+            end = min(h, int(rows[min(i + per, len(rows)) - 1]) + step)
+            release_rows(self.luminance, done, end)
+            done = end
+        release_rows(self.luminance, 0, h)
+        return out
+
     def band(self, r0: int, r1: int, c0: int | None = None, c1: int | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
         """Linear luminance of rows ``r0:r1`` (columns ``c0:c1``, default all) of every photograph.
@@ -331,21 +355,24 @@ def default_table(dtype: np.dtype) -> np.ndarray:
     raise ValueError(f"a stack is stored as uint16 or uint8, not {np.dtype(dtype)}")
 
 
-def _chroma_in_place(channel_sum: np.ndarray) -> np.ndarray:
+def _chroma_in_place(channel_sum: np.ndarray, threads: int | None = None) -> np.ndarray:
     """Turn sums of luminance contributions ``w_c · C_c`` into colour of unit luminance.
 
-    Done in place and in bands: at 24 megapixels a whole-image expression would need a
-    gigabyte of temporaries.
+    Done in place and in bands (in ``threads``): at 24 megapixels a whole-image expression
+    would need a gigabyte of temporaries.
     """
     h, w = channel_sum.shape[:2]
     inv_w = (1.0 / LUMA_WEIGHTS).astype(np.float32)
-    for r0 in range(0, h, max(1, (1 << 18) // w)):
-        band = channel_sum[r0 : r0 + max(1, (1 << 18) // w)]
+
+    def work(r0: int, r1: int) -> None:
+        band = channel_sum[r0:r1]
         lum = band.sum(axis=2, keepdims=True)
         black = lum[..., 0] <= 0
         band /= np.where(lum > 0, lum, 1.0)
         band *= inv_w
         band[black] = 1.0
+
+    run_bands(h, max(1, (1 << 18) // w), work, threads=threads)
     return channel_sum
 
 
@@ -437,8 +464,7 @@ def check_content(stack: ImageStack, grid: int = 256) -> None:
         raise InputError(f"{_names(clipped)} {'is' if len(clipped) == 1 else 'are'} clipped (white) everywhere"
                          f"{f', all {n} photographs' if len(clipped) == n else ''}: leave "
                          f"{'it' if len(clipped) == 1 else 'them'} out or take them with less exposure", where)
-    step = max(1, min(h, w) // grid)
-    sample = np.ascontiguousarray(stack.luminance[:, step // 2::step, step // 2::step]).reshape(n, -1)
+    sample = stack.grid(max(1, min(h, w) // grid)).reshape(n, -1)
     black = [p for p, s in zip(stack.paths, sample) if not s.any()]
     if black:
         raise InputError(f"{_names(black)} {'is' if len(black) == 1 else 'are'} black everywhere"
@@ -524,7 +550,7 @@ def load_stack_and_fits(
         return stack, None
     fits = EncodedFits(paths, fit, hsh=done.hsh)
     if done.ptm_sums is not None:
-        fits.coefficients, fits.rgb = finish_lrgb(done.ptm_sums, done.ptm_aux)
+        fits.coefficients, fits.rgb = finish_lrgb(done.ptm_sums, done.ptm_aux, threads=threads)
     else:
         fits.coefficients = done.channel_sums
     return stack, fits

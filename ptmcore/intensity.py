@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .diskstack import release_rows
 from .errors import InputError, read_input_text
 from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack, linear_to_srgb
 from .lp import as_directions
@@ -227,6 +228,7 @@ def _sample_pixels(
     rows, cols = np.divmod(candidates, w)
     if stack:
         raw = images.luminance[:, rows, cols]  # (N, P) codes
+        release_rows(images.luminance, 0, h)  # a stack on disk: the pages the reading mapped
         usable = raw != images.saturated_code
         values = images.table[raw].astype(np.float64)[..., None]
     else:

@@ -151,7 +151,7 @@ def _sample(stack: ImageStack, max_pixels: int) -> tuple[np.ndarray, np.ndarray]
     """Samples (N, P) float32 and their usability of up to ``max_pixels`` pixels on a grid."""
     h, w = stack.shape
     step = max(1, int(np.ceil(np.sqrt(h * w / max_pixels))))
-    codes = stack.luminance[:, step // 2::step, step // 2::step].reshape(len(stack), -1)
+    codes = stack.grid(step).reshape(len(stack), -1)
     return stack.table[codes], codes != stack.saturated_code
 
 

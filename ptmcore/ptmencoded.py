@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .bands import run_bands
 from .errors import InputError
 from .fit import fit_matrix
 from .lp import as_directions
@@ -142,7 +143,7 @@ class EncodedFits:
         return out
 
 
-def finish_lrgb(sums: np.ndarray, aux: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def finish_lrgb(sums: np.ndarray, aux: np.ndarray, threads: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """HP's LRGB coefficients and colour from the per-pixel sums of the encoded fit.
 
     Parameters
@@ -151,6 +152,8 @@ def finish_lrgb(sums: np.ndarray, aux: np.ndarray) -> tuple[np.ndarray, np.ndarr
         Σ_n pinv[j, n] · Y_n; turned into the coefficients in place (their memory is reused).
     aux : ndarray, shape (H, W, 5), float32
         The peak ``max_n Y_n``, Σ C·Y for R, G, B, and Σ Y².
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
 
     Returns
     -------
@@ -161,16 +164,18 @@ def finish_lrgb(sums: np.ndarray, aux: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """
     h, w = sums.shape[:2]
     rgb = np.empty((h, w, 3), dtype=np.uint8)
-    step = max(1, (1 << 18) // w)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for r0 in range(0, h, step):
-            band = slice(r0, r0 + step)
+
+    def work(r0: int, r1: int) -> None:
+        band = slice(r0, r1)
+        with np.errstate(divide="ignore", invalid="ignore"):
             p = aux[band, :, 0]
             # A pixel black in every photograph keeps L = 0 and colour 0.
             norm = np.where(p > 0, np.float32(255) / p, np.float32(0))[..., None]
             sums[band] *= norm
             colour = np.floor(p[..., None] * aux[band, :, 1:4] / aux[band, :, 4:5])
             rgb[band] = np.clip(np.nan_to_num(colour, nan=0.0, posinf=255.0), 0, 255).astype(np.uint8)
+
+    run_bands(h, max(1, (1 << 18) // w), work, threads=threads)
     return sums, rgb
 
 
@@ -235,7 +240,7 @@ def fit_ptm_encoded(
     fit = EncodedFit(directions, "lrgb", solver)
     fit.matrices(len(images))  # bad directions fail before any photograph is decoded
     done = reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress)
-    return finish_lrgb(done.ptm_sums, done.ptm_aux)
+    return finish_lrgb(done.ptm_sums, done.ptm_aux, threads=threads)
 
 
 def fit_ptm_rgb_encoded(

@@ -584,6 +584,6 @@ def reduce_photographs(
                  bands, threads=workers, progress=progress, release=release)
     return Reduced(
         lum16 if lum16 is not None else lum8, UINT16_TABLE if lum16 is not None else table,
-        _chroma_in_place(chan) if stack else None, clipped if stack else None, depths,
+        _chroma_in_place(chan, workers) if stack else None, clipped if stack else None, depths,
         ptm_sums, ptm_aux, sums_a, sums_b,
     )

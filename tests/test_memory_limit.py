@@ -126,3 +126,19 @@ def test_a_full_disk_is_an_input_error(tmp_path, monkeypatch):
     with pytest.raises(InputError, match="no room for the photographs' stack"):
         disk_array(tmp_path, (4, 1024, 1024), np.uint8)
     assert list(tmp_path.iterdir()) == []  # the file went with the error
+
+
+def test_a_sample_grid_leaves_the_stack_on_disk(tmp_path):
+    from pathlib import Path as P
+
+    from ptmcore.diskstack import resident_bytes
+    from ptmcore.images import ImageStack
+
+    n, h, w = 4, 256, 4096
+    a = disk_array(tmp_path, (n, h, w), np.uint8)
+    a[:] = 7
+    stack = ImageStack(a, np.ones((h, w, 3), np.float32), [P(f"{k}.jpg") for k in range(n)], 8, True,
+                       np.zeros(n, np.int64))
+    codes = stack.grid(16)
+    assert codes.shape == (n, 16, 256) and (codes == 7).all()
+    assert resident_bytes(a) < a.nbytes / 10  # reading a sparse grid maps much of the file
