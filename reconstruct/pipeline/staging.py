@@ -61,7 +61,14 @@ def abandon_runs() -> None:
     a result is only ever changed by one rename, so stopping anywhere else loses nothing)."""
     for path in list(_LIVE):
         if path.is_dir() and not path.is_symlink():
+            # Renamed first: the run's other threads, still writing, can no longer create files
+            # in it by its name while it is being removed.
+            gone = path.with_name(path.name + ".abandoned")
+            with contextlib.suppress(OSError):
+                os.rename(path, gone)
+                path = gone
             shutil.rmtree(path, ignore_errors=True)
+            shutil.rmtree(path, ignore_errors=True)  # what a thread made during the first pass
         else:
             with contextlib.suppress(OSError):
                 path.unlink()
@@ -258,16 +265,23 @@ def _folder_lock(output: Path) -> Iterator[None]:
         os.close(fd)
 
 
-def _unique_folder(parent: Path, prefix: str) -> Path:
+def _unique_folder(parent: Path, prefix: str, live: bool = False) -> Path:
     """A new folder ``parent/prefix…`` with the permissions of any new folder (the umask's;
-    ``tempfile.mkdtemp`` would make it, and so the published result, private)."""
+    ``tempfile.mkdtemp`` would make it, and so the published result, private). ``live``: it
+    is in :data:`_LIVE` from before it exists, so a SIGTERM at any moment finds it."""
     while True:
         path = parent / (prefix + secrets.token_hex(4))
+        if live:
+            _LIVE.add(path)
         try:
             path.mkdir()
             return path
         except FileExistsError:
+            _LIVE.discard(path)
             continue
+        except BaseException:
+            _LIVE.discard(path)
+            raise
 
 
 def _make_folder(folder: Path) -> list[Path]:
@@ -324,11 +338,10 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
                     f"the output folder is not a reconstruct result: it holds {shown}, which a new result would "
                     "replace; move them, or choose a new or empty folder", output)
             try:
-                staging = _unique_folder(out.parent, staging_names(out)[0])
+                staging = _unique_folder(out.parent, staging_names(out)[0], live=True)
             except OSError as exc:
                 raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
             staged = StagedOutput(out, staging)
-            _LIVE.add(staging)
             try:
                 yield staged
             finally:
