@@ -8,6 +8,7 @@ one line on stderr and exit status 2; anything else is a bug and keeps its trace
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from typing import BinaryIO
 
 
@@ -57,3 +58,9 @@ def read_input_text(path: str | os.PathLike, what: str) -> str:
     """The text of a user's file (UTF-8, a byte-order mark dropped, undecodable bytes
     replaced), or an :class:`InputError` that says why not; see :func:`read_input_file`."""
     return read_input_file(path, what).decode("utf-8-sig", errors="replace")
+
+
+def first_few(items: Sequence[str], limit: int = 3, sep: str = ", ") -> str:
+    """The first ``limit`` of ``items`` for a message, and how many more: ``"a, b, c and 4 more"``."""
+    shown = sep.join(items[:limit])
+    return shown + (f" and {len(items) - limit} more" if len(items) > limit else "")

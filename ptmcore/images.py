@@ -31,7 +31,7 @@ import numpy as np
 
 from .bands import run_bands
 from .diskstack import is_disk_array, release_rows
-from .errors import InputError
+from .errors import InputError, first_few
 
 if TYPE_CHECKING:
     from .ptmencoded import EncodedFit, EncodedFits
@@ -428,12 +428,6 @@ def load_stack(
                                storage=storage, on_disk=on_disk)[0]
 
 
-def _names(paths: Sequence[Path], limit: int = 3) -> str:
-    """A few file names, and how many more."""
-    shown = ", ".join(p.name for p in paths[:limit])
-    return shown + (f" and {len(paths) - limit} more" if len(paths) > limit else "")
-
-
 def _check_depths(paths: list[Path], depths: np.ndarray) -> None:
     """Refuse photographs of mixed bit depth: an 8-bit one among 16-bit ones is decoded as
     sRGB and comes out several times darker than its neighbours, with nothing to say so."""
@@ -441,10 +435,10 @@ def _check_depths(paths: list[Path], depths: np.ndarray) -> None:
     if len(values) < 2:
         return
     common = int(values[np.argmax(counts)])
-    odd = [p for p, d in zip(paths, depths) if d != common]
-    raise InputError(
-        f"photographs of mixed bit depth: {_names(odd)} ({', '.join(f'{int(d)}-bit' for d in values if d != common)}) "
-        f"among {common}-bit ones; convert them alike", paths[0].parent)
+    odd = [p.name for p, d in zip(paths, depths) if d != common]
+    bits = ", ".join(f"{int(d)}-bit" for d in values if d != common)
+    raise InputError(f"photographs of mixed bit depth: {first_few(odd)} ({bits}) among {common}-bit ones; "
+                     "convert them alike", paths[0].parent)
 
 
 def check_content(stack: ImageStack, grid: int = 256) -> None:
@@ -459,17 +453,15 @@ def check_content(stack: ImageStack, grid: int = 256) -> None:
     """
     n, (h, w) = len(stack), stack.shape
     where = stack.paths[0].parent if stack.paths else None
-    clipped = [p for p, c in zip(stack.paths, stack.saturated) if c >= h * w]
-    if clipped:
-        raise InputError(f"{_names(clipped)} {'is' if len(clipped) == 1 else 'are'} clipped (white) everywhere"
-                         f"{f', all {n} photographs' if len(clipped) == n else ''}: leave "
-                         f"{'it' if len(clipped) == 1 else 'them'} out or take them with less exposure", where)
+    def refuse(names: list[str], what: str, advice: str) -> None:
+        if names:
+            which = f"all {n} photographs" if len(names) == n else first_few(names)
+            raise InputError(f"{what} everywhere: {which}; {advice}", where)
+
+    refuse([p.name for p, c in zip(stack.paths, stack.saturated) if c >= h * w], "clipped (white)",
+           "leave them out or take them with less exposure")
     sample = stack.grid(max(1, min(h, w) // grid)).reshape(n, -1)
-    black = [p for p, s in zip(stack.paths, sample) if not s.any()]
-    if black:
-        raise InputError(f"{_names(black)} {'is' if len(black) == 1 else 'are'} black everywhere"
-                         f"{f', all {n} photographs' if len(black) == n else ''}: leave "
-                         f"{'it' if len(black) == 1 else 'them'} out", where)
+    refuse([p.name for p, s in zip(stack.paths, sample) if not s.any()], "black", "leave them out")
     seen: dict[bytes, Path] = {}
     same = []
     for p, s in zip(stack.paths, sample):
@@ -481,8 +473,8 @@ def check_content(stack: ImageStack, grid: int = 256) -> None:
     if len(seen) == 1:
         raise InputError(f"all {n} photographs are identical: the light must move between them", where)
     if same:
-        shown = "; ".join(same[:3]) + (f" and {len(same) - 3} more" if len(same) > 3 else "")
-        raise InputError(f"photographs identical to another ({shown}): one was copied over the other", where)
+        raise InputError(f"photographs identical to another ({first_few(same, sep='; ')}): one was copied over "
+                         "the other", where)
 
 
 def load_stack_and_fits(

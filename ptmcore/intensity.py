@@ -586,7 +586,8 @@ def estimate_intensities(
     ).factors
 
 
-def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool = False) -> ImageStack:
+def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool = False,
+                      in_place: bool = False) -> ImageStack:
     """Divide each photograph's luminance by its light intensity factor.
 
     Parameters
@@ -599,11 +600,14 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool 
     relative : bool
         Divide by the factors scaled to a minimum of 1 instead: only their ratios matter to the
         normals, and no sample is pushed past the stored range (the albedo's scale changes).
+    in_place : bool
+        Write the divided codes over the input's (a run's pipeline: no second stack in memory,
+        and a stack on disk stays on disk, its pages released band by band).
 
     Returns
     -------
     ImageStack
-        A new stack (the input is unchanged) with the same chroma and paths. Clipped samples
+        A new stack (the input is unchanged unless ``in_place``) with the same chroma and paths. Clipped samples
         stay clipped; a sample whose divided value exceeds the representable range (a factor
         below 1 on a bright sample) is marked clipped too, since its value cannot be stored.
         To avoid that, pass ``relative=True``.
@@ -624,12 +628,13 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool 
     if relative:
         f = f / f.min()
     h, w = stack.shape
-    out = np.empty_like(stack.luminance)
+    out = stack.luminance if in_place else np.empty_like(stack.luminance)
     saturated = np.zeros(n, dtype=np.int64)
     rows = max(1, (1 << 20) // max(w, 1))
     for k in range(n):
         inv = np.float32(1.0 / f[k])
         for r0 in range(0, h, rows):
+            # Both helpers read all of src before they write dst, so src may be dst.
             src = stack.luminance[k, r0 : r0 + rows]
             dst = out[k, r0 : r0 + rows]
             if src.dtype == np.uint16:
@@ -637,6 +642,7 @@ def apply_intensities(stack: ImageStack, factors: np.ndarray, *, relative: bool 
             else:
                 clipped = _divide_codes(src, stack.table, inv, dst)
             saturated[k] += int(np.count_nonzero(clipped))
+            release_rows(out, r0, r0 + rows, range(k, k + 1))
     return replace(stack, luminance=out, saturated=saturated)
 
 

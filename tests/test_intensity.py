@@ -8,7 +8,7 @@ import pytest
 
 from data_synthetic import clay_tablet, dome_lights, render
 from ptmcore.errors import InputError
-from ptmcore.images import LUMA_WEIGHTS, SATURATED, read_image
+from ptmcore.images import LUMA_WEIGHTS, SATURATED, linear_to_srgb, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, fit_intensities, read_intensities
 from ptmcore.normals import angular_error, photometric_stereo
 
@@ -293,3 +293,24 @@ def test_relative_factors_keep_bright_samples_in_range():
     # As factors 1, 2, 4: nothing is pushed past the stored range.
     assert out.saturated.sum() == 0
     np.testing.assert_allclose(out.table[out.luminance[:, 0, 0]], [0.9, 0.45, 0.225], atol=1e-4)
+
+
+@pytest.mark.parametrize("storage", ["uint16", "auto"])
+def test_in_place_division_matches_a_copy_and_keeps_a_stack_on_disk(tmp_path, storage):
+    from dataclasses import replace
+
+    from ptmcore.diskstack import disk_array, is_disk_array
+
+    rng = np.random.default_rng(3)
+    stack = stack_from_luminance(rng.uniform(0.05, 0.99, (4, 24, 4096)))
+    if storage == "auto":  # 8-bit sRGB codes, as a JPEG capture's stack
+        codes = np.rint(255 * linear_to_srgb(stack.table[stack.luminance])).astype(np.uint8)
+        stack = replace(stack, luminance=codes, table=None)
+    factors = np.array([1.0, 2.0, 0.8, 1.3])
+    copy = apply_intensities(stack, factors, relative=True)
+    on_disk = disk_array(tmp_path, stack.luminance.shape, stack.luminance.dtype)
+    on_disk[:] = stack.luminance
+    done = apply_intensities(replace(stack, luminance=on_disk), factors, relative=True, in_place=True)
+    assert done.luminance is on_disk and is_disk_array(done.luminance)
+    np.testing.assert_array_equal(np.asarray(done.luminance), copy.luminance)
+    np.testing.assert_array_equal(done.saturated, copy.saturated)

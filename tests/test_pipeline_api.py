@@ -221,3 +221,22 @@ def test_report_json_keys(capture, tmp_path):
                                    "decimation"}
     assert report["parameters"]["step"] == report["mesh"]["step"]
     assert report["light_model"] == {"type": "distant", "detail": "one light direction per photograph"}
+
+
+def test_the_names_a_result_may_hold_cover_the_documented_layout():
+    """A folder is replaced only when it holds nothing but result files (staging._OUTPUT_NAMES):
+    every file README's "Output folder" table documents, and every file a comparison writes,
+    must be among them, or a rerun into such a result would be refused."""
+    import fnmatch
+    import re
+
+    from reconstruct.pipeline.compare_run import COMPARISON_FILES
+    from reconstruct.pipeline.staging import _OUTPUT_NAMES
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    table = readme.split("## Output folder", 1)[1].split("\n## ", 1)[0]
+    documented = {n.rstrip("/") for row in table.splitlines() if row.startswith("| `")
+                  for n in re.findall(r"`([^`]+)`", row.split("|")[1])}
+    assert {"coefficients.ptm", "web", "mesh.obj", "report.json"} <= documented
+    for name in documented | set(COMPARISON_FILES):
+        assert any(fnmatch.fnmatchcase(name, pattern) for pattern in _OUTPUT_NAMES), name

@@ -325,9 +325,38 @@ _BASE_MB = 400
 STACK_FILE_MB = 256
 
 
-def _sizes_mb(paths: Sequence[Path], opt: RunOptions) -> tuple[float, float] | None:
-    """The stack's size and the rest of a run's peak (MiB), or None when none of the first
-    five photographs has a readable header."""
+@dataclass(frozen=True)
+class StackPlan:
+    """Where a capture's stack goes, from its photographs' headers (:func:`plan_stack`).
+
+    Attributes
+    ----------
+    stack_mb, rest_mb : float
+        The stack's size and the rest of the run's peak (``_BASE_MB`` and
+        ``_BYTES_PER_PIXEL`` per pixel), MiB.
+    short : bool
+        A run holding the stack in memory would exceed ``memory_limit`` (by default the
+        memory available now).
+    on_disk : bool
+        The stack goes to a file: when ``short``, and by default whenever it is
+        :data:`STACK_FILE_MB` or larger; an explicit ``memory_limit`` the run fits in keeps it
+        in memory.
+    """
+
+    stack_mb: float
+    rest_mb: float
+    short: bool
+    on_disk: bool
+
+    @property
+    def peak_mb(self) -> float:
+        """The run's peak: the rest, and the stack unless it goes to a file."""
+        return self.rest_mb + (0.0 if self.on_disk else self.stack_mb)
+
+
+def plan_stack(paths: Sequence[Path], opt: RunOptions) -> StackPlan | None:
+    """The :class:`StackPlan` of a run on these photographs (1 byte per sample for JPEGs stored
+    as 8-bit, 2 otherwise); None when none of the first five has a readable header."""
     # The first photograph whose header reads (a corrupt one is reported by the decoding).
     size = next(filter(None, map(image_size, paths[:5])), None)
     if size is None:
@@ -335,47 +364,28 @@ def _sizes_mb(paths: Sequence[Path], opt: RunOptions) -> tuple[float, float] | N
     pixels = size[0] * size[1]
     jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
     sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
-    return len(paths) * sample * pixels / 2**20, _BASE_MB + _BYTES_PER_PIXEL * pixels / 2**20
-
-
-def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
-    """A bound on the peak memory (MiB) of a run on these photographs: ``_BASE_MB``,
-    ``_BYTES_PER_PIXEL`` per pixel, and the stack (1 byte per sample for JPEGs stored as
-    8-bit, 2 otherwise) unless it goes to a file (:func:`stack_on_disk`); None when none of
-    the first five has a readable header. ``reconstruct batch`` sizes its cluster by it."""
-    sizes = _sizes_mb(paths, opt)
-    if sizes is None:
-        return None
-    stack, rest = sizes
-    return rest if stack_on_disk(paths, opt) else rest + stack
-
-
-def _does_not_fit(paths: Sequence[Path], opt: RunOptions) -> bool:
-    """Whether a run holding its stack in memory would exceed ``opt.memory_limit``, or by
-    default the memory available now."""
-    sizes = _sizes_mb(paths, opt)
-    if sizes is None:
-        return False
+    stack, rest = len(paths) * sample * pixels / 2**20, _BASE_MB + _BYTES_PER_PIXEL * pixels / 2**20
     if opt.memory_limit is not None:
         limit = opt.memory_limit
     else:
         import psutil
 
         limit = psutil.virtual_memory().available / 2**20
-    return sum(sizes) > limit
+    short = stack + rest > limit
+    return StackPlan(stack, rest, short, short or (opt.memory_limit is None and stack >= STACK_FILE_MB))
+
+
+def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
+    """A bound on the peak memory (MiB) of a run on these photographs (:class:`StackPlan`);
+    None when no header reads. ``reconstruct batch`` sizes its cluster by it."""
+    plan = plan_stack(paths, opt)
+    return None if plan is None else plan.peak_mb
 
 
 def stack_on_disk(paths: Sequence[Path], opt: RunOptions) -> bool:
-    """Whether a capture's stack should go to a memory-mapped file: when a run holding it in
-    memory would exceed ``opt.memory_limit`` (or, by default, the memory available now), and
-    by default also whenever it is :data:`STACK_FILE_MB` or larger. An explicit
-    ``memory_limit`` the run fits in keeps the stack in memory."""
-    sizes = _sizes_mb(paths, opt)
-    if sizes is None:
-        return False
-    if opt.memory_limit is None and sizes[0] >= STACK_FILE_MB:
-        return True
-    return _does_not_fit(paths, opt)
+    """Whether a capture's stack should go to a memory-mapped file (:class:`StackPlan`)."""
+    plan = plan_stack(paths, opt)
+    return plan is not None and plan.on_disk
 
 
 def _stack_place(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None
@@ -383,9 +393,10 @@ def _stack_place(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike 
     """Where the stack goes (``scratch`` for a file, None for memory) and, when it goes to a
     file because memory is short, the warning that says so; decided before decoding, while
     the memory available is the run's."""
-    if scratch is None or not stack_on_disk(paths, opt):
+    plan = plan_stack(paths, opt) if scratch is not None else None
+    if plan is None or not plan.on_disk:
         return None, []
-    if not _does_not_fit(paths, opt):
+    if not plan.short:
         return scratch, []
     limit = "--memory-limit" if opt.memory_limit is not None else "the available memory"
     return scratch, [f"the photographs' stack did not fit in {limit}: it was processed from a temporary file in "
@@ -471,7 +482,7 @@ def load_capture(
             factors = estimate_intensities(loaded.stack, directions, mask=loaded.mask)
         else:
             factors = read_intensities(opt.intensities, len(loaded.lights))
-        loaded.stack = apply_intensities(loaded.stack, factors, relative=True)
+        loaded.stack = apply_intensities(loaded.stack, factors, relative=True, in_place=True)
         loaded.intensities = {"source": opt.intensities, "factors": factors}
     _check_exposure(loaded)
     return loaded

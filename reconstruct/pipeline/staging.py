@@ -32,7 +32,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, first_few
 
 __all__ = ["StagedOutput", "abandon_runs", "staged_output"]
 
@@ -333,10 +333,9 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
             _recover(out)
             foreign = _foreign(out) if out.is_dir() else []
             if foreign:
-                shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-                raise InputError(
-                    f"the output folder is not a reconstruct result: it holds {shown}, which a new result would "
-                    "replace; move them, or choose a new or empty folder", output)
+                raise InputError(f"the output folder is not a reconstruct result: it holds {first_few(foreign)}, "
+                                 "which a new result would replace; move them, or choose a new or empty folder",
+                                 output)
             try:
                 staging = _unique_folder(out.parent, staging_names(out)[0], live=True)
             except OSError as exc:
