@@ -8,7 +8,8 @@ take. The folder has no ``coefficients.ptm``: relighting uses the normals and al
 would be relit from a subsample decoded by ``read_ptm(path, max_side=480)``).
 
 Two ways of calling it are measured: ``files``, the page made from the folder alone (the maps
-read through memory maps, the photographs decoded for the contact sheet), and ``arrays``, as a
+read through memory maps, albedo.png decoded whole for the albedo picture and the mesh's colours,
+the photographs decoded for the contact sheet and read for the lights' plot), and ``arrays``, as a
 pipeline that holds the maps and the decoded photographs can call it: ``previews`` of the maps
 and ``thumbnails`` from the stack (``figures.stack_thumbnail``), both made inside the timing.
 Each is also timed with the imports of matplotlib and pyvista and the first OpenGL context

@@ -86,7 +86,9 @@ def full_run(capture: Path, out: Path, threads: int, numba_cache: Path) -> dict:
     report = json.loads((out / "report.json").read_text())
     # The whole run's peak from outside (wait4); the per-stage peaks in report.json are the
     # resident memory the run sampled while each stage ran.
-    return {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024, "stages": report["stages"]}
+    # CPU time too: system time is mostly the first touch of memory (benchmarks/cold_memory.py).
+    return {"seconds": seconds, "peak_rss_mb": usage.ru_maxrss / 1024, "user_s": usage.ru_utime,
+            "system_s": usage.ru_stime, "stages": report["stages"]}
 
 
 def main() -> None:
@@ -116,6 +118,8 @@ def main() -> None:
             "decode_only_s": statistics.median(decodes),
             "run_s": statistics.median(r["seconds"] for r in runs),
             "peak_rss_mb": statistics.median(r["peak_rss_mb"] for r in runs),
+            "user_s": statistics.median(r["user_s"] for r in runs),
+            "system_s": statistics.median(r["system_s"] for r in runs),
             "stages": {s: {"seconds": statistics.median(r["stages"][s]["seconds"] for r in runs),
                            "peak_rss_mb": statistics.median(r["stages"][s]["peak_rss_mb"] for r in runs)}
                        for s in stage_names},
@@ -132,6 +136,7 @@ def main() -> None:
             print(f"| {s} | {v['seconds']:.2f} | {v['peak_rss_mb']:.0f} |")
         print(f"| **whole run** | {med['run_s']:.2f} | {med['peak_rss_mb']:.0f} |")
         print(f"| decode only | {med['decode_only_s']:.2f} | |")
+        print(f"run CPU: {med['user_s']:.1f} s user, {med['system_s']:.1f} s system")
         print(f"ratio run / decode-only: {med['ratio']:.2f}; first run after installation "
               f"{first['seconds']:.2f} s")
         out = ROOT / "benchmarks" / "results" / f"speed_{args.size}.json"

@@ -13,10 +13,14 @@ from pathlib import Path
 from typing import NoReturn
 
 from ptmcore import __version__
-from data_synthetic.capture import ENCODINGS
 from reconstruct.pipeline.options import BOUNDS, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.relighting import MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
+from reconstruct.viewer.keys import help_text as preview_keys
+
+#: data_synthetic.capture.ENCODINGS' names (tests/test_cli.py checks): importing the renderer
+#: for them cost every command a quarter of a second.
+DEMO_ENCODINGS = ("tiff16", "jpeg8")
 
 DESCRIPTION = """\
 Turn reflectance photographs (RTI captures) into surface normals, a height map and a
@@ -41,16 +45,25 @@ RUN_EPILOG = """\
 CAPTURE may also be an existing .ptm file: its normals (from the PTM's maximum), height map
 and meshes are made from it, no photographs needed.
 
-outputs (in the -o folder):
-  coefficients.ptm           the PTM (HP PTM 1.2, opens in RTIViewer); web/ for OpenLIME
+outputs (in the -o folder; README.md, "Output folder", says more):
+  coefficients.ptm           the PTM (HP PTM 1.2, opens in RTIViewer)
+  web/                       a relighting page to publish, and the PTM for OpenLIME (LRGB)
   coefficients.rti           with --hsh: HSH order 3 (RTIViewer's .rti)
   normals.npy, normals.png   unit normals (float32) and a 16-bit OpenGL-style normal map
   albedo.png                 the surface colour without shading (8-bit sRGB)
   height.tif                 float32 height map; millimetres with --pixel-size, else pixels
-  mesh.ply, mesh.obj         textured mesh (OBJ with mesh.mtl and mesh_texture.png)
-  mask.png                   the mask, when --mask is given
-  loo_ptm.tif, loo_hsh*.tif  leave-one-out relighting error maps, with --loo
+  mesh.ply, mesh.obj         textured mesh (the OBJ with mesh.mtl and mesh_texture.png)
+  solid.stl, mesh.glb        with --solid, --glb
+  mask.png                   the mask used, when --mask is given (or auto found one)
+  loo_*.tif                  with --loo: leave-one-out relighting error of each basis
+  light_positions.csv        with near lights: the light positions used (pixels)
+  lights.lp                  with spheres and no .lp: the light directions calibrated from them
   report.json                inputs, parameters, timings, memory, warnings, accuracy
+  report.html                one self-contained page to read the result
+  comparison.json, distances.ply, histogram.png, overlay.png
+                             with --scan: the comparison (see `reconstruct compare --help`)
+  preview/                   not written by run: what you save from `reconstruct preview`;
+                             a later run into the folder keeps it
 
 example:
   reconstruct run tablet/ -o tablet_out --pixel-size 0.04 --normals ps --integrator dct
@@ -257,6 +270,7 @@ def _add_compare_command(sub: argparse._SubParsersAction) -> None:
     cmp_.add_argument("scan", type=_path, help="the scan: a mesh or a point cloud")
     cmp_.add_argument("-o", "--output", type=_path, required=True, help="folder for the comparison files")
     _add_compare_options(cmp_)
+    cmp_.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
 
 def _add_integrate_command(sub: argparse._SubParsersAction) -> None:
@@ -300,7 +314,7 @@ def _add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("-o", "--output", type=_path, default=Path("demo_output"), help="folder for the capture and results (default: demo_output)")
     demo.add_argument("--size", default="480x360", help="image size WxH (default: 480x360)")
     demo.add_argument("--lights", type=_positive_int, default=48, help="number of dome lights (default: 48)")
-    demo.add_argument("--encoding", choices=tuple(ENCODINGS), default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
+    demo.add_argument("--encoding", choices=DEMO_ENCODINGS, default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
     demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
     _choice(demo, RunOptions, "normals", help="normal method (default: ps)")
     _choice(demo, RunOptions, "integrator", help="integrator (default: auto)")
@@ -311,9 +325,14 @@ def _add_preview_command(sub: argparse._SubParsersAction) -> None:
         "preview",
         help="look at a result in a 3D window: relight it live, switch views, measure distances and profiles",
         description="Open a window on an output folder of `reconstruct run` (or a mesh file, or a .ptm shown "
-        "as a flat relit plane): the textured mesh in millimetres, sliders that move the light, views of "
-        "the relit texture, albedo, normals, height and distance to a scan, and point picking for distances "
-        "and height profiles. With --screenshot it renders off-screen to a PNG and exits.",
+        "as a flat relit plane): the textured mesh in millimetres, a light moved by the arrow keys or by "
+        "dragging on a disk, views of the relit texture, albedo, normals, height, distance to a scan, "
+        "RTIViewer's specular enhancement and diffuse gain and a relief shading, vertical exaggeration, "
+        "and point picking for distances and height profiles, exported as CSV and PNG. With --screenshot "
+        "it renders a figure (scale bar, light marker, no controls) off-screen to a PNG and exits.",
+        epilog="keys in the window (figures and measurements go into RESULT/preview/):\n"
+        + "\n".join("  " + line for line in preview_keys().splitlines()),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     prev.add_argument("source", type=_path, help="output folder, mesh file (PLY, OBJ, STL, GLB, OFF) or .ptm file")
     prev.add_argument("--mode", choices=VIEW_MODES,
@@ -381,6 +400,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "vertices)" % BOUNDS["step"][1],
     )
     _choice(p, RunOptions, "ptm_format", help="coefficients.ptm as LRGB (default: one luminance polynomial and a colour per pixel) or RGB (one per channel)")
+    _choice(p, RunOptions, "ptm_encoding", help="what coefficients.ptm, .rti and web/ hold: srgb (default: the photographs "
+            "display-encoded, as viewers show them, whatever their bit depth) or linear (linear light, e.g. for computing "
+            "with the files; viewers show it dark)")
     _choice(p, RunOptions, "solver", help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "
                    "lstsq (the same by another route), rohde (Rohde's form with zero blocks; docs/fitting.md)")
     p.add_argument("--intensities", metavar="FILE|estimate",

@@ -72,6 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
                              "(default: one per four pixels)")
     parser.add_argument("--scan-noise", type=float, default=0.02, metavar="MM",
                         help="laser-scan depth noise (default: %(default)s)")
+    parser.add_argument("--spheres", type=int, default=0, metavar="N",
+                        help="put N black glossy spheres (1 to 4) in the frame's corners, for highlight "
+                             "RTI: lights.lp then goes into ground_truth/, so `reconstruct calibrate` and "
+                             "`reconstruct run` read the lights from the spheres (default: none)")
     return parser
 
 
@@ -91,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
             cast_shadows=not args.no_shadows, ambient=args.ambient, noise=args.noise,
             min_elevation_deg=args.min_elevation, max_elevation_deg=args.max_elevation,
             lights=lights, scan_points=args.scan_points, scan_noise_mm=args.scan_noise,
+            spheres=args.spheres,
         )
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -98,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
     h, w = info.shape
     print(f"wrote {len(info.image_paths)} images of {w}x{h} px ({info.pixel_size:.4g} mm/px) "
           f"to {info.folder} in {time.perf_counter() - start:.1f} s")
+    if info.spheres:
+        radii = ", ".join(f"{r:.0f}" for _, _, r in info.spheres)
+        print(f"{len(info.spheres)} glossy sphere(s) of radius {radii} px in the frame's corners; the true "
+              f"lights are in {info.lp_path}: try `reconstruct calibrate {info.folder} -o lights.lp`")
     return 0
 
 

@@ -35,7 +35,8 @@ class CaptureInfo:
     folder : Path
         The capture folder.
     lp_path : Path
-        The light-position file, ``folder/lights.lp``.
+        The light-position file, ``folder/lights.lp`` (``folder/ground_truth/lights.lp`` for a
+        capture with spheres, which has to be calibrated from them).
     ground_truth_dir : Path
         ``folder/ground_truth``.
     scan_path : Path or None
@@ -46,6 +47,8 @@ class CaptureInfo:
         Millimetres per pixel.
     shape : tuple of int
         (H, W) of the images.
+    spheres : tuple of (float, float, float)
+        The glossy spheres in the frame, (cx, cy, r) in pixels (cx = column, cy = row).
     """
 
     folder: Path
@@ -55,6 +58,7 @@ class CaptureInfo:
     image_paths: tuple[Path, ...]
     pixel_size: float
     shape: tuple[int, int]
+    spheres: tuple[tuple[float, float, float], ...] = ()
 
 
 def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, seed: int,
@@ -126,6 +130,7 @@ def write_capture(
     lights: np.ndarray | None = None,
     scan_points: int | None = None,
     scan_noise_mm: float = 0.02,
+    spheres: int = 0,
 ) -> CaptureInfo:
     """Render a synthetic scene and write a complete capture folder.
 
@@ -141,6 +146,10 @@ def write_capture(
             mask.png          8-bit, 255 on the object
             scan_transform.txt  4×4 matrix mapping the ground-truth frame onto scan.ply
             scene.json        everything needed to reproduce the capture
+
+    With ``spheres``, black glossy spheres lie in the frame's corners (highlight RTI) and
+    ``lights.lp`` goes into ``ground_truth/``: the capture folder has no light file, so
+    ``reconstruct calibrate`` and ``reconstruct run`` read the lights from the spheres.
 
     The surface is ``SCENES[scene](shape, pixel_size=pixel_size, seed=seed)`` and the images
     are ``render(surface, lights, ..., seed=seed)`` clipped to [0, 1], like a camera.
@@ -171,6 +180,9 @@ def write_capture(
         Number of scan points; default one per four pixels; 0 writes no scan.
     scan_noise_mm : float
         Depth noise of the scan.
+    spheres : int
+        Number of glossy spheres, 0 to 4, each in a corner of the frame beside the object
+        (:func:`data_synthetic.spheres.corner_spheres`), as large as the corner allows.
 
     Returns
     -------
@@ -180,13 +192,15 @@ def write_capture(
     ------
     InputError
         For an unknown scene or encoding, a bad shape, seed, option value or light set, or an
-        output folder that cannot be created or written.
+        output folder that cannot be created or written, or spheres that do not fit.
     """
     numbers = {"pixel_size": pixel_size, "specular": specular, "shininess": shininess,
                "ambient": ambient, "noise": noise, "min_elevation_deg": min_elevation_deg,
                "max_elevation_deg": max_elevation_deg, "scan_points": scan_points,
                "scan_noise_mm": scan_noise_mm}
     shape, custom_lights = _validate(scene, shape, n_lights, encoding, seed, lights, numbers)
+    if not isinstance(spheres, (int, np.integer)) or not 0 <= spheres <= 4:
+        raise InputError(f"spheres must be 0 to 4 (one per corner of the frame), got {spheres!r}")
     folder = Path(out_dir)
     gt_dir = _prepare_folder(folder)
     surface = SCENES[scene](shape, pixel_size=pixel_size, seed=seed)
@@ -197,7 +211,15 @@ def write_capture(
     options = {"specular": float(specular), "shininess": float(shininess),
                "cast_shadows": bool(cast_shadows), "ambient": float(ambient),
                "noise": float(noise)}
+    placed: tuple[tuple[float, float, float], ...] = ()
+    if spheres:
+        # Imported here: it needs the calibration's geometry, which a plain capture does not.
+        from .spheres import corner_spheres, paint_spheres
+
+        placed = corner_spheres(surface.mask, spheres)
     radiance = render(surface, light_dirs, **options, seed=seed)
+    if placed:
+        paint_spheres(radiance, light_dirs, placed, seed=seed)
 
     writer, ext = ENCODINGS[encoding]
     digits = max(3, len(str(len(light_dirs) - 1)))
@@ -205,8 +227,9 @@ def write_capture(
     for name, image in zip(names, radiance):
         writer(folder / name, image)
     del radiance
-    lp_path = folder / "lights.lp"
-    write_lp(lp_path, names, light_dirs)
+    lp_path = (gt_dir if placed else folder) / "lights.lp"
+    # Relative to the .lp's own folder, as the format wants.
+    write_lp(lp_path, [os.path.relpath(folder / n, lp_path.parent) for n in names], light_dirs)
 
     write_npy(gt_dir / "normals.npy", surface.normals)
     write_npy(gt_dir / "height.npy", surface.height)
@@ -237,8 +260,9 @@ def write_capture(
             "layout": "custom" if custom_lights is not None else "dome",
             "min_elevation_deg": None if custom_lights is not None else float(min_elevation_deg),
             "max_elevation_deg": None if custom_lights is not None else float(max_elevation_deg),
-            "file": lp_path.name,
+            "file": lp_path.relative_to(folder).as_posix(),
         },
+        "spheres": [{"cx": cx, "cy": cy, "r": r, "view": "orthographic"} for cx, cy, r in placed],
         "encoding": encoding,
         "render": {**options, "light_intensity": 1.0, "view": [0.0, 0.0, 1.0],
                    "clipped_to": [0.0, 1.0]},
@@ -257,4 +281,5 @@ def write_capture(
         image_paths=tuple(folder / n for n in names),
         pixel_size=surface.pixel_size,
         shape=shape,
+        spheres=placed,
     )

@@ -375,3 +375,96 @@ def render_sphere_capture(
     return SphereCaptureInfo(folder=out, image_paths=tuple(paths), directions=lights,
                              spheres=sph, hidden=hidden, truth_lp=truth_lp, shape=(h, w),
                              camera=camera, outlines=outlines)
+
+
+#: Order in which the frame's corners receive spheres: opposite corners first, so two spheres
+#: see the lights from as different places as the frame allows.
+_CORNERS = ("top-left", "bottom-right", "top-right", "bottom-left")
+
+#: Smallest sphere worth placing: calibration reads a highlight's position to a fraction of a
+#: pixel, so a smaller sphere gives its light to several degrees at best.
+MIN_CORNER_RADIUS = 12.0
+
+
+def corner_spheres(mask: np.ndarray, count: int, gap: float = 6.0) -> tuple[tuple[float, float, float], ...]:
+    """Spheres in the frame's corners, each as large as the background there allows.
+
+    Parameters
+    ----------
+    mask : ndarray, shape (H, W), bool
+        True on the object, which the spheres must not cover.
+    count : int
+        Number of spheres, 1 to 4 (top-left, bottom-right, top-right, bottom-left).
+    gap : float
+        Background kept between a sphere and the object or the frame's edge, in pixels.
+
+    Returns
+    -------
+    tuple of (cx, cy, r)
+        Centres (column, row) and radii in pixels.
+
+    Raises
+    ------
+    InputError
+        For a count out of range, or a corner too small for a sphere of
+        :data:`MIN_CORNER_RADIUS` pixels.
+    """
+    from scipy import ndimage
+
+    if not 1 <= count <= len(_CORNERS):
+        raise InputError(f"spheres must be 1 to {len(_CORNERS)} (one per corner of the frame), got {count}")
+    h, w = mask.shape
+    clear = ndimage.distance_transform_edt(~mask) if mask.any() else np.full(mask.shape, np.inf)
+    rows, cols = np.mgrid[0:h, 0:w]
+    to_edge = np.minimum.reduce([rows + 0.5, cols + 0.5, h - 0.5 - rows, w - 0.5 - cols])
+    # A sphere centred at a pixel reaches r + gap towards the object and the frame's edge.
+    reach = np.minimum(clear - gap, to_edge - gap)
+    halves = {"top": slice(0, h // 2), "bottom": slice(h - h // 2, h),
+              "left": slice(0, w // 2), "right": slice(w - w // 2, w)}
+    spheres = []
+    for corner in _CORNERS[:count]:
+        vertical, horizontal = corner.split("-")
+        quadrant = reach[halves[vertical], halves[horizontal]]
+        r0, c0 = halves[vertical].start, halves[horizontal].start
+        row, col = np.unravel_index(np.argmax(quadrant), quadrant.shape)
+        radius = float(quadrant[row, col])
+        if radius < MIN_CORNER_RADIUS:
+            raise InputError(f"the {corner} corner of a {h}×{w} frame leaves room for a sphere of "
+                             f"{max(radius, 0):.0f} pixels beside the object, less than "
+                             f"{MIN_CORNER_RADIUS:.0f}: render larger images or fewer spheres")
+        spheres.append((float(c0 + col), float(r0 + row), radius))
+    return tuple(spheres)
+
+
+def paint_spheres(images: np.ndarray, lights: np.ndarray, spheres, *, seed: int = 0, noise: float = 0.003,
+                  shininess: float = 500.0, specular: float = 3.0, sphere_albedo: float = 0.02) -> None:
+    """Put black glossy spheres into rendered photographs, in place (orthographic view).
+
+    Shaded as in :func:`render_sphere_capture` (Phong lobe, 3×3 supersampling), with
+    Gaussian sensor noise of their own.
+
+    Parameters
+    ----------
+    images : ndarray, shape (N, H, W, 3), float32
+        Linear radiance, one photograph per light.
+    lights : ndarray, shape (N, 3)
+        Unit vectors towards the lights.
+    spheres : sequence of (cx, cy, r)
+        Centres (column, row) and radii in pixels, inside the frame.
+    seed : int
+        Seeds the noise.
+    noise, shininess, specular, sphere_albedo : float
+        As in :func:`render_sphere_capture`.
+    """
+    sph = check_spheres(spheres, images.shape[1:3])
+    outlines = tuple((cx, cy, r, r, 0.0) for cx, cy, r in sph)
+    patches = [_sphere_patch(box, sph, None, None, images.shape[1:3]) for box in _outline_boxes(outlines)]
+    rng = np.random.default_rng(seed)
+    for image, light in zip(images, np.asarray(lights, dtype=np.float64)):
+        background = image.astype(np.float64)
+        for patch in patches:
+            _paint_spheres(image, background, patch, light, True, shininess, specular, sphere_albedo)
+            box = image[patch[0]:patch[1], patch[2]:patch[3]]
+            # The background around a sphere already has its noise.
+            sphere = np.any(box != background[patch[0]:patch[1], patch[2]:patch[3]], axis=-1)
+            box[sphere] += rng.normal(0.0, noise, (int(sphere.sum()), 3)).astype(image.dtype)

@@ -32,10 +32,12 @@ from .errors import InputError
 from .fit import fit_matrix
 from .lp import as_directions
 
-__all__ = ["HP_LUMA_WEIGHTS", "EncodedFit", "EncodedFits", "finish_lrgb", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
+__all__ = ["ENCODINGS", "HP_LUMA_WEIGHTS", "EncodedFit", "EncodedFits", "finish_lrgb", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
 
 #: Luma weights HP's PTMfitter applies to the photographs' R, G, B bytes (see the module notes).
 HP_LUMA_WEIGHTS = np.array([0.2125, 0.7154, 0.0721])
+#: What the encoded fits may be fitted to (:class:`EncodedFit`).
+ENCODINGS = ("stored", "srgb", "linear")
 
 
 @dataclass(frozen=True, eq=False)  # eq=False: arrays have no single truth value
@@ -55,16 +57,24 @@ class EncodedFit:
         The {1}-inverse of the PTM light matrix (:func:`ptmcore.fit.fit_matrix`).
     hsh_order : {2, 3} or None
         Also fit an HSH of this order (:func:`ptmcore.rtifile.fit_rti_hsh`).
+    encoding : {"stored", "srgb", "linear"}
+        The values fitted: the samples as stored (HP's PTMfitter and RTIBuilder: 8-bit bytes,
+        16-bit values / 257), or every photograph display-encoded as sRGB (8-bit sRGB
+        photographs as stored; linear ones — 16-bit, float, 8-bit read as linear — encoded),
+        or in linear light (8-bit sRGB bytes decoded). Always in 0..255 units.
     """
 
     directions: np.ndarray
     ptm_format: str | None = "lrgb"
     solver: str = "pinv"
     hsh_order: int | None = None
+    encoding: str = "stored"
 
     def __post_init__(self) -> None:
         if self.ptm_format not in ("lrgb", "rgb", None):
             raise ValueError(f"PTM format must be 'lrgb', 'rgb' or None, not {self.ptm_format!r}")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, not {self.encoding!r}")
         # A copy: the fits are matched against the directions a later stage uses.
         object.__setattr__(self, "directions", np.array(self.directions, dtype=np.float64))
 
@@ -111,8 +121,10 @@ class EncodedFits:
     rgb: np.ndarray | None = None
     hsh: np.ndarray | None = None
 
-    def matches(self, paths: Sequence[str | os.PathLike], directions: np.ndarray, solver: str) -> bool:
-        """Whether these fits are of ``paths`` (in order) lit from ``directions``, by ``solver``.
+    def matches(self, paths: Sequence[str | os.PathLike], directions: np.ndarray, solver: str,
+                encoding: str = "stored") -> bool:
+        """Whether these fits are of ``paths`` (in order) lit from ``directions``, by ``solver``,
+        in ``encoding``.
 
         False when photographs were dropped or lights changed after decoding (e.g. a sphere
         calibration): the caller then fits again from the files.
@@ -123,6 +135,7 @@ class EncodedFits:
             and d.shape == self.fit.directions.shape
             and bool(np.array_equal(d, self.fit.directions))
             and solver == self.fit.solver
+            and encoding == self.fit.encoding
         )
 
     def take_ptm(self, ptm_format: str) -> tuple[np.ndarray, np.ndarray | None] | None:
@@ -191,6 +204,8 @@ def fit_ptm_encoded(
     directions: np.ndarray,
     *,
     solver: str = "pinv",
+    encoding: str = "stored",
+    linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -217,6 +232,10 @@ def fit_ptm_encoded(
         Unit light directions, one per photograph.
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
+    encoding : {"stored", "srgb", "linear"}
+        The values fitted (:class:`EncodedFit`); "stored" is PTMfitter's.
+    linearize : bool
+        8-bit photographs are sRGB (else linear), for ``encoding`` other than "stored".
     threads : int, optional
         Decoding threads (default: all CPUs).
     progress : callable, optional
@@ -237,9 +256,9 @@ def fit_ptm_encoded(
     from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
 
     _fit_setup(images)
-    fit = EncodedFit(directions, "lrgb", solver)
+    fit = EncodedFit(directions, "lrgb", solver, encoding=encoding)
     fit.matrices(len(images))  # bad directions fail before any photograph is decoded
-    done = reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress)
+    done = reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads, progress=progress)
     return finish_lrgb(done.ptm_sums, done.ptm_aux, threads=threads)
 
 
@@ -248,6 +267,8 @@ def fit_ptm_rgb_encoded(
     directions: np.ndarray,
     *,
     solver: str = "pinv",
+    encoding: str = "stored",
+    linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
@@ -265,6 +286,10 @@ def fit_ptm_rgb_encoded(
         Unit light directions, one per photograph.
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
+    encoding : {"stored", "srgb", "linear"}
+        The values fitted (:class:`EncodedFit`); "stored" is PTMfitter's.
+    linearize : bool
+        8-bit photographs are sRGB (else linear), for ``encoding`` other than "stored".
     threads : int, optional
         Decoding threads (default: all CPUs).
     progress : callable, optional
@@ -278,6 +303,7 @@ def fit_ptm_rgb_encoded(
     from .reduce import reduce_photographs
 
     _fit_setup(images)
-    fit = EncodedFit(directions, "rgb", solver)
+    fit = EncodedFit(directions, "rgb", solver, encoding=encoding)
     fit.matrices(len(images))
-    return reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress).channel_sums
+    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads,
+                              progress=progress).channel_sums

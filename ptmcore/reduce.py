@@ -88,6 +88,35 @@ def _contribution_impl(lut, wscale, i, ch, v):  # pragma: no cover - typing-time
     return computed
 
 
+def _encoded(enc, scale, v):  # pragma: no cover - replaced in compiled code
+    """Sample ``v`` in the 0..255 units of the encoded fits."""
+    raise NotImplementedError
+
+
+@overload(_encoded)
+def _encoded_impl(enc, scale, v):  # pragma: no cover - typing-time dispatch
+    if isinstance(enc, types.NoneType):
+        # The samples' own encoding (HP's PTMfitter), or one that only needs scaling.
+        def scaled(enc, scale, v):
+            return np.float32(v) * scale
+
+        return scaled
+    if isinstance(v, types.Integer):
+        def table(enc, scale, v):
+            return enc[v]
+
+        return table
+
+    # float32 TIFF (linear) shown as sRGB: IEC 61966-2-1 on the clipped value.
+    def srgb(enc, scale, v):
+        x = min(max(v, np.float32(0.0)), np.float32(1.0))
+        if x <= np.float32(0.0031308):
+            return np.float32(255.0) * (np.float32(12.92) * x)
+        return np.float32(255.0) * (np.float32(1.055) * x ** np.float32(1.0 / 2.4) - np.float32(0.055))
+
+    return srgb
+
+
 @numba.njit(nogil=True, cache=True, inline="always")
 def _channel_sums(sums, acc, r, c0, nc, load):  # pragma: no cover - compiled
     """Copy a per-channel fit's sums (H, W, 3, K) of row ``r``, columns ``c0:c0 + nc``, into
@@ -115,7 +144,7 @@ def _add_channel_fit(acc, ee, mat, k, nc):  # pragma: no cover - compiled
 
 
 @numba.njit(nogil=True, cache=True)
-def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum8, to8, chan, hp, ptm_pinv,
+def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, enc, lum16, lum8, to8, chan, hp, ptm_pinv,
                  ptm_sums, ptm_aux, mat_a, sums_a, mat_b, sums_b):  # pragma: no cover - compiled
     """Add rows ``r0:r1`` of the first ``m`` images of ``images`` (photographs ``ks``, in order).
 
@@ -146,6 +175,9 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
         A sample above this is clipped (254, 65534, or the float below 1).
     enc_scale : float32
         Sample → 0..255 units of the encoded fits (1, 1/257 or 255).
+    enc : ndarray (2^bits,), float32, or None
+        Sample → 0..255 units of the encoded fits when they are in another encoding than the
+        samples' own (:func:`_encoding_table`); None: ``sample · enc_scale``.
     lum16, lum8, to8, chan : ndarray or None
         The stack: uint16 codes (N, H, W), or 8-bit codes through the table ``to8``
         (65536,); the colour sums (H, W, 3). None without a stack.
@@ -222,9 +254,9 @@ def _reduce_rows(images, m, ks, r0, r1, luts, wscale, top, enc_scale, lum16, lum
                 counts[i] += nclip
                 # The vectorised part, in the order of the NumPy arithmetic it replaced.
                 for c in range(nc):
-                    ee[0, c] = f32(px[3 * c]) * enc_scale
-                    ee[1, c] = f32(px[3 * c + 1]) * enc_scale
-                    ee[2, c] = f32(px[3 * c + 2]) * enc_scale
+                    ee[0, c] = _encoded(enc, enc_scale, px[3 * c])
+                    ee[1, c] = _encoded(enc, enc_scale, px[3 * c + 1])
+                    ee[2, c] = _encoded(enc, enc_scale, px[3 * c + 2])
                 if chan is not None:
                     for c in range(nc):
                         acc_c[0, c] += f32(tt[0, c])
@@ -430,6 +462,29 @@ def _encoded_scale(dtype: np.dtype) -> np.float32:
     return np.float32(255)
 
 
+def _encoding_table(dtype: np.dtype, encoding: str, srgb_bytes: bool) -> np.ndarray | None:
+    """The kernel's ``enc``: sample → 0..255 value of the encoded fits in ``encoding``.
+
+    None where that is the sample times :func:`_encoded_scale` (the samples' own encoding, or
+    one they are already in); for float samples shown as sRGB a 1-entry placeholder (the kernel
+    computes the curve). ``srgb_bytes``: 8-bit samples are sRGB (else linear).
+    """
+    if encoding == "stored":
+        return None
+    if dtype == np.uint8:
+        if (encoding == "srgb") == srgb_bytes:
+            return None
+        v = np.arange(256, dtype=np.float64) / 255.0
+    elif dtype == np.uint16:
+        if encoding == "linear":
+            return None
+        v = np.arange(65536, dtype=np.float64) / 65535.0
+    else:
+        return None if encoding == "linear" else np.zeros(1, np.float32)
+    curve = linear_to_srgb(v) if encoding == "srgb" else srgb_to_linear(v)
+    return (255.0 * curve).astype(np.float32)
+
+
 def _group_size(first: np.ndarray, threads: int) -> int:
     """Photographs per group: within :data:`_GROUP_BYTES`, but at least one per thread (so
     that they all decode), and at most :data:`_BATCH`."""
@@ -457,7 +512,8 @@ def reduce_photographs(
     stack : bool
         Make the linear-luminance stack, the colour sums and the clipped counts.
     linearize : bool
-        Take 8-bit photographs as sRGB (for the stack; the encoded fits use the bytes).
+        Take 8-bit photographs as sRGB (for the stack, and for the encoded fits when
+        ``fit.encoding`` is not ``"stored"``).
     channel_gains : ndarray (N, 3), float32, optional
         Factors of each photograph's linear R, G, B, checked by the caller.
     storage : {"uint16", "auto"}
@@ -497,6 +553,14 @@ def reduce_photographs(
     # the shadows); gains or linear 8-bit input would need finer steps in the highlights.
     eight = storage == "auto" and first.dtype == np.uint8 and linearize and channel_gains is None
     tables = _Tables(linearize, channel_gains, n)
+    encoding = "stored" if fit is None else fit.encoding
+    enc_tables: dict[np.dtype, np.ndarray | None] = {}
+
+    def encodings(dtype: np.dtype) -> np.ndarray | None:
+        if dtype not in enc_tables:  # two threads may both make it on first use: harmless
+            enc_tables[dtype] = _encoding_table(dtype, encoding, linearize)
+        return enc_tables[dtype]
+
     f32 = np.float32
     zeroed: list[np.ndarray] = []
 
@@ -567,7 +631,7 @@ def reduce_photographs(
             ks = np.arange(k0 + i, k0 + j, dtype=np.int64)
             luts, wscale = tables.for_photographs(dtype, ks)
             counts = _reduce_rows(padded, len(group), ks, r0, r1, luts, wscale, _top(dtype), _encoded_scale(dtype),
-                                  lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
+                                  encodings(dtype), lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
                                   mat_b, sums_b)
             with counting:
                 clipped[ks] += counts[: len(group)]

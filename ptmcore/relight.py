@@ -267,6 +267,7 @@ def specular_enhancement(
     kd: float = 0.4,
     ks: float = 0.7,
     exponent: float = 75,
+    maximum: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render an LRGB PTM with RTIViewer's "specular enhancement".
 
@@ -297,6 +298,9 @@ def specular_enhancement(
         Weight of the specular lobe, ≥ 0.
     exponent : float
         Specular exponent (highlight sharpness), ≥ 0.
+    maximum : ndarray, shape (H, W, 3), optional
+        The normals (nu, nv, nz) at the polynomials' maxima, when already known: finding them
+        costs about twice a relight, so a viewer that moves the light computes them once.
 
     Returns
     -------
@@ -321,8 +325,11 @@ def specular_enhancement(
     for r0, r1 in _bands(h, w):
         band = coef[r0:r1].astype(np.float32, copy=False)
         lum = band @ row
-        nu, nv, _ = ptm_maximum(band)
-        nz = np.sqrt(np.clip(1.0 - nu * nu - nv * nv, 0.0, 1.0))
+        if maximum is None:
+            nu, nv, _ = ptm_maximum(band)
+            nz = np.sqrt(np.clip(1.0 - nu * nu - nv * nv, 0.0, 1.0))
+        else:
+            nu, nv, nz = (maximum[r0:r1, :, k] for k in range(3))
         n_dot_h = np.clip(nu * half[0] + nv * half[1] + nz * half[2], 0.0, 1.0)
         lobe = np.float32(255.0 * float(ks)) * n_dot_h ** np.float32(exponent)
         out[r0:r1] = _shade(rgb[r0:r1], lum, float(kd), lobe)

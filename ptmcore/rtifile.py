@@ -336,6 +336,8 @@ def fit_rti_hsh(
     directions: np.ndarray,
     order: int = 3,
     *,
+    encoding: str = "stored",
+    linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> np.ndarray:
@@ -356,6 +358,10 @@ def fit_rti_hsh(
     directions : ndarray, shape (N, 3)
         Light directions, one per photograph.
     order : {2, 3}
+    encoding : {"stored", "srgb", "linear"}
+        The values fitted (:class:`ptmcore.ptmencoded.EncodedFit`); "stored" is RTIBuilder's.
+    linearize : bool
+        8-bit photographs are sRGB (else linear), for ``encoding`` other than "stored".
     threads : int, optional
         Decoding and summing threads (default: all CPUs).
     progress : callable, optional
@@ -378,6 +384,7 @@ def fit_rti_hsh(
     n = len(images)
     if n < 1:
         raise InputError("no photographs given")
-    fit = EncodedFit(directions, None, hsh_order=order)
+    fit = EncodedFit(directions, None, hsh_order=order, encoding=encoding)
     fit.matrices(n)  # bad directions fail before any photograph is decoded
-    return reduce_photographs(images, stack=False, fit=fit, threads=threads, progress=progress).hsh
+    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads,
+                              progress=progress).hsh

@@ -1,5 +1,5 @@
 """``python -m reconstruct``: the ``reconstruct`` command."""
 
-from reconstruct.cli.main import main
+from reconstruct.cli.main import console
 
-raise SystemExit(main())
+console()

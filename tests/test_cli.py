@@ -268,3 +268,11 @@ def test_runs_on_hp_ptmfitter_fixture(shared_fixture, tmp_path, capsys):
     assert normals.shape == (5, 8, 3)
     np.testing.assert_allclose(np.linalg.norm(normals, axis=-1), 1.0, atol=1e-5)
     assert json.loads((out / "report.json").read_text())["mesh"]["vertices"] == 40
+
+
+def test_demo_encodings_are_the_synthetic_captures():
+    """The parser names them without importing the renderer (a quarter of a second per command)."""
+    from cli.parser import DEMO_ENCODINGS
+    from data_synthetic.capture import ENCODINGS
+
+    assert DEMO_ENCODINGS == tuple(ENCODINGS)

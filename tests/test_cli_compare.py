@@ -55,3 +55,24 @@ def test_compare_bad_inputs(reconstructed, tmp_path, capsys):
     assert code == 2 and "missing.ply" in err
     code, _, err = _run(["run", info.folder, "-o", tmp_path / "e", "--scan", info.scan_path], capsys)
     assert code == 2 and "--pixel-size" in err
+
+
+def test_compare_reports_progress_stage_by_stage(reconstructed, tmp_path):
+    """``compare`` (and ``run --scan``) take 15 s at 24 MP: every stage reports its progress,
+    in order, from 0 to its total, under names that do not clash with the run's own."""
+    from reconstruct.pipeline import run_compare
+    from reconstruct.pipeline.compare_run import ScanStep
+
+    info, out = reconstructed
+    calls = []
+    run_compare(out, info.scan_path, tmp_path / "cmp", progress=lambda *call: calls.append(call))
+    stages = list(dict.fromkeys(stage for stage, _, _ in calls))
+    assert stages == ["scan_read", "scan_align", "scan_distances", "scan_write", "scan_report"]
+    for stage in stages:
+        seen = [(done, total) for s, done, total in calls if s == stage]
+        assert seen[0][0] == 0 and seen[-1][0] == seen[-1][1] > 0, (stage, seen)
+    # The alignment, the longest, advances step by step: features, global registration, ICP.
+    assert [done for s, done, _ in calls if s == "scan_align"] == [0, 1, 2, 3]
+    calls.clear()
+    ScanStep(info.scan_path, progress=lambda *call: calls.append(call))
+    assert calls == [("scan_read", 0, 1), ("scan_read", 1, 1)]

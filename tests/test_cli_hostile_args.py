@@ -196,7 +196,11 @@ def test_relight_from_the_left_with_a_negative_light(shared, tmp_path, capsys):
 
     image = np.asarray(Image.open(left).convert("L"), np.float64)
     assert image.shape == (H, W)
-    assert image[:, 6:W // 2 - 2].mean() > 2 * image[:, W // 2 + 2:W - 6].mean()
+    # The image is display-encoded (sRGB); the sides compared in linear light.
+    from ptmcore.images import srgb_to_linear
+
+    linear = srgb_to_linear(image / 255.0)
+    assert linear[:, 6:W // 2 - 2].mean() > 2 * linear[:, W // 2 + 2:W - 6].mean()
     np.testing.assert_array_equal(image, np.asarray(Image.open(eq).convert("L"), np.float64))
 
 

@@ -131,3 +131,44 @@ def test_bad_directions():
         check_lights(np.zeros((3, 2)))
     with pytest.raises(ValueError, match="non-zero"):
         check_lights(np.zeros((3, 3)))
+
+
+@pytest.mark.parametrize("names, expected", [
+    (["IMG_0009.JPG", "IMG_0010.JPG", "IMG_0011.JPG"], ["0009", "0010", "0011"]),
+    # A shared digit is not cut off a number: 010, 011, not 0, 1.
+    (["img_010.tif", "img_011.tif"], ["010", "011"]),
+    (["/data/dome/tablet_N_raking.png", "C:\\dome\\tablet_S_raking.png"], ["N", "S"]),
+    # Shortening that would leave a label empty keeps the names' stems.
+    (["img.jpg", "img2.jpg"], ["img", "img2"]),
+    (["only.jpg"], ["only"]),
+])
+def test_short_labels(names, expected):
+    from reconstruct.calibration.lightcheck import short_labels
+
+    assert short_labels(names) == expected
+
+
+def test_polar_plot_labels_fifty_photographs_by_name_without_overlap():
+    """Each light is labelled by its photograph's name, not its position in the .lp, and the
+    labels of a 50-light dome do not cover one another."""
+    from data_synthetic import dome_lights
+    from reconstruct.calibration.lightcheck import _polar_figure
+
+    d = dome_lights(50, seed=3)
+    order = np.random.default_rng(0).permutation(50)  # the .lp need not list them in name order
+    names = [f"BM_12345_{k + 101:04d}.JPG" for k in order]
+    fig = _polar_figure(d, names, "dome", 640)
+    renderer = fig.canvas.get_renderer()
+    ax = fig.axes[0]
+    texts = [t for t in ax.texts if t.get_text().isdigit()]
+    assert [t.get_text() for t in texts] == [f"{k + 101:04d}" for k in order]
+    boxes = [t.get_window_extent(renderer) for t in texts]
+    for i, a in enumerate(boxes):
+        assert 0 <= a.x0 and a.x1 <= 640 and 0 <= a.y0 and a.y1 <= 640
+        for b in boxes[i + 1:]:
+            assert not a.overlaps(b), (a, b)
+
+
+def test_polar_plot_names_must_match_the_lights(tmp_path):
+    with pytest.raises(ValueError, match="names"):
+        write_polar_plot(tmp_path / "x.png", ring(), names=["a.jpg", "b.jpg"])

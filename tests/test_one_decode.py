@@ -303,10 +303,12 @@ def test_run_reads_each_photograph_once(tmp_path, monkeypatch):
 def test_rgb_format_run_uses_the_decoding_pass(tmp_path, monkeypatch):
     info = write_capture(tmp_path / "cap", "tablet", shape=(30, 41), n_lights=9, encoding="tiff16", seed=6)
     lights = read_lp(info.lp_path)
-    loaded = load_capture(tmp_path / "cap", RunOptions(ptm_format="rgb"))
+    # Linear files of 16-bit photographs are their samples as stored, which the old sums made.
+    options = RunOptions(ptm_format="rgb", ptm_encoding="linear")
+    loaded = load_capture(tmp_path / "cap", options)
     assert loaded.fits is not None and loaded.fits.rgb is None
     reads = _count_reads(monkeypatch)
-    relit = fit_relighting(loaded.lights, RunOptions(ptm_format="rgb"), tmp_path, bit_depth=16, fits=loaded.fits)
+    relit = fit_relighting(loaded.lights, options, tmp_path, fits=loaded.fits)
     assert reads == {}
     assert loaded.fits.coefficients is None  # handed over, its memory gone with the caller's
     photos = [read_image(p) for p in lights.paths]
@@ -321,10 +323,11 @@ def test_rgb_format_run_uses_the_decoding_pass(tmp_path, monkeypatch):
 def test_dropped_photographs_and_other_lights_fall_back_to_the_files(synthetic, tmp_path, monkeypatch):
     lights, photos = synthetic
     d = lights.directions
-    opt = RunOptions(hsh=True)
+    # The files' encoding in which they are the samples as stored, which the old sums made.
+    opt = RunOptions(hsh=True, ptm_encoding="linear" if photos[0].dtype == np.uint16 else "srgb")
 
     def fits():
-        return load_stack_and_fits(lights.paths, fit=EncodedFit(d, "lrgb", hsh_order=3))[1]
+        return load_stack_and_fits(lights.paths, fit=EncodedFit(d, "lrgb", hsh_order=3, encoding=opt.ptm_encoding))[1]
 
     keep = np.ones(len(photos), bool)
     keep[[1, 4]] = False  # e.g. photographs without a usable sphere highlight

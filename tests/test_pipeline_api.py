@@ -145,6 +145,23 @@ def test_both_swaps_replace_the_result(tmp_path, monkeypatch, exchange):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
 
 
+def test_figures_saved_from_the_preview_live_on_in_new_results(tmp_path):
+    """The preview window saves into RESULT/preview/; a new run into the folder replaces the
+    result, not the user's figures (hard links: the old result's files are gone)."""
+    out = tmp_path / "out"
+    with staged_output(out) as a:
+        _result(a, "mesh.ply")
+    (out / "preview").mkdir()
+    (out / "preview" / "tablet_relit.png").write_bytes(b"figure")
+    (out / "preview" / "profile_1.csv").write_text("distance,height")
+    with staged_output(out) as b:
+        _result(b, "height.tif")
+    assert sorted(str(p.relative_to(out)) for p in out.rglob("*")) == [
+        "height.tif", "preview", "preview/profile_1.csv", "preview/tablet_relit.png", "report.json"]
+    assert (out / "preview" / "tablet_relit.png").read_bytes() == b"figure"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
 def test_staged_output_removes_what_dead_runs_left(tmp_path):
     out = tmp_path / "out"
     with staged_output(out) as a:

@@ -94,11 +94,35 @@ def test_relit_texture_is_the_ptm_relit(folder, scene):
     from ptmcore.relight import display_srgb
 
     light = light_from_angles(120, 35)
-    # The fixture's photographs are 16-bit: its PTM holds linear light, shown sRGB-encoded.
-    assert scene.linear_ptm
-    np.testing.assert_array_equal(relit_texture(scene, light), display_srgb(render(load_source(folder), light)))
+    rendered = render(load_source(folder), light)
+    np.testing.assert_array_equal(relit_texture(scene, light),
+                                  display_srgb(rendered) if scene.linear_ptm else rendered)
     other = relit_texture(scene, light_from_angles(300, 35))
     assert np.abs(other.astype(int) - relit_texture(scene, light)).mean() > 2
+
+
+@pytest.mark.parametrize("source", ["folder", "bare_ptm"])
+def test_a_linear_ptm_is_shown_display_encoded(folder, tmp_path, source):
+    """A PTM whose report.json says it holds linear light (16-bit captures) is encoded as sRGB in
+    every lit view, in its output folder and as a .ptm beside that report."""
+    from ptmcore.relight import display_srgb, specular_enhancement
+
+    copy = tmp_path / "linear"
+    shutil.copytree(folder, copy)
+    report = json.loads((copy / "report.json").read_text())
+    report.setdefault("ptm", {})["encoding"] = "linear"
+    (copy / "report.json").write_text(json.dumps(report))
+    scene = load_scene(copy if source == "folder" else copy / "coefficients.ptm")
+    assert scene.linear_ptm
+    light = light_from_angles(120, 35)
+    raw = render(load_source(copy), light)
+    np.testing.assert_array_equal(relit_texture(scene, light), display_srgb(raw))
+    assert relit_texture(scene, light).mean() > raw.mean() + 20  # not dark
+    spec = mode_colors(scene, "specular", light)
+    expected = display_srgb(specular_enhancement(scene.coefficients, scene.rgb, light))
+    assert np.abs(spec.astype(int) - expected).max() <= 1
+    (copy / "report.json").unlink()
+    assert not load_scene(copy / "coefficients.ptm").linear_ptm  # a bare .ptm says nothing
 
 
 def test_large_sources_are_bounded(folder):
@@ -158,10 +182,11 @@ def test_distance_between_points():
 
 def test_other_sources(folder):
     ptm = load_scene(folder / "coefficients.ptm")
-    assert ptm.modes == ("relit", "albedo", "normals") and ptm.unit == "pixel"
+    assert ptm.modes == ("relit", "albedo", "normals", "specular", "diffuse-gain", "relief") and ptm.unit == "pixel"
     assert np.ptp(ptm.vertices[:, 2]) == 0  # a flat plane carrying the PTM
     mesh = load_scene(folder / "mesh.ply")
     assert mesh.unit == "mm" and mesh.uv is None and mesh.albedo.shape == (len(mesh.vertices), 3)
+    assert mesh.modes == ("relit", "albedo", "normals", "height")  # no PTM, no normal map
     lit = relit_texture(mesh, light_from_angles(0, 20))
     assert lit.shape == mesh.albedo.shape
     assert np.abs(lit.astype(int) - relit_texture(mesh, light_from_angles(180, 20))).mean() > 2
@@ -193,7 +218,10 @@ def test_moving_the_light_relights_the_texture(window, scene):
                                   relit_texture(scene, light_from_angles(315, 20)))
     after = window.screenshot()
     assert np.abs(after.astype(int) - before).mean() > 2
-    assert window._light_sliders[0].GetRepresentation().GetValue() == pytest.approx(315)
+    # The disk's marker points where the light comes from, as seen.
+    marker = np.array(window.disk._marker.GetPosition())
+    expected = window.disk.centre + window.disk.radius * light_from_angles(315, 20)[:2]
+    np.testing.assert_allclose(marker, expected, atol=1e-6)
 
 
 def test_every_mode_renders(window, scene):
@@ -224,8 +252,12 @@ def test_two_picks_measure_a_distance_and_a_profile(window, scene):
     expected_along, expected_heights = profile(scene, p0, p1, len(along))
     np.testing.assert_allclose(along, expected_along)
     np.testing.assert_allclose(heights, expected_heights)
-    assert window._chart is not None and window._chart.visible
+    assert window.strip.shown
+    # The profile has its own strip below the view: the view shrinks above it.
+    assert window.plotter.renderer.GetViewport()[1] == pytest.approx(window.strip.fraction)
     assert _foreground(window.screenshot()) > 0.2
+    window.toggle_profile()
+    assert not window.strip.shown and window.plotter.renderer.GetViewport()[1] == 0
 
 
 def test_help_reset_and_screenshot_keys(window, tmp_path, monkeypatch):
@@ -236,10 +268,15 @@ def test_help_reset_and_screenshot_keys(window, tmp_path, monkeypatch):
     window.plotter.camera.azimuth = 40
     window.reset_view()
     np.testing.assert_allclose(window.plotter.camera.direction, (0, 0, -1), atol=1e-6)
-    monkeypatch.chdir(tmp_path)
+    # Screenshots go into preview/ of the result's folder, named after the source and view.
+    assert window.output == window.scene.folder
+    window.output = tmp_path
     first, second = window.save_screenshot(), window.save_screenshot()
-    assert first.name == f"{window.scene.name}_preview.png" and second.name == f"{window.scene.name}_preview_1.png"
+    name = window.scene.name
+    assert first == tmp_path / "preview" / f"{name}_relit.png"
+    assert second == tmp_path / "preview" / f"{name}_relit_1.png"
     assert first.stat().st_size > 1000 and second.is_file()
+    assert str(second) in window.message  # it says where
 
 
 def test_mesh_source_window_relights_vertex_colours(folder):
@@ -259,8 +296,7 @@ def test_keys_and_right_clicks_drive_the_callbacks(scene, monkeypatch, tmp_path)
     # sent as the X server would send them.
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    monkeypatch.chdir(tmp_path)
-    w = build_plotter(scene, off_screen=False, size=SIZE)
+    w = build_plotter(scene, off_screen=False, size=SIZE, output=tmp_path)
     w.plotter.show(auto_close=False, interactive_update=True)  # returns without an event loop
     interactor = w.plotter.iren.interactor
 
@@ -278,22 +314,34 @@ def test_keys_and_right_clicks_drive_the_callbacks(scene, monkeypatch, tmp_path)
         assert w.mode == "distance"
         press("1")
         before = np.asarray(w.colors).copy()
+        camera = w.plotter.camera_position, w.plotter.camera.parallel_scale
+        lu, lv = light_from_angles(w.azimuth, w.elevation)[:2]
         press("Left")
         press("Up")
-        assert (w.azimuth, w.elevation) == (120, 45)
+        # Left moves the light to the left as seen (x falls), Up upwards; the camera stays.
+        np.testing.assert_allclose(light_from_angles(w.azimuth, w.elevation)[:2], (lu - 0.1, lv + 0.1), atol=1e-9)
+        assert (w.plotter.camera_position, w.plotter.camera.parallel_scale) == camera
         assert not np.array_equal(np.asarray(w.colors), before)
         press("w")  # VTK's wireframe key is not ours: the surface stays a surface
         assert w.plotter.renderer.actors["colour"].GetProperty().GetRepresentation() == 2
         press("h")
         assert w.help_shown
         press("s")
-        assert (tmp_path / f"{scene.name}_preview.png").is_file()
+        assert (tmp_path / "preview" / f"{scene.name}_relit.png").is_file()
         w.plotter.render()
         w.plotter.iren._mouse_right_button_click(SIZE[0] // 2, SIZE[1] // 2)
         w.plotter.iren._mouse_right_button_click(SIZE[0] // 2 + 40, SIZE[1] // 2 + 20)
         assert len(w.picks) == 2 and w.last_distance > 0
+        press("e")
+        assert (tmp_path / "preview" / f"{scene.name}_distance.csv").is_file()
         press("m")
         assert w.profile_mode and w.picks == []
+        press("plus")
+        press("plus")
+        assert w.style.exaggeration == 3
+        assert w.plotter.renderer.actors["colour"].GetScale() == (1, 1, 3)
+        press("q")
+        assert w.closed
     finally:
         w.close()
 

@@ -230,6 +230,17 @@ def test_specular_without_lobe_is_the_diffuse_part():
     assert diff.min() > -1e-3 and diff.max() < 1 + 1e-3
 
 
+def test_specular_with_known_maxima_is_the_same():
+    """A viewer passes the maxima's normals once (``maximum=``): the same bytes."""
+    coef = _concave_field(seed=5).astype(np.float32)
+    rgb = np.random.default_rng(5).integers(0, 256, coef.shape[:2] + (3,), dtype=np.uint8)
+    nu, nv, _ = ptm_maximum(coef)
+    maximum = np.stack([nu, nv, np.sqrt(np.clip(1.0 - nu * nu - nv * nv, 0.0, 1.0))], axis=-1).astype(np.float32)
+    for light in ([0.5, 0.2, 0.84], [-0.8, 0.1, 0.59]):
+        np.testing.assert_array_equal(specular_enhancement(coef, rgb, light, maximum=maximum),
+                                      specular_enhancement(coef, rgb, light))
+
+
 @pytest.mark.parametrize("kd", [0.0, 0.4])
 def test_specular_is_brightest_where_the_normal_bisects_light_and_view(kd):
     light = light_direction(azimuth_deg=0, elevation_deg=45)

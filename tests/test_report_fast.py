@@ -14,7 +14,7 @@ from ptmcore import png
 from ptmcore.images import load_stack, read_image
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.mesh.ply import write_ply
-from reconstruct.report import figures, html, outputs
+from reconstruct.report import figures, html, outputs, plots
 from reconstruct.surface.normalmaps import read_normal_map
 
 SHAPE = (3000, 4000)
@@ -66,17 +66,22 @@ def _spy(monkeypatch) -> dict[str, list[tuple[int, ...]]]:
     is a grey image (no OpenGL needed)."""
     seen: dict[str, list[tuple[int, ...]]] = {}
 
-    def record(name, original):
+    def record(module, name):
+        original = getattr(module, name)
+
         def spy(array, *args, **kwargs):
             seen.setdefault(name, []).append(np.shape(array))
             return original(array, *args, **kwargs)
-        monkeypatch.setattr(figures, name, spy)
+        monkeypatch.setattr(module, name, spy)
 
     for name in ("height_figure", "normal_colors", "relit_lambertian", "surface_from_height"):
-        record(name, getattr(figures, name))
+        record(figures, name)
+    record(plots, "profile_figure")
 
-    def render(mesh, size=(900, 600)):
+    def render(mesh, size=(900, 600), *, exaggeration=1.0):
         seen.setdefault("mesh_render", []).append(np.shape(mesh[0]) if isinstance(mesh, tuple) else ("file",))
+        if isinstance(mesh, tuple):  # coloured by the albedo's samples at the vertices
+            seen.setdefault("mesh_colours", []).append(None if mesh[2] is None else mesh[2].shape)
         return np.full((size[1], size[0], 3), 128, np.uint8)
 
     monkeypatch.setattr(figures, "mesh_render", render)
@@ -85,17 +90,18 @@ def _spy(monkeypatch) -> dict[str, list[tuple[int, ...]]]:
 
 def _check_small(seen: dict, page: str) -> None:
     side = figures.PREVIEW_SIDE
-    for name in ("height_figure", "normal_colors", "relit_lambertian", "surface_from_height"):
+    for name in ("height_figure", "normal_colors", "relit_lambertian", "surface_from_height", "profile_figure"):
         assert seen.get(name), f"{name} was not called"
         for shape in seen[name]:
             assert max(shape[:2]) <= side, (name, shape)
     # The mesh is rendered from a grid of heights of at most MESH_RENDER_SIDE samples a side.
     (vertices,) = seen["mesh_render"]
     assert vertices[0] <= figures.MESH_RENDER_SIDE**2
+    assert seen["mesh_colours"] == [vertices], "the mesh is rendered with the albedo's colours"
     stride = int(re.search(r"sampled every (\d+) pixels", page).group(1))
     assert stride >= max(SHAPE) / figures.MESH_RENDER_SIDE
     pictures = _embedded(page)
-    assert len(pictures) >= 9  # six relit, the normal map, the height map, the mesh
+    assert len(pictures) >= 11  # six relit, albedo, normal map, height map, profile, mesh
     for alt, image in pictures.items():
         assert image.width <= figures.MAX_WIDTH and image.height <= figures.MAX_WIDTH, (alt, image.size)
 

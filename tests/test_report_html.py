@@ -1,10 +1,12 @@
-"""``report.html``: written in every output folder, valid, self-contained, with its sections."""
+"""``report.html``: written in every output folder, valid, self-contained, with its sections in
+the order a person reads them (summary, pictures, files, parameters)."""
 
 import base64
 import io
 import json
 import re
 from html.parser import HTMLParser
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -32,6 +34,8 @@ class _Checker(HTMLParser):
         self.refs: list[tuple[str, str, str]] = []  # (attribute, value, alt)
         self.doctype = False
         self.text: list[str] = []
+        self.sections: list[str] = []  # top-level sections, in order
+        self.section_text: dict[str, list[str]] = {}
 
     def handle_decl(self, decl: str) -> None:
         self.doctype |= decl.lower() == "doctype html"
@@ -45,6 +49,8 @@ class _Checker(HTMLParser):
         for key in ("src", "href"):
             if key in a:
                 self.refs.append((key, a[key], a.get("alt", "")))
+        if tag == "section" and "section" not in self.stack:
+            self.sections.append(a.get("id", ""))
         if tag not in VOID:
             self.stack.append(tag)
 
@@ -63,10 +69,19 @@ class _Checker(HTMLParser):
 
     def handle_data(self, data):
         self.text.append(data)
+        if "section" in self.stack:
+            self.section_text.setdefault(self.sections[-1], []).append(data)
+
+    def in_section(self, key: str) -> str:
+        return " ".join(self.section_text.get(key, []))
+
+
+SECTIONS = ["summary", "pictures", "files", "parameters"]
 
 
 def check_page(path) -> _Checker:
-    """Parse a report and assert it is well formed and references nothing outside itself."""
+    """Parse a report and assert it is well formed, its sections in order, its pictures
+    embedded and its links to files beside it that exist."""
     text = path.read_text(encoding="utf-8")
     checker = _Checker()
     checker.feed(text)
@@ -75,9 +90,15 @@ def check_page(path) -> _Checker:
     assert not checker.errors, checker.errors[:5]
     assert not checker.stack, f"unclosed: {checker.stack}"
     assert "http://" not in text and "https://" not in text and "url(" not in text
+    assert checker.sections == SECTIONS
+    assert '<section id="parameters"><h2>Technical parameters</h2><details>' in text, "parameters not folded"
     for attribute, value, alt in checker.refs:
         if attribute == "href":
-            assert value.startswith("#") and value[1:] in checker.ids, value
+            if value.startswith("#"):
+                assert value[1:] in checker.ids, value
+            else:  # a file of the output folder, by a relative path inside it
+                assert not value.startswith("/") and ":" not in value and ".." not in value, value
+                assert (path.parent / unquote(value)).is_file(), value
             continue
         match = re.fullmatch(r"data:image/(png|jpeg);base64,([A-Za-z0-9+/=]+)", value)
         assert match, f"{alt}: not an embedded PNG or JPEG: {value[:60]}"
@@ -85,7 +106,13 @@ def check_page(path) -> _Checker:
         assert image.format == match.group(1).upper(), alt
         image.load()
         assert 0 < image.width <= 1000, (alt, image.size)
+    # No placeholder rows beside what exists (an option not given has no row).
+    assert "<td>—</td></tr>" not in text.split('<section id="parameters">')[1].split("Stage timings")[0]
     return checker
+
+
+def _files_linked(checker: _Checker) -> set[str]:
+    return {unquote(value) for attribute, value, _ in checker.refs if attribute == "href" and not value.startswith("#")}
 
 
 @pytest.fixture(scope="module")
@@ -104,30 +131,46 @@ def scanned(tmp_path_factory):
 def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     _, out = scanned
     checker = check_page(out / "report.html")
-    assert {"inputs", "photographs", "relit", "maps", "mesh", "accuracy", "comparison",
-            "timings", "warnings"} <= checker.ids
+    assert {"summary", "warnings", "accuracy", "pictures", "relit", "surface", "maps", "mesh", "lights",
+            "photographs", "comparison", "files", "parameters"} <= checker.ids
     text = " ".join(checker.text)
     alts = [alt for _, _, alt in checker.refs]
+    # The summary in words: size and relief in mm, the method, the accuracy; no internal keys.
+    summary = checker.in_section("summary")
+    assert "80 × 60 mm" in summary and "Relief depth" in summary and "photometric stereo" in summary
+    assert "of the ground truth" in summary and "Against the laser scan scan.ply: RMS distance" in summary
+    assert "No warnings" in summary
+    assert not re.search(r"\b[a-z]+_[a-z_]+\b", summary), "snake_case in the summary"
     # The contact sheet shows at most 8 of the 24 photographs, named, with their lights.
     assert sum("light az" in a for a in alts) == 8
     assert sum("raking" in a for a in alts) >= 3 and any("overhead" in a for a in alts)
-    assert any("normal map" in a for a in alts)
-    assert any("scale bar in mm" in a for a in alts)
-    assert any(a.startswith("mesh.ply") for a in alts), "no mesh render"
-    assert any("histogram" in a for a in alts) and any("distance map" in a for a in alts)
+    for picture in ("specular enhancement", "albedo", "normal map", "height map in mm; scale bar in mm",
+                    "height profile along row", "the 24 lights seen from above", "histogram", "distance map"):
+        assert any(picture in a for a in alts), picture
+    mesh = next(a for a in alts if a.startswith("mesh.ply"))
+    assert re.search(r"vertical exaggeration ×\d+", mesh), mesh
+    # The files written, each linked (check_page: they exist), and only those.
+    linked = _files_linked(checker)
+    assert {"coefficients.ptm", "mesh.ply", "mesh.obj", "height.tif", "normals.png", "albedo.png", "report.json",
+            "comparison.json", "distances.ply", "report.html"} <= linked
+    assert linked == {p.name for p in out.iterdir() if p.is_file()} | ({"web/index.html"} if (out / "web/index.html").is_file()
+                                                                     else {"web/info.json"})
+    assert "MeshLab" in checker.in_section("files") and "RTIViewer" in checker.in_section("files")
     # Statistics of the comparison and the other stages' timings are in the page.
     stats = json.loads((out / "comparison.json").read_text())["statistics_mm"]
     assert f"{stats['rms']:.4g}" in text
     report = json.loads((out / "report.json").read_text())
     for name in ("decode", "normals", "ptm", "integrate", "mesh", "write", "compare: align"):
-        assert name in text, name
+        assert name in checker.in_section("parameters"), name
     # The page is made once, by the comparison that follows the run: its own time is recorded
     # in comparison.json, written after it (a run alone records it in report.json).
     assert "report" in json.loads((out / "comparison.json").read_text())["stages"]
     assert "report" not in report["stages"]
-    assert "accuracy" in report and "height_rmse_mm" in text
-    # 16-bit photographs: the PTM holds linear light, and its renderings say they are encoded.
-    assert report["ptm"]["encoding"] == "linear" and "shown sRGB-encoded" in text
+    assert "accuracy" in report and "height_rmse_mm" in checker.in_section("parameters")
+    # The renderings of a PTM of linear light say they are encoded for display (report.json
+    # says which the PTM holds: sRGB by default, linear with --ptm-encoding linear).
+    assert report["ptm"]["encoding"] in ("sRGB", "linear")
+    assert ("shown sRGB-encoded" in text) == (report["ptm"]["encoding"] == "linear")
 
 
 def test_compare_into_another_folder_and_escaping(scanned, tmp_path):
@@ -136,7 +179,10 @@ def test_compare_into_another_folder_and_escaping(scanned, tmp_path):
     assert main(["compare", str(out), str(info.scan_path), "-o", str(other)]) == 0
     checker = check_page(other / "report.html")
     # The reconstruction's report is shown beside the comparison made from its folder.
-    assert {"comparison", "inputs", "mesh", "timings"} <= checker.ids
+    assert {"comparison", "summary", "mesh", "files", "parameters"} <= checker.ids
+    # Only the comparison's own files are linked; the reconstruction's folder is named.
+    assert _files_linked(checker) == {p.name for p in other.iterdir() if p.is_file()}
+    assert str(out.resolve()) in checker.in_section("files")
     page = report_html(other, title='<script>alert("x")</script> & co')
     assert "<script>" not in page and "&lt;script&gt;" in page
 
@@ -146,9 +192,10 @@ def test_report_from_a_ptm_and_from_a_normal_map(scanned, tmp_path):
     from_ptm = tmp_path / "ptm"
     assert main(["run", str(out / "coefficients.ptm"), "-o", str(from_ptm), "-q", "--pixel-size", "0.5"]) == 0
     checker = check_page(from_ptm / "report.html")
-    assert {"inputs", "relit", "maps", "mesh", "warnings"} <= checker.ids
-    assert "photographs" not in checker.ids
-    assert any("PTM's maximum" in t for t in checker.text), "the run's warning is shown"
+    assert {"summary", "relit", "maps", "mesh", "warnings", "files", "parameters"} <= checker.ids
+    assert "photographs" not in checker.ids and "lights" not in checker.ids
+    assert "PTM's maximum" in checker.in_section("summary"), "the run's warning is shown first"
+    assert "1 warning" in checker.in_section("summary")
     assert any("default rendering of coefficients.ptm" in t for t in checker.text), "relit from the source PTM"
     assert "report" in json.loads((from_ptm / "report.json").read_text())["stages"]
 
@@ -179,11 +226,11 @@ def test_report_is_written_with_a_note_when_rendering_fails(tmp_path, monkeypatc
     monkeypatch.setattr(report_figures, "mesh_render", no_context)
     result = run_capture(_small_capture(tmp_path / "cap"), tmp_path / "out", RunOptions(pixel_size=0.1))
     checker = check_page(result.files["report.html"])
-    text = " ".join(checker.text)
-    assert "no mesh render: off-screen rendering is not available" in text
+    assert "no mesh render: off-screen rendering is not available" in checker.in_section("summary")
+    assert "no mesh render: off-screen rendering is not available" in checker.in_section("pictures")
     assert not any(alt.startswith("mesh.ply") for _, _, alt in checker.refs)
     # The rest of the page is still there, and the run's outputs are all published.
-    assert {"relit", "maps", "timings"} <= checker.ids
+    assert {"relit", "maps", "parameters"} <= checker.ids
     assert (tmp_path / "out" / "mesh.ply").is_file()
 
 
@@ -209,3 +256,42 @@ def test_run_with_an_unreadable_scan_stops_before_writing_anything(tmp_path, cap
     assert len(err) == 1 and "scan.ply" in err[0]
     assert not out.exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cap", "scan.ply"]
+
+
+def test_round_ticks_and_vertical_exaggeration():
+    from reconstruct.report import plots
+
+    # The colour bar of a relief from -1.87 to 1.54 mm: ticks at round values, not -1.87, -0.736.
+    ticks = plots.round_ticks().tick_values(-1.87, 1.54)
+    steps = np.diff(ticks)
+    assert np.allclose(steps, steps[0]) and any(np.isclose(steps[0], m * 10.0 ** k) for m in (1, 2, 5) for k in (-1, 0))
+    assert np.allclose(ticks / steps[0], np.round(ticks / steps[0]))
+    # A 2 mm relief on an 80 mm tablet is drawn 5 times deeper; a deep one at true scale.
+    assert report_figures.vertical_exaggeration(80, 60, 2) == 5
+    assert report_figures.vertical_exaggeration(80, 60, 30) == 1
+    assert report_figures.vertical_exaggeration(80, 60, None) == 1
+
+
+def test_summary_in_words_and_files_listed_only_when_written(tmp_path):
+    from reconstruct.report import summary
+
+    height = np.full((30, 40), np.nan, np.float32)
+    height[5:25, 10:30] = np.linspace(0, 2, 20, dtype=np.float32)[None, :]
+    size = summary.extent(height, 4, 0.1)
+    assert (size.width, size.height, size.unit, size.whole_frame) == (8.0, 8.0, "mm", False)
+    assert 1.9 < size.depth <= 2.0
+    report = {"inputs": {"capture": "/x/tablet", "photographs": 12, "bit_depth": 8, "width": 160, "height": 120},
+              "parameters": {"pixel_size": 0.1, "normals": "ps", "fit": "irls"}, "height_unit": "mm",
+              "mesh": {"integrator": "masked", "integrator_reason": "a mask is known"}}
+    rows = dict(summary.summary_rows(report, None, size, object_name="tablet"))
+    assert rows["Size"] == "8 × 8 mm (the object's outline)" and rows["Relief depth"].startswith(f"{size.depth:.3g} mm (")
+    assert "photometric stereo" in rows["Method"] and "least squares on the object only" in rows["Method"]
+    assert rows["Accuracy"].startswith("not measured")
+    rows = dict(summary.summary_rows({**report, "parameters": {}}, None, summary.extent(height, 4, None),
+                                     object_name="tablet"))
+    assert "pixels" in rows["Size"] and "no pixel size" in rows["Scale"]
+    for name in ("mesh.ply", "height.tif", "notes #1.txt", ".stack.tmp"):
+        (tmp_path / name).write_bytes(b"x")
+    entries = {e.name: e for e in summary.file_entries(tmp_path, ["report.json"])}
+    assert set(entries) == {"mesh.ply", "height.tif", "notes #1.txt", "report.json"}
+    assert "MeshLab" in entries["mesh.ply"].how and "float" in entries["height.tif"].what

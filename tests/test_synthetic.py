@@ -354,3 +354,33 @@ def test_command_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> Non
         main(["--help"])
     assert exc.value.code == 0
     assert "--encoding" in capsys.readouterr().out
+
+
+def test_command_line_renders_glossy_spheres_beside_the_object(tmp_path: Path, capsys) -> None:
+    """``--spheres 2``: two dark discs in opposite corners, clear of the tablet, each with a
+    bright highlight, and no light file beside the photographs (the truth is in ground_truth/)."""
+    out = tmp_path / "spheres"
+    assert main([str(out), "--size", "256x192", "--lights", "8", "--scan-points", "0", "--spheres", "2"]) == 0
+    assert "glossy sphere" in capsys.readouterr().out
+    assert not list(out.glob("*.lp"))
+    names, dirs = read_lp(out / "ground_truth" / "lights.lp")
+    assert [Path(n).name for n in names] == [f"img_{k:03d}.tif" for k in range(8)]
+    assert all((out / "ground_truth" / n).resolve().exists() for n in names)  # relative to the .lp
+    scene = json.loads((out / "ground_truth" / "scene.json").read_text())
+    spheres = [(s["cx"], s["cy"], s["r"]) for s in scene["spheres"]]
+    assert len(spheres) == 2 and spheres[0][0] < 128 < spheres[1][0] and spheres[0][1] < 96 < spheres[1][1]
+    mask = np.asarray(Image.open(out / "ground_truth" / "mask.png")) > 0
+    rows, cols = np.mgrid[0:192, 0:256]
+    image = tifffile.imread(out / "img_000.tif").astype(float) / 65535
+    for cx, cy, r in spheres:
+        disc = (cols - cx) ** 2 + (rows - cy) ** 2 < r**2
+        assert r >= 12 and not (disc & mask).any()
+        sphere = image[disc].mean(axis=1)
+        assert np.median(sphere) < 0.05 and sphere.max() > 0.9  # black, with a highlight
+
+
+def test_spheres_that_do_not_fit_are_refused(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="spheres must be 0 to 4"):
+        write_capture(tmp_path / "a", "tablet", SHAPE, n_lights=6, spheres=5, scan_points=0)
+    with pytest.raises(InputError, match="corner"):
+        write_capture(tmp_path / "b", "tablet", SHAPE, n_lights=6, spheres=1, scan_points=0)

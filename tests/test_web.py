@@ -62,7 +62,7 @@ def test_info_json_keys_and_types(tmp_path):
     coef, rgb = _synthetic_ptm(24, 40)
     written = export_openlime(tmp_path / "web", coef, rgb, pixel_size_mm=0.025, quality=92)
     folder = tmp_path / "web"
-    assert written == [folder / f"plane_{j}.jpg" for j in range(3)] + [folder / "info.json"]
+    assert written == [folder / f"plane_{j}.jpg" for j in range(3)] + [folder / n for n in ("info.json", "viewer.json", "index.html")]
     info = json.loads((folder / "info.json").read_text())
     assert info["width"] == 40 and info["height"] == 24
     assert isinstance(info["width"], int) and isinstance(info["height"], int)
@@ -157,7 +157,8 @@ def test_folder_is_created_and_no_temporaries_are_left(tmp_path):
     folder = tmp_path / "a" / "b"
     written = export_openlime(folder, coef, rgb)
     assert all(p.exists() for p in written)
-    assert sorted(os.listdir(folder)) == ["info.json", "plane_0.jpg", "plane_1.jpg", "plane_2.jpg"]
+    assert sorted(os.listdir(folder)) == ["index.html", "info.json", "plane_0.jpg", "plane_1.jpg", "plane_2.jpg",
+                                          "viewer.json"]
 
 
 def test_folder_that_is_a_file_is_an_input_error(tmp_path):
@@ -170,7 +171,8 @@ def test_folder_that_is_a_file_is_an_input_error(tmp_path):
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [({"quality": 0}, "quality"), ({"quality": 101}, "quality"), ({"quality": 9.5}, "quality"),
-     ({"pixel_size_mm": -1.0}, "pixel size"), ({"pixel_size_mm": float("nan")}, "pixel size")],
+     ({"pixel_size_mm": -1.0}, "pixel size"), ({"pixel_size_mm": float("nan")}, "pixel size"),
+     ({"encoding": "gamma"}, "encoding")],
 )
 def test_bad_options_are_rejected(tmp_path, kwargs, message):
     coef, rgb = _synthetic_ptm(8, 8)

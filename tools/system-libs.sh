@@ -62,3 +62,15 @@ if ! "$python" -c "$render_check" >/dev/null 2>&1; then
     "$python" -c "$render_check" >&2
   fi
 fi
+
+# The preview window's tests run its event loop on a virtual X display (Xvfb); without it
+# they skip that test.
+if ! command -v Xvfb >/dev/null 2>&1; then
+  if [ "$(id -u)" != 0 ]; then
+    echo "the preview window's event-loop test needs Xvfb: run 'sudo apt-get install xvfb'" >&2
+    exit 0
+  fi
+  if [ "$updated" = 0 ]; then apt-get update -qq >/dev/null && updated=1; fi
+  echo "installing xvfb (a virtual display for the preview window's tests)"
+  DEBIAN_FRONTEND=noninteractive apt-get install -y -qq xvfb >/dev/null || exit 1
+fi

@@ -4,11 +4,12 @@
 PTM coefficients are all determined (rank and condition of the light matrix, and why not),
 how the lights are spread in elevation and azimuth, and how much of the hemisphere is near
 some light. :func:`report_text` turns it into a few lines for the command line and
-:func:`write_polar_plot` draws the layout as a PNG.
+:func:`write_polar_plot` draws the layout as a PNG, each light labelled with its photograph
+(:func:`short_labels`).
 
 Angles follow the project frame: azimuth 0° is a light from the right (+x), 90° from the top
-(+y); elevation is measured from the object's plane, 90° straight above it (+z). Photographs
-are numbered from 1, as the lines of an ``.lp`` file.
+(+y); elevation is measured from the object's plane, 90° straight above it (+z). Lights
+without a photograph's name are numbered from 1, as the lines of an ``.lp`` file.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import functools
 import io
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,7 +27,8 @@ from scipy.spatial import cKDTree
 from ptmcore.atomic import atomic_write
 from ptmcore.solvers import LP_PRECISION, RankInfo, analyse_lights, duplicate_groups
 
-__all__ = ["LightReport", "check_lights", "plot_positions", "report_text", "write_polar_plot"]
+__all__ = ["LightReport", "check_lights", "plot_positions", "polar_plot_png", "report_text", "short_labels",
+           "write_polar_plot"]
 
 #: Edges (degrees) of the elevation histogram and of the plot's rings.
 ELEVATION_EDGES = np.arange(0.0, 91.0, 15.0)
@@ -282,10 +285,51 @@ def plot_positions(directions: np.ndarray, size: int) -> np.ndarray:
     return np.stack([size / 2 + rho * np.cos(phi), size / 2 - rho * np.sin(phi)], axis=1)
 
 
+def _stem(name: str) -> str:
+    base = name.replace("\\", "/").rsplit("/", 1)[-1]
+    return base.rsplit(".", 1)[0] if "." in base[1:] else base
+
+
+def _shared_prefix(texts: list[str]) -> int:
+    """Length of the prefix all ``texts`` share, short of a number it would cut in two."""
+    n = len(os.path.commonprefix(texts))
+    # "img_010", "img_011" share "img_01": the labels must read 010 and 011, not 0 and 1.
+    while n and texts[0][n - 1].isdigit():
+        n -= 1
+    return n
+
+
+def short_labels(names: Sequence[str]) -> list[str]:
+    """Short labels for photographs: their names without folder, extension, and the prefix
+    and suffix every name shares (``IMG_0012.JPG`` … → ``0012`` …), numbers kept whole.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Photograph file names (or paths).
+
+    Returns
+    -------
+    list of str
+        One label per name; the names' stems where shortening would leave a label empty or
+        two alike.
+    """
+    stems = [_stem(str(n)) for n in names]
+    if len(stems) < 2:
+        return stems
+    start = _shared_prefix(stems)
+    end = _shared_prefix([s[::-1] for s in stems])
+    labels = [s[start:len(s) - end] for s in stems]
+    if not all(labels) or len(set(labels)) < len(set(stems)):
+        return stems
+    return labels
+
+
 def write_polar_plot(
     path: str | os.PathLike,
     directions: np.ndarray,
     *,
+    names: Sequence[str] | None = None,
     title: str | None = None,
     size: int = 640,
 ) -> None:
@@ -293,8 +337,8 @@ def write_polar_plot(
 
     Azimuth runs around (0° = light from the right, 90° = from the top), elevation is the
     radius (90° at the centre, 0° at the rim) with labelled rings every 15°. Each light is a
-    dark dot labelled with its photograph number (from 1); see :func:`plot_positions` for the
-    exact geometry.
+    dark dot labelled with its photograph (:func:`short_labels` of ``names``), or its number
+    from 1 without names; see :func:`plot_positions` for the exact geometry.
 
     Parameters
     ----------
@@ -302,23 +346,42 @@ def write_polar_plot(
         Destination PNG, written atomically.
     directions : ndarray, shape (N, 3)
         Vectors towards the lights.
+    names : sequence of str, optional
+        The photograph of each light (file names or paths).
     title : str, optional
         Drawn in the top-left corner.
     size : int
         Width and height in pixels (at least 200).
     """
+    with atomic_write(path, "wb") as f:
+        f.write(polar_plot_png(directions, names=names, title=title, size=size))
+
+
+def polar_plot_png(
+    directions: np.ndarray,
+    *,
+    names: Sequence[str] | None = None,
+    title: str | None = None,
+    size: int = 640,
+) -> bytes:
+    """The PNG bytes of :func:`write_polar_plot` (for a page that embeds it)."""
     if size < 200:
         raise ValueError(f"plot size must be at least 200 pixels, got {size}")
-    with atomic_write(path, "wb") as f:
-        f.write(_polar_png(directions, title, size))
+    fig = _polar_figure(directions, names, title, size)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=fig.dpi)
+    return buf.getvalue()
 
 
-def _polar_png(directions: np.ndarray, title: str | None, size: int) -> bytes:
-    """The PNG of :func:`write_polar_plot`, drawn on a polar axes of its own figure."""
+def _polar_figure(directions: np.ndarray, names: Sequence[str] | None, title: str | None, size: int):
+    """The matplotlib figure of :func:`write_polar_plot`, on a polar axes of its own."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     elev, azim = _angles(_unit(directions))
+    if names is not None and len(names) != len(elev):
+        raise ValueError(f"{len(names)} names for {len(elev)} lights")
+    labels = short_labels(names) if names is not None else [str(k + 1) for k in range(len(elev))]
     dpi = 100
     pt = 72.0 / dpi  # points per pixel
     small, label = max(10, size // 50) * pt, max(11, size // 45) * pt
@@ -347,14 +410,12 @@ def _polar_png(directions: np.ndarray, title: str | None, size: int) -> bytes:
     # Unclipped, so lights at or below the horizon show on or beyond the rim.
     ax.plot(theta, rho, "o", ms=2 * dot * pt, mfc="#14286e", mec="black", mew=1.0,
             linestyle="none", clip_on=False, zorder=3)
-    for k, (t, r) in enumerate(zip(theta, rho)):
-        ax.annotate(str(k + 1), (t, r), xytext=(dot + 1, dot + 1), textcoords="offset pixels",
+    for text, t, r in zip(labels, theta, rho):
+        ax.annotate(text, (t, r), xytext=(dot + 1, dot + 1), textcoords="offset pixels",
                     fontsize=small, color="black", annotation_clip=False, zorder=4)
 
     legend = "radius: elevation (90° centre, 0° rim) · angle: azimuth (0° = light from the right)"
     fig.text(0.5, 0.25 * PLOT_MARGIN, legend, ha="center", va="center", fontsize=small, color=ink)
     if title:
         fig.text(3 / size, 1 - 3 / size, title, ha="left", va="top", fontsize=label)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=dpi)
-    return buf.getvalue()
+    return fig

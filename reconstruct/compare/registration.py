@@ -10,6 +10,7 @@ aligned pair.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -247,6 +248,7 @@ def align(
     scale: bool = False,
     initial: np.ndarray | None = None,
     no_align: bool = False,
+    progress: Callable[[int], None] | None = None,
 ) -> Alignment:
     """Find the transform that carries the scan onto the reconstruction.
 
@@ -271,6 +273,9 @@ def align(
     no_align : bool
         Do not move the scan at all (use `initial` or the identity) and only measure the
         overlap, for data that are already registered.
+    progress : callable, optional
+        ``progress(1)`` after each of the three steps: the features, the global registration,
+        the fine ICP (seconds each on a 24-megapixel reconstruction).
 
     Returns
     -------
@@ -308,8 +313,10 @@ def align(
                                           else "identity"))
         return _finish(start, fitness, rmse, final_dist, voxel, method, scan)
 
+    advance = progress or (lambda k: None)
     source_down, source_fpfh = _features(source, voxel)
     target_down, target_fpfh = _features(target, voxel)
+    advance(1)
     if initial is not None:
         best = _icp(source_down, target_down, start, [3 * voxel, voxel]).transformation
         method.append("initial transform given; no global registration")
@@ -320,6 +327,7 @@ def align(
         judge = _Judge(target.voxel_down_sample(voxel / 3), sample, voxel)
         best = _global_registration((source_down, source_fpfh), (target_down, target_fpfh),
                                     judge, scale, method)
+    advance(1)
 
     fine = _icp(source, target, best, [1.5 * voxel, 0.5 * voxel, 0.2 * voxel], iterations=50)
     transform = fine.transformation
@@ -332,6 +340,7 @@ def align(
         for dist in (1.5 * voxel, 0.5 * voxel, 0.2 * voxel):
             transform = _similarity_icp(scan.points, points, normals, transform, dist)
         method.append("point-to-plane similarity ICP (uniform scale)")
+    advance(1)
     fitness, rmse = _overlap(scan.points, transform, target, 1.5 * voxel)
     return _finish(transform, fitness, rmse, final_dist, voxel, method, scan)
 

@@ -297,7 +297,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
     near = _near_lights_from_file(lights, lp_path, opt.light_positions)
     # The photographs and their lights are known before decoding, so the files viewers open
     # are fitted in the same pass (with near lights too: they use one direction per photograph).
-    fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None)
+    fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None, opt.ptm_encoding)
     on_disk, warnings = _stack_place(lights.paths, opt, scratch)
     with stages("decode", len(lights)) as advance:
         stack, fits = load_stack_and_fits(lights.paths, fit=fit, linearize=opt.linearize, threads=opt.threads,

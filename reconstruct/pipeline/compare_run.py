@@ -17,7 +17,7 @@ import numpy as np
 
 from ptmcore.errors import InputError
 from reconstruct.pipeline.options import CompareOptions
-from reconstruct.pipeline.profiling import StageTimer
+from reconstruct.pipeline.profiling import ProgressFn, Stages
 from reconstruct.pipeline.report import AlignmentSummary, CompareReport, ToleranceTest
 from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.report import outputs
@@ -60,6 +60,7 @@ def _reconstruction_mesh(path: Path) -> Path:
     if report_file.exists():
         unit = json.loads(report_file.read_text()).get("height_unit")
         if unit != "mm":
+            unit = "pixels" if unit == "pixel" else unit
             raise InputError(f"this reconstruction's heights are in {unit}, not mm: run it with --pixel-size", path)
     return path / "mesh.ply"
 
@@ -107,11 +108,21 @@ def _comparison_report(rec_path: Path, scan: Path, opt: CompareOptions, alignmen
     )
 
 
+def _scan_progress(progress: ProgressFn | None) -> ProgressFn | None:
+    """``progress`` with the comparison's stages named ``scan_*``: within ``run --scan`` they
+    follow the run's own, some of the same names (``write``, ``report``)."""
+    if progress is None:
+        return None
+    return lambda stage, done, total: progress(f"scan_{stage}", done, total)
+
+
 def run_compare(
     reconstruction: str | os.PathLike,
     scan: str | os.PathLike,
     output: str | os.PathLike,
     options: CompareOptions | None = None,
+    *,
+    progress: ProgressFn | None = None,
 ) -> CompareResult:
     """Align a scan to a reconstruction, measure their distances and write the comparison.
 
@@ -123,20 +134,26 @@ def run_compare(
     (with the reconstruction's own report when it is an output folder). Written into an
     earlier result (``output`` is the reconstruction's own folder), the result's other files
     are kept and those of an earlier comparison replaced, in one step (:func:`staged_output`).
+    ``progress(stage, done, total)`` is called as the stages advance: ``scan_read``,
+    ``scan_align``, ``scan_distances``, ``scan_write`` (the figures), ``scan_report``.
     """
     from reconstruct.compare import load_geometry
 
     opt = options or CompareOptions()
     given = Path(reconstruction)
+    stages = Stages(_scan_progress(progress))
     # Every input is read before the output folder is touched.
-    rec_path = _reconstruction_mesh(given)
-    rec = load_geometry(rec_path)
-    scan_geometry = load_geometry(scan, units=opt.scan_units)
+    with stages("read", 2) as advance:
+        rec_path = _reconstruction_mesh(given)
+        rec = load_geometry(rec_path)
+        advance(1)
+        scan_geometry = load_geometry(scan, units=opt.scan_units)
     initial = _read_initial(opt.initial) if opt.initial is not None else None
     with staged_output(output) as staged:
         kept = staged.keep_existing(exclude=COMPARISON_FILES)
         names, report = compare_into(staged, rec, rec_path, scan_geometry, Path(scan), opt, initial=initial,
-                                     also=[staged.staging, *([given] if given.is_dir() else [])])
+                                     also=[staged.staging, *([given] if given.is_dir() else [])],
+                                     progress=progress)
         files = staged.publish([*kept, *names])
     return CompareResult(staged.output, files, report)
 
@@ -146,27 +163,30 @@ COMPARISON_FILES = ("distances.ply", "histogram.png", "overlay.png", "comparison
 
 
 def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan: Path, opt: CompareOptions, *,
-                 initial: np.ndarray | None = None, also: list[Path] | None = None) -> tuple[list[str], CompareReport]:
+                 initial: np.ndarray | None = None, also: list[Path] | None = None,
+                 progress: ProgressFn | None = None) -> tuple[list[str], CompareReport]:
     """Compare a loaded scan with a loaded reconstruction and write the comparison's files
     into ``staged`` (``run --scan`` calls it before the run's files are published, so the
     reconstruction and its comparison appear together). ``also``: folders whose report.json
-    the page shows beside the comparison. Returns the files' names and the report."""
+    the page shows beside the comparison; ``progress`` as in :func:`run_compare`. Returns the
+    files' names and the report."""
     from reconstruct.compare import align, distances, within_tolerance
 
-    timer = StageTimer()
+    stages = Stages(_scan_progress(progress))
     warnings: list[str] = []
-    with timer.stage("align"):
-        alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align)
-    with timer.stage("distances"):
+    with stages("align", 3) as advance:
+        alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align,
+                          progress=advance)
+    with stages("distances"):
         result = distances(rec, scan_geometry, alignment, reverse=opt.reverse or rec.faces is not None,
                            max_distance=opt.max_distance)
-    with timer.stage("write"):
+    with stages("write"):
         names, limit = _write_figures(staged, rec, result, opt.tolerance, warnings)
     fraction = within_tolerance(result, opt.tolerance) if opt.tolerance is not None else None
     report = _comparison_report(rec_path, scan, opt, alignment, result, limit, fraction, warnings)
-    report.stages = timer.stages  # the same dict: the page's own time joins it
+    report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     # The page also shows the reconstruction's report; comparison.json follows it, with its time.
-    with timer.stage("report"):
+    with stages("report"):
         write_report_html(staged.staging, comparison=report.to_dict(), also=also or [])
     outputs.write_json(staged / "comparison.json", report.to_dict())
     return [*names, "comparison.json", "report.html"], report
@@ -186,14 +206,20 @@ class ScanStep:
     scan : path
         The scan file.
     options : CompareOptions, optional
+    progress : callable, optional
+        ``progress(stage, done, total)``: reading the scan (``scan_read``) now, the rest of
+        :func:`run_compare`'s stages when the step runs.
     """
 
-    def __init__(self, scan: str | os.PathLike, options: CompareOptions | None = None) -> None:
+    def __init__(self, scan: str | os.PathLike, options: CompareOptions | None = None, *,
+                 progress: ProgressFn | None = None) -> None:
         from reconstruct.compare import load_geometry
 
         self.scan = Path(scan)
         self.options = options or CompareOptions()
-        self.geometry = load_geometry(self.scan, units=self.options.scan_units)
+        self.progress = progress
+        with Stages(_scan_progress(progress))("read"):
+            self.geometry = load_geometry(self.scan, units=self.options.scan_units)
         self.report: CompareReport | None = None
         self.error: InputError | None = None
 
@@ -202,7 +228,8 @@ class ScanStep:
 
         try:
             names, self.report = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
-                                              self.geometry, self.scan, self.options, also=[staged.staging])
+                                              self.geometry, self.scan, self.options, also=[staged.staging],
+                                              progress=self.progress)
         except InputError as exc:
             self.error = exc
             write_report_html(staged.staging, report=json.loads((staged / "report.json").read_text()))

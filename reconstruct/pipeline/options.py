@@ -26,6 +26,7 @@ __all__ = [
     "Flattening",
     "Integrator",
     "NormalMethod",
+    "PtmEncoding",
     "PtmFormat",
     "RunOptions",
     "ScanUnit",
@@ -41,6 +42,8 @@ NormalMethod = Literal["ps", "ptm", "ptm-debiased"]
 Fit = Literal["lobe", "irls", "trimmed", "plain"]
 Integrator = Literal["auto", "dct", "fc", "masked", "bilateral"]
 PtmFormat = Literal["lrgb", "rgb"]
+#: The values a .ptm (and .rti, web/) holds: display-encoded, as viewers show them, or linear light.
+PtmEncoding = Literal["srgb", "linear"]
 Solver = Literal["pinv", "lstsq", "rohde"]
 Flattening = Literal["plane", "poly2", "poly3", "highpass"]
 ScanUnit = Literal["mm", "cm", "m", "in"]
@@ -185,10 +188,15 @@ class RunOptions:
         :data:`reconstruct.pipeline.stages.AUTO_MESH_VERTICES` vertices.
     linearize : bool
         Take 8-bit photographs as sRGB and linearise them (for the normals; the ``.ptm`` file
-        is always fitted to the photographs as they are encoded, as viewers expect).
+        holds what ``ptm_encoding`` says).
     ptm_format : {"lrgb", "rgb"}
         Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
         one polynomial per channel.
+    ptm_encoding : {"srgb", "linear"}
+        What ``coefficients.ptm``, ``coefficients.rti`` and ``web/`` hold: the photographs
+        display-encoded as sRGB, as viewers (RTIViewer, OpenLIME) show them, whatever their bit
+        depth (8-bit sRGB photographs as they are, as HP's PTMfitter fits them; 16-bit and float
+        ones encoded), or linear light, for those who compute with the files.
     solver : {"pinv", "lstsq", "rohde"}
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
@@ -270,6 +278,7 @@ class RunOptions:
     step: int | None = None
     linearize: bool = True
     ptm_format: PtmFormat = "lrgb"
+    ptm_encoding: PtmEncoding = "srgb"
     solver: Solver = "pinv"
     loo: bool = False
     fit: Fit = "lobe"

@@ -171,11 +171,12 @@ class PtmSummary:
     error_unit: str = "coefficient units (luminance 0-255)"
 
     @classmethod
-    def from_written(cls, written: dict, bit_depth: int, hsh: dict | None = None) -> PtmSummary:
-        """From what :func:`ptmcore.ptmfile.write_ptm` (and ``write_rti_hsh``) returned."""
+    def from_written(cls, written: dict, encoding: str, hsh: dict | None = None) -> PtmSummary:
+        """From what :func:`ptmcore.ptmfile.write_ptm` (and ``write_rti_hsh``) returned, for
+        files in ``encoding`` ("srgb" or "linear", :attr:`RunOptions.ptm_encoding`)."""
         keep = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in written.items() if k in keep},
-                   encoding="sRGB" if bit_depth <= 8 else "linear",
+                   encoding="sRGB" if encoding == "srgb" else "linear",
                    hsh_rti=None if hsh is None else {k: v for k, v in hsh.items() if k != "path"})
 
 

@@ -22,6 +22,7 @@ Output folder layout (stable; later versions add files, never rename them)::
     mesh.glb           with --glb: binary glTF with the texture
     loo_*.tif          with --loo: leave-one-out relighting error of each basis
     light_positions.csv  with near lights: the light positions used (pixels)
+    lights.lp          for a capture with spheres: the light directions calibrated from them
     report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
     report.html        self-contained page: inputs, photographs, relit renderings, maps, mesh
 """
@@ -38,10 +39,11 @@ import numpy as np
 
 from ptmcore.diskstack import is_disk_array
 from ptmcore.images import LUMA_WEIGHTS
+from ptmcore.lp import write_lp
 from ptmcore.nearlight import write_light_positions
 from ptmcore.normals import normals_from_ptm
 from ptmcore import read_ptm
-from reconstruct.pipeline.capture import Capture, load_capture, read_mask
+from reconstruct.pipeline.capture import SPHERE_CAPTURE, Capture, load_capture, read_mask
 from reconstruct.pipeline.options import RunOptions
 from reconstruct.pipeline.profiling import ProgressFn, Stages
 from reconstruct.pipeline.report import (
@@ -69,6 +71,7 @@ from reconstruct.pipeline.stages import (
 from reconstruct.report import figures, outputs
 from reconstruct.report.html import contact_sheet_picks
 from reconstruct.report.html import write_report_html
+from reconstruct.report.web import export_web_layers
 from reconstruct.surface.accuracy import height_rmse, normal_accuracy
 from reconstruct.surface.normalmaps import read_normal_map, shaded
 
@@ -109,6 +112,10 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
     with stages("write"):
         names = write_surface_files(staged.staging, normals=normals, texture=texture, surface=surface,
                                     mesh=mesh, mask=mask, options=opt)
+        web = staged.staging / "web"
+        if (web / "info.json").is_file():  # the web page of an LRGB PTM: its normal and height layers
+            names += [f"web/{p.name}" for p in export_web_layers(web, normals=normals, height=surface.height,
+                                                                 unit=surface.unit)]
     facts = MeshFacts(len(mesh.vertices), len(mesh.faces), surface.unit, step, surface.integrator,
                       surface.reason, json_safe(decimation))
     return surface.height, facts, names
@@ -226,8 +233,7 @@ def run_capture(
             # coefficients (0.65 GB at 24 megapixels, 2.6 GB more with --hsh) are not held
             # through the normals.
             with stages("ptm", len(loaded.lights)) as advance:
-                relit = fit_relighting(loaded.lights, opt, staged.staging, bit_depth=loaded.stack.bit_depth,
-                                       progress=advance, fits=loaded.fits)
+                relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance, fits=loaded.fits)
             loaded.fits = None
         with stages("normals", h) as advance:
             found = estimate_normals(loaded, opt, progress=advance)
@@ -249,8 +255,7 @@ def run_capture(
         loaded.stack = None  # by far the largest array; no later stage needs it
         if relit is None:  # a second pass over the files, once the stack is released
             with stages("ptm", len(loaded.lights)) as advance:
-                relit = fit_relighting(loaded.lights, opt, staged.staging, bit_depth=inputs.bit_depth,
-                                       progress=advance)
+                relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance)
         warnings += relit.warnings
         height, mesh, names = _surface_and_files(found.normals, texture, mask, opt, staged, stages)
         report = RunReport(
@@ -264,6 +269,11 @@ def run_capture(
             write_light_positions(staged / "light_positions.csv", [p.name for p in loaded.lights.paths],
                                   loaded.near.positions)
             names.append("light_positions.csv")
+        if loaded.layout == SPHERE_CAPTURE:
+            # What the spheres gave: copied beside the photographs, it makes the capture an
+            # ordinary one for other tools (RTIBuilder) and later runs.
+            write_lp(staged / "lights.lp", [p.name for p in loaded.lights.paths], loaded.lights.directions)
+            names.append("lights.lp")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
         files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page, then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),

@@ -186,12 +186,12 @@ class Relighting:
 
 
 def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathLike, *,
-                   bit_depth: int = 8, progress: Advance | None = None,
-                   fits: EncodedFits | None = None) -> Relighting:
+                   progress: Advance | None = None, fits: EncodedFits | None = None) -> Relighting:
     """Write ``coefficients.ptm``, ``web/`` (LRGB only) and, with ``options.hsh``, ``coefficients.rti``.
 
-    The fits are made to the photographs as they are encoded: the fit HP's PTMfitter makes (its
-    files are reproduced byte for byte). They come from ``fits``, made in the pass that decoded
+    The fits are HP's PTMfitter's (its files are reproduced byte for byte) of the photographs
+    display-encoded as sRGB (8-bit sRGB photographs as they are; 16-bit and float ones encoded),
+    or in linear light (``options.ptm_encoding``). They come from ``fits``, made in the pass that decoded
     the photographs (``Capture.fits``), when those are of these photographs and lights; else
     from a second pass over the files, streamed so that memory stays bounded. With near lights
     these files use each photograph's direction from the image centre.
@@ -201,12 +201,10 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     lights : LightSet
         The photographs and their light directions (``Capture.lights``).
     options : RunOptions
-        ``ptm_format``, ``solver``, ``hsh``, ``pixel_size`` (for the web viewer's scale), ``threads``.
+        ``ptm_format``, ``ptm_encoding``, ``linearize``, ``solver``, ``hsh``, ``pixel_size`` (for
+        the web viewer's scale), ``threads``.
     folder : path
         Where to write the files.
-    bit_depth : int
-        Of the photographs (``Capture.stack.bit_depth``): 8-bit ones are sRGB-encoded, deeper
-        ones linear, and report.json says which the PTM holds.
     progress : callable, optional
         ``progress(k)`` as photographs are read (N in all; at once when ``fits`` are used).
     fits : EncodedFits, optional
@@ -216,39 +214,41 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     folder = Path(folder)
     paths, directions = lights.paths, lights.directions
     kw = {"solver": options.solver, "threads": options.threads, "progress": progress}
+    coded = {"encoding": options.ptm_encoding, "linearize": options.linearize}
     # Fits of other photographs or lights (some dropped after decoding) are not these files'.
-    usable = fits is not None and fits.matches(paths, directions, options.solver)
+    usable = fits is not None and fits.matches(paths, directions, options.solver, options.ptm_encoding)
     made = fits.take_ptm(options.ptm_format) if usable else None
     if made is not None:
         coef8, rgb8 = made
         if progress is not None:
             progress(len(paths))
     elif options.ptm_format == "lrgb":
-        coef8, rgb8 = fit_ptm_encoded(paths, directions, **kw)
+        coef8, rgb8 = fit_ptm_encoded(paths, directions, **kw, **coded)
     else:
-        coef8, rgb8 = fit_ptm_rgb_encoded(paths, directions, **kw), None
+        coef8, rgb8 = fit_ptm_rgb_encoded(paths, directions, **kw, **coded), None
     del made
     written = write_ptm(folder / "coefficients.ptm", coef8, rgb8)
-    result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, bit_depth))
+    result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, options.ptm_encoding))
     if rgb8 is not None:
-        result.names += web_export(folder, coef8, rgb8, options.pixel_size)
+        result.names += web_export(folder, coef8, rgb8, options.pixel_size, options.ptm_encoding)
     else:
         result.warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
     del coef8, rgb8
     if options.hsh:
         hsh = fits.take_hsh(3) if usable else None
         if hsh is None:
-            hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads)
+            hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads, **coded)
         result.summary = PtmSummary.from_written(
-            written, bit_depth, hsh=write_rti_hsh(folder / "coefficients.rti", hsh, order=3))
+            written, options.ptm_encoding, hsh=write_rti_hsh(folder / "coefficients.rti", hsh, order=3))
         result.names.append("coefficients.rti")
     return result
 
 
-def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None) -> list[str]:
-    """Write the OpenLIME web viewer's files of an LRGB PTM under ``folder/web/``; return their
-    names relative to ``folder``."""
-    written = export_openlime(folder / "web", coefficients, rgb, pixel_size_mm=pixel_size)
+def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None,
+               encoding: str = "srgb") -> list[str]:
+    """Write the web page and OpenLIME's files of an LRGB PTM (coefficients in ``encoding``)
+    under ``folder/web/``; return their names relative to ``folder``."""
+    written = export_openlime(folder / "web", coefficients, rgb, pixel_size_mm=pixel_size, encoding=encoding)
     return [f"web/{p.name}" for p in written]
 
 
@@ -357,8 +357,6 @@ def make_mesh(surface: Surface, texture: np.ndarray, normals: np.ndarray,
     """The textured grid mesh of a surface (``options.step``, else :func:`auto_step`), decimated
     when ``options.decimate`` or ``options.max_error`` asks; returns it, its step, and what the
     decimation reached (None without one)."""
-    from reconstruct.mesh.ops import decimate
-
     step = options.step or auto_step(surface.height.shape)
     mesh = grid_mesh(surface.height, texture=texture, step=step, pixel_size=options.pixel_size, normals=normals)
     if len(mesh.faces) == 0:
@@ -370,6 +368,8 @@ def make_mesh(surface: Surface, texture: np.ndarray, normals: np.ndarray,
             + "; a mesh needs at least 2×2 neighbouring pixels of the object")
     decimation = None
     if options.decimate is not None or options.max_error is not None:
+        from reconstruct.mesh.ops import decimate  # open3d and trimesh: a quarter of a second to import
+
         mesh, decimation = decimate(mesh, target_faces=options.decimate, max_error=options.max_error)
     return mesh, step, decimation
 
@@ -383,8 +383,6 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
     ``mesh.obj`` (with ``mesh.mtl`` and ``mesh_texture.png``), ``mask.png`` when there is a
     mask, ``mesh.glb`` with ``options.glb``, ``solid.stl`` with ``options.solid``.
     """
-    from reconstruct.mesh.ops import solid, write_glb, write_stl
-
     folder = Path(folder)
     write_png(folder / "albedo.png", texture)
     jobs: dict[str, Callable[[], None]] = {
@@ -399,6 +397,8 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
     }
     if mask is not None:
         jobs["mask.png"] = lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
+    if options.glb or options.solid is not None:
+        from reconstruct.mesh.ops import solid, write_glb, write_stl  # trimesh: imported only when used
     if options.glb:
         jobs["mesh.glb"] = lambda: write_glb(folder / "mesh.glb", mesh, texture)
     if options.solid is not None:

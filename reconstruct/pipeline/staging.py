@@ -46,8 +46,11 @@ _LOCK_SUFFIX = ".lock"
 #: never rename them, as the README promises of the files.
 _OUTPUT_NAMES = ("coefficients.ptm", "coefficients.rti", "web", "solid.stl", "mesh.glb", "normals.npy",
                  "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj", "mesh.mtl",
-                 "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "report.json",
-                 "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png")
+                 "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "lights.lp", "report.json",
+                 "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png", "preview")
+#: The user's own files inside a result: figures, profiles and distances saved from the preview
+#: window (``reconstruct.viewer``). Every new result of the folder carries them over.
+CARRIED = ("preview",)
 
 
 #: The staging folders and lock files of this process's runs in progress, for
@@ -123,10 +126,17 @@ class StagedOutput:
     def publish(self, names: Iterable[str]) -> dict[str, Path]:
         """Make the named files (relative paths; sub-folders allowed) the output folder's whole
         content, in one step: anything else in the staging folder (scratch files) is removed
-        first, then the staging folder takes the output folder's place. Once only."""
+        first, then the staging folder takes the output folder's place. Once only. The
+        folders of :data:`CARRIED` (the user's saved figures) come over from the old result."""
         if self.files:
             raise RuntimeError(f"{self.output} was already published")
         keep = {Path(name) for name in names}
+        if self.output.is_dir():  # the user's figures live on in the new result
+            for name in CARRIED:
+                if (self.output / name).is_dir() and not (self.staging / name).exists():
+                    shutil.copytree(self.output / name, self.staging / name, copy_function=_link_or_copy,
+                                    symlinks=True)
+                    keep.add(Path(name))
         missing = [str(n) for n in keep if not (self.staging / n).exists()]
         if missing:
             raise FileNotFoundError(f"not written, cannot publish: {', '.join(sorted(missing))}")

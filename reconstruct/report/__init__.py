@@ -1,5 +1,5 @@
 """What a run shows a person: the raster outputs (normal maps, albedo, height), the figures and
-the self-contained ``report.html``, the OpenLIME web-viewer export, and the off-screen 3D
+charts, the summary in words and the self-contained ``report.html``, the OpenLIME web-viewer export, and the off-screen 3D
 renders they use (pyvista, imported only when a render is made).
 """
 
@@ -12,7 +12,9 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "html": ["contact_sheet_picks", "report_html", "write_report_html"],
         "outputs": ["albedo_texture", "albedo_to_srgb8", "normals_to_rgb16", "write_height_tiff", "write_json", "write_normals_png",
                     "write_npy"],
+        "plots": ["profile_figure"],
         "rendering": ["plotter", "render_image"],
+        "summary": ["file_entries", "summary_rows"],
         "web": ["export_openlime", "lrgb_planes"],
     },
 )

@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
+from ptmcore.png import encode_png
+from ptmcore.ptmfile import PTMFile
 from ptmcore.relight import light_direction
 
-from reconstruct.report import rendering
-from ptmcore.png import encode_png
+from reconstruct.report import plots, rendering
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
@@ -47,6 +48,10 @@ RELIGHT_LIGHTS = (
     ("raking 12° from the right", 0.0, 12.0),
     ("raking 12° from the bottom", 270.0, 12.0),
 )
+
+#: The light of the specular-enhancement picture: (label, azimuth °, elevation °); high enough
+#: that the highlights fall on the surface's slopes, not only on its edges.
+SPECULAR_LIGHT = ("40° from the upper left", 135.0, 40.0)
 
 # Lambertian shading through tables: 8-bit sRGB to linear, and linear to sRGB fine enough
 # (4096 steps) that neighbouring output levels stay distinct near black, where the curve is
@@ -229,22 +234,39 @@ def shade_lambertian(normals: np.ndarray, albedo: np.ndarray, light: np.ndarray)
     return _LINEAR_TO_SRGB[index]
 
 
-def relit_from_ptm(path: str | os.PathLike, max_side: int = 480, *, linear: bool = False
+def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, linear: bool = False
                    ) -> list[tuple[str, np.ndarray]]:
     """RTIViewer's default rendering of a subsample of a ``.ptm`` file under :data:`RELIGHT_LIGHTS`.
 
     Only the subsample is decoded (:func:`ptmcore.ptmfile.read_ptm` with ``max_side``), so a
-    PTM of any size costs about the same. ``linear``: the PTM holds linear light (fitted to
-    16-bit photographs); its renderings are then encoded as sRGB for display
-    (:func:`ptmcore.relight.display_srgb`).
+    PTM of any size costs about the same; a ``PTMFile`` already read is rendered as it is.
+    ``linear``: the PTM holds linear light (fitted to 16-bit photographs); its renderings are
+    then encoded as sRGB for display (:func:`ptmcore.relight.display_srgb`).
     """
     from ptmcore.ptmfile import read_ptm
+
+    small = ptm if isinstance(ptm, PTMFile) else read_ptm(ptm, max_side=max_side)
+    return [(label, _for_display(small.render(light_direction(azimuth_deg=az, elevation_deg=el)), linear))
+            for label, az, el in RELIGHT_LIGHTS]
+
+
+def specular_from_ptm(ptm: PTMFile, *, linear: bool = False) -> np.ndarray | None:
+    """RTIViewer's specular enhancement of an LRGB PTM under :data:`SPECULAR_LIGHT`, with
+    RTIViewer's default weights (:func:`ptmcore.relight.specular_enhancement`), encoded for
+    display as :func:`relit_from_ptm`; None for an RGB PTM (no luminance polynomial)."""
+    from ptmcore.relight import specular_enhancement
+
+    if ptm.rgb is None or ptm.coefficients.ndim != 3:
+        return None
+    _, az, el = SPECULAR_LIGHT
+    light = light_direction(azimuth_deg=az, elevation_deg=el)
+    return _for_display(specular_enhancement(ptm.coefficients, ptm.rgb, light), linear)
+
+
+def _for_display(image: np.ndarray, linear: bool) -> np.ndarray:
     from ptmcore.relight import display_srgb
 
-    small = read_ptm(path, max_side=max_side)
-    encode = display_srgb if linear else np.asarray
-    return [(label, encode(small.render(light_direction(azimuth_deg=az, elevation_deg=el))))
-            for label, az, el in RELIGHT_LIGHTS]
+    return display_srgb(image) if linear else np.asarray(image)
 
 
 def relit_lambertian(
@@ -350,9 +372,13 @@ def _nice_length(x: float) -> float:
 
 
 def height_figure(
-    height: np.ndarray, stride: int, unit: str, pixel_size: float | None, *, width_px: int = 900
+    height: np.ndarray, stride: int, unit: str, pixel_size: float | None, *, width_px: int = plots.CHART_WIDTH,
+    profile: int | None = None,
 ) -> bytes:
     """The height map with a colour bar and a scale bar, as PNG bytes (matplotlib).
+
+    Drawn at the width the page shows it, with labels of :data:`plots.FONT_SIZE` and the
+    colour bar's ticks at round values (1, 2 or 5 × 10^k).
 
     Parameters
     ----------
@@ -365,37 +391,54 @@ def height_figure(
     pixel_size : float or None
         Millimetres per pixel of the full map; the scale bar is in mm when given, else in
         pixels.
+    profile : int, optional
+        A row of the subsample to mark with a dashed line (where the profile is drawn).
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+    import matplotlib as mpl
+    from matplotlib.font_manager import FontProperties
     from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 
     h, w = height.shape
     full_w, full_h = w * stride, h * stride
-    dpi = 100
-    fig_w = width_px / dpi
-    fig_h = min(fig_w * 1.2, max(2.5, fig_w * 0.82 * full_h / full_w + 0.6))
-    fig = Figure(figsize=(fig_w, fig_h), dpi=dpi, layout="constrained")
-    FigureCanvasAgg(fig)
+    fig_w = width_px / 100
+    fig_h = min(fig_w * 1.2, max(2.5, fig_w * 0.8 * full_h / full_w + 0.3))
+    fig = plots._figure(width_px, round(fig_h * 100))
     ax = fig.add_subplot()
     lo, hi = finite_range(height)
-    import matplotlib as mpl
-
     cmap = mpl.colormaps["viridis"].with_extremes(bad=(0.92, 0.92, 0.92))
     im = ax.imshow(np.ma.masked_invalid(height), cmap=cmap, vmin=lo, vmax=hi,
                    extent=(0, full_w, full_h, 0), interpolation="antialiased")
     ax.set_xticks([])
     ax.set_yticks([])
-    fig.colorbar(im, ax=ax, label=f"height ({unit})", shrink=0.9)
+    label = "pixels" if unit == "pixel" else unit
+    bar = fig.colorbar(im, ax=ax, shrink=0.9, ticks=plots.round_ticks())
+    bar.set_label(f"height ({label})", fontsize=plots.FONT_SIZE)
+    bar.ax.tick_params(labelsize=plots.FONT_SIZE)
+    if profile is not None:
+        y = (profile + 0.5) * stride
+        ax.plot([0, full_w], [y, y], color="white", linewidth=2.2, linestyle=(0, (6, 4)))
+        ax.plot([0, full_w], [y, y], color="black", linewidth=0.9, linestyle=(0, (6, 4)))
     per_px, bar_unit = (pixel_size, "mm") if pixel_size else (1.0, "pixels")
     length = _nice_length(0.25 * full_w * per_px)
-    bar = AnchoredSizeBar(ax.transData, length / per_px, f"{length:g} {bar_unit}", "lower right",
-                          pad=0.4, sep=4, color="black", frameon=True, size_vertical=max(full_h / 150, 1))
-    bar.patch.set_alpha(0.75)
-    ax.add_artist(bar)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
-    return buf.getvalue()
+    scale = AnchoredSizeBar(ax.transData, length / per_px, f"{length:g} {bar_unit}", "lower right",
+                            pad=0.4, sep=4, color="black", frameon=True, size_vertical=max(full_h / 120, 1),
+                            fontproperties=FontProperties(size=plots.FONT_SIZE + 1))
+    scale.patch.set_alpha(0.8)
+    ax.add_artist(scale)
+    return plots._png(fig)
+
+
+def vertical_exaggeration(width: float, height: float, depth: float | None) -> int:
+    """A vertical exaggeration that makes a relief show in an oblique view: the round factor
+    (1, 2 or 5 × 10^k, at least 1) that brings the relief's depth to about 15 % of the
+    object's longer side (a 2 mm relief on an 80 mm tablet: ×5).
+
+    ``width``, ``height`` and ``depth`` share one unit; without a depth the factor is 1.
+    """
+    if not depth or not math.isfinite(depth) or depth <= 0:
+        return 1
+    target = 0.15 * max(width, height) / depth
+    return int(_nice_length(target)) if target >= 1 else 1
 
 
 #: Largest mesh rendered from its file; larger ones are rendered from the height map at the
@@ -416,29 +459,39 @@ def ply_face_count(path: str | os.PathLike) -> int | None:
     return next((int(w[2]) for w in ply_header(path) if w[:2] == ["element", "face"] and len(w) == 3), None)
 
 
-def surface_from_height(height: np.ndarray, stride: int, pixel_size: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """Vertices and faces of the grid mesh of a strided height map, in the full mesh's frame."""
+def surface_from_height(height: np.ndarray, stride: int, pixel_size: float | None,
+                        texture: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertices, faces and vertex colours (or None without ``texture``) of the grid mesh of a
+    strided height map, in the full mesh's frame; ``texture`` is the 8-bit sRGB colour at the
+    height map's samples."""
     from reconstruct.mesh.grid import grid_mesh
 
-    mesh = grid_mesh(height, pixel_size=(pixel_size or 1.0) * stride)
-    return mesh.vertices, mesh.faces
+    mesh = grid_mesh(height, texture=texture, pixel_size=(pixel_size or 1.0) * stride)
+    return mesh.vertices, mesh.faces, mesh.colors if texture is not None else None
 
 
 def mesh_render(
-    mesh: str | os.PathLike | tuple[np.ndarray, np.ndarray], size: tuple[int, int] = (900, 600)
+    mesh: str | os.PathLike | tuple[np.ndarray, np.ndarray, np.ndarray | None],
+    size: tuple[int, int] = (900, 600),
+    *,
+    exaggeration: float = 1.0,
 ) -> np.ndarray:
-    """An off-screen rendering of a mesh, shaded clay grey, seen obliquely from the front.
+    """An off-screen rendering of a mesh with its colours, seen obliquely from the front.
 
     Parameters
     ----------
-    mesh : path or (vertices, faces)
-        A mesh file (PLY, OBJ, STL...) or ``(V, 3)`` positions and ``(F, 3)`` indices.
+    mesh : path or (vertices, faces, colours)
+        A mesh file (PLY with vertex colours, OBJ, STL...), or ``(V, 3)`` positions, ``(F, 3)``
+        indices and ``(V, 3)`` uint8 sRGB colours or None.
     size : tuple of int
         ``(width, height)`` of the picture.
+    exaggeration : float
+        Factor applied to the mesh's z (heights) before rendering.
 
     Returns
     -------
     ndarray, shape (size[1], size[0], 3), uint8
+        Coloured by the mesh's vertex colours when it has them, else clay grey.
 
     Raises
     ------
@@ -454,17 +507,22 @@ def mesh_render(
     try:
         with rendering.VTK_LOCK:
             if isinstance(mesh, tuple):
-                vertices, faces = mesh
+                vertices, faces, colours = mesh
                 surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float32), faces)
             else:
                 surface = pv.read(str(mesh))
+                colours = surface.point_data.get("RGB")
     except Exception as exc:  # pyvista's readers raise assorted types
         raise RuntimeError(f"cannot read the mesh ({exc})") from exc
+    surface.points[:, 2] *= np.float32(exaggeration)
 
     def draw(plotter) -> None:
         plotter.set_background("white")
-        plotter.add_mesh(surface, color=(0.78, 0.72, 0.64), smooth_shading=True, specular=0.15,
-                         scalars=None, rgb=False)
+        if colours is not None:
+            plotter.add_mesh(surface, scalars=np.asarray(colours, np.uint8)[:, :3], rgb=True, smooth_shading=True,
+                             specular=0.1, diffuse=0.85, ambient=0.2)
+        else:
+            plotter.add_mesh(surface, color=(0.78, 0.72, 0.64), smooth_shading=True, specular=0.15)
         center = np.asarray(surface.center)
         # Oblique: from the front (−y) and a little to the right, 40° above the object plane.
         view = np.array([0.35, -0.75, 0.85])

@@ -1,11 +1,19 @@
-"""``report.html``: one self-contained page that shows what a run made and how.
+"""``report.html``: one self-contained page that shows a person what a run made.
+
+It reads top to bottom as a condition report would: a summary in words (the object, its size
+and relief depth, how the surface was made, its accuracy when known, and the warnings, first);
+then the pictures (relit renderings, specular enhancement, albedo, normal map, height map and
+its profile, the textured mesh at a stated vertical exaggeration, the lights, the photographs,
+the comparison with a scan); then the files written, each with what it is and what opens it;
+and last, folded, the technical parameters and timings.
 
 The page is built from an output folder (``report.json``, ``comparison.json`` and the images
-and maps beside them) plus, for the contact sheet, a few of the photographs. Every picture is
-embedded as a ``data:`` URI and the style is inline, so the file opens anywhere (a USB stick,
-no network) and references nothing else. A picture that cannot be made (no off-screen
-rendering, no matplotlib, an unreadable photograph) becomes a note in its place: the page is
-always written.
+and maps beside them) plus, for the contact sheet and the lights, the photographs and their
+light directions. Every picture is embedded as a ``data:`` URI (JPEG for photographic
+pictures) and the style is inline, so the file opens anywhere (a USB stick, no network); the
+only links are to the output files beside it. A picture that cannot be made (no off-screen
+rendering, no matplotlib, an unreadable photograph) becomes a note in its place and a warning:
+the page is always written.
 
 The maps are subsampled once, first (:func:`reconstruct.report.figures.previews`, to about a
 thousand pixels), and every picture is made from the subsamples; a caller that holds the maps
@@ -24,12 +32,13 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 
 from ptmcore.atomic import atomic_write
 
-from reconstruct.report import figures
+from reconstruct.report import figures, plots, summary
 
 #: At most this many photographs on the contact sheet.
 CONTACT_SHEET = 8
@@ -46,8 +55,15 @@ th{background:#f0f0ee}td.num{text-align:right;font-variant-numeric:tabular-nums}
 .sheet{--min:120px}figure{margin:0}figure img{width:100%;height:auto;border:1px solid #ddd;display:block}
 figcaption{font-size:.85em;color:#444;margin-top:2px}
 .note{background:#eef3fb;border-left:4px solid #6a8fd0;padding:6px 10px;margin:.5em 0}
-.warnings{background:#fff4e0;border-left:4px solid #e09a1a;padding:6px 10px 6px 28px}
-.tables{display:flex;flex-wrap:wrap;gap:0 28px}
+.warnings{background:#fff4e0;border:1px solid #e09a1a;border-left:6px solid #e09a1a;padding:4px 12px;margin:.6em 0}
+.warnings h3{margin:.3em 0;color:#8a4b00}.warnings ul{margin:.2em 0 .4em;padding-left:20px}
+.ok{color:#2d6a2d}h3{font-size:1.05em;margin:1.2em 0 .3em}
+table.summary{font-size:1em;width:100%}table.summary th{width:9em;background:none;border:none;border-bottom:1px solid #eee}
+table.summary td{border:none;border-bottom:1px solid #eee}
+.tables{display:flex;flex-wrap:wrap;gap:0 28px;align-items:flex-start}
+figure.wide{max-width:900px}figure.polar{max-width:620px}
+table.files td:first-child{white-space:nowrap}code{font-size:.95em}
+details{margin:.6em 0}summary{cursor:pointer;font-weight:600}
 """
 
 
@@ -100,8 +116,9 @@ def _img(data: bytes, mime: str, alt: str) -> str:
     return f'<img src="{_data_uri(data, mime)}" alt="{_esc(alt)}">'
 
 
-def _figure(data: bytes, mime: str, caption: str) -> str:
-    return f"<figure>{_img(data, mime, caption)}<figcaption>{_esc(caption)}</figcaption></figure>"
+def _figure(data: bytes, mime: str, caption: str, cls: str = "") -> str:
+    kind = f' class="{cls}"' if cls else ""
+    return f"<figure{kind}>{_img(data, mime, caption)}<figcaption>{_esc(caption)}</figcaption></figure>"
 
 
 def _note(text: str) -> str:
@@ -174,109 +191,160 @@ def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]],
            f'<div class="grid sheet">{"".join(items)}</div>'
 
 
-def _previews(files: _Folder, notes: list[str]) -> figures.Previews:
-    """The subsamples of the folder's normals and heights (memory-mapped: only the rows taken
-    are read); a map that cannot be read is left out with a note."""
+def _previews(files: _Folder, report: dict, notes: list[str]) -> figures.Previews:
+    """The subsamples of the folder's normals, heights (memory-mapped: only the rows taken are
+    read) and albedo (a PNG is decoded whole: only when the caller holds no previews); a map
+    that cannot be read is left out with a note."""
     maps = {}
     for key, name in (("normals", "normals.npy"), ("height", "height.tif")):
         path = files.find(name)
         if path is not None:
             maps[key] = _attempt(lambda path=path: figures.map_array(path), f"{name} subsample", notes)
+    albedo = files.find("albedo.png")
+    # A normal map from elsewhere has no albedo (its albedo.png is a shaded rendering).
+    if albedo is not None and "normal_map" not in (report.get("inputs") or {}):
+        from ptmcore.images import read_image
+
+        maps["albedo"] = _attempt(lambda: read_image(albedo), "albedo.png", notes)
     return _attempt(lambda: figures.previews(**maps), "maps", notes, figures.Previews())
 
 
-def _relit(files: _Folder, report: dict | None, previews: figures.Previews) -> str:
+def _ptm_preview(files: _Folder, report: dict, notes: list[str]):
+    """A subsample of the run's PTM (its own, or the source .ptm of a run from one), or None."""
     ptm = files.find("coefficients.ptm")
-    source = ((report or {}).get("inputs") or {}).get("ptm")
+    source = (report.get("inputs") or {}).get("ptm")
     if ptm is None and source and Path(source).is_file():
         ptm = Path(source)  # a run from a .ptm file: relight the file itself
+    if ptm is None:
+        return None
+    from ptmcore.ptmfile import read_ptm
+
+    # Only a subsample is decoded: for a run from a .ptm file this re-reads the source file,
+    # at the cost of the subsample.
+    return _attempt(lambda: (ptm.name, read_ptm(ptm, max_side=480)), f"renderings of {ptm.name}", notes)
+
+
+def _relit(report: dict, previews: figures.Previews, ptm) -> str:
+    linear = figures.linear_ptm(report)
     if ptm is not None:
-        # Only a subsample is decoded: for a run from a .ptm file this re-reads the source
-        # file, at the cost of the subsample.
-        linear = figures.linear_ptm(report)
-        images = figures.relit_from_ptm(ptm, linear=linear)
-        how = f"RTIViewer's default rendering of {ptm.name}" + (
+        name, small = ptm
+        images = figures.relit_from_ptm(small, linear=linear)
+        how = f"RTIViewer's default rendering of {name}" + (
             " (a PTM of linear light, from 16-bit photographs: shown sRGB-encoded)" if linear else "")
     elif previews.normals is not None:
-        # A normal map from elsewhere has no albedo (its albedo.png is a shaded rendering).
-        from_normal_map = "normal_map" in ((report or {}).get("inputs") or {})
+        from_normal_map = "normal_map" in (report.get("inputs") or {})
         albedo = None if from_normal_map else previews.albedo
-        albedo_path = files.find("albedo.png")
-        if albedo is None and albedo_path and not from_normal_map:
-            from ptmcore.images import read_image
-
-            albedo = read_image(albedo_path)  # a PNG is decoded whole; only without a PTM
         images = figures.relit_lambertian(previews.normals, albedo)
         how = "Lambertian shading of the normals" + (" and albedo" if albedo is not None else " (uniform grey)")
     else:
         return _note("no relit renderings: neither coefficients.ptm nor normals.npy is in the folder")
     items = "".join(_figure(figures.encode(img, "JPEG"), "image/jpeg", label) for label, img in images)
-    return f"<p>{_esc(how)}, under six lights (elevation above the object plane).</p>" \
-           f'<div class="grid">{items}</div>'
+    return (f"<p>{_esc(how)}, under six lights (elevation above the object plane). Raking light shows "
+            f"the relief: marks, tool traces and inscriptions.</p>" f'<div class="grid">{items}</div>')
 
 
-def _maps(report: dict | None, previews: figures.Previews, notes: list[str]) -> str:
+def _surface(report: dict, previews: figures.Previews, ptm, notes: list[str]) -> str:
+    """Specular enhancement, albedo and normal map, side by side."""
     parts = []
+    if ptm is not None:
+        def specular() -> str:
+            image = figures.specular_from_ptm(ptm[1], linear=figures.linear_ptm(report))
+            if image is None:
+                return _note("no specular enhancement: the PTM is in RGB format (it needs a luminance polynomial)")
+            label, _, _ = figures.SPECULAR_LIGHT
+            return _figure(figures.encode(image, "JPEG"), "image/jpeg",
+                           f"specular enhancement (RTIViewer's, light {label}): surface shape without colour")
+
+        parts.append(_attempt(specular, "specular enhancement", notes, _note))
+    if previews.albedo is not None and "normal_map" not in (report.get("inputs") or {}):
+        albedo = figures.fit_side(previews.albedo, figures.MAX_WIDTH // 2)
+        parts.append(_figure(figures.encode(albedo, "JPEG"), "image/jpeg",
+                             "albedo: the surface's colour without shading (sRGB)"))
     if previews.normals is not None:
-        def normal_map() -> bytes:
-            return figures.encode(figures.fit_side(figures.normal_colors(previews.normals), figures.MAX_WIDTH // 2))
+        def normal_map() -> str:
+            image = figures.fit_side(figures.normal_colors(previews.normals), figures.MAX_WIDTH // 2)
+            return _figure(figures.encode(image), "image/png",
+                           "normal map (R = x right, G = y up, B = z towards the camera)")
 
-        parts.append(_attempt(lambda: _figure(normal_map(), "image/png",
-            "normal map (R = x right, G = y up, B = z towards the camera)"), "normal map picture", notes, _note))
-    if previews.height is not None:
-        unit = (report or {}).get("height_unit", "pixel")
-        pixel_size = figures.display_pixel_size(report)
-
-        def make() -> str:
-            png = figures.height_figure(previews.height, previews.stride, unit, pixel_size)
-            bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
-            return _figure(png, "image/png", f"height map in {unit}; {bar}")
-
-        parts.append(_attempt(make, "height map picture", notes, _note))
-    if not parts:
-        return _note("no normal or height map in the folder")
-    return f'<div class="grid" style="--min:420px">{"".join(parts)}</div>'
+        parts.append(_attempt(normal_map, "normal map picture", notes, _note))
+    return f'<div class="grid">{"".join(parts)}</div>' if parts else _note("no surface pictures")
 
 
-def _mesh(files: _Folder, report: dict | None, previews: figures.Previews, notes: list[str]) -> str:
+def _height(report: dict, previews: figures.Previews, notes: list[str]) -> str:
+    if previews.height is None:
+        return _note("no height map in the folder")
+    unit = report.get("height_unit", "pixel")
+    pixel_size = figures.display_pixel_size(report)
+    row = plots.profile_row(previews.height)
+
+    def height_map() -> str:
+        png = figures.height_figure(previews.height, previews.stride, unit, pixel_size, profile=row)
+        bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
+        return _figure(png, "image/png", f"height map in {'pixels' if unit == 'pixel' else unit}; {bar}; "
+                                         "the dashed line is where the profile below is taken", "wide")
+
+    def profile() -> str:
+        png = plots.profile_figure(previews.height, row, previews.stride, unit, pixel_size)
+        return _figure(png, "image/png", f"height profile along row {row * previews.stride} of the height map "
+                                         "(the dashed line), left to right", "wide")
+
+    return _attempt(height_map, "height map picture", notes, _note) + _attempt(profile, "height profile", notes, _note)
+
+
+def _mesh(files: _Folder, report: dict, previews: figures.Previews, extent: summary.Extent | None,
+          notes: list[str]) -> str:
     mesh = files.find("mesh.ply")
     if mesh is None:
         return _note("no mesh.ply in the folder")
     faces = figures.ply_face_count(mesh)
+    # x, y and z share a unit only with a pixel size on an orthographic camera, or in pixels.
+    same_units = figures.display_pixel_size(report) or report.get("height_unit") == "pixel"
+    factor = figures.vertical_exaggeration(extent.width, extent.height, extent.depth) if extent and same_units else 1
+    scale = "true scale" if factor == 1 else f"vertical exaggeration ×{factor}: heights drawn {factor} times deeper"
 
     def make() -> str:
         if faces is not None and faces <= figures.MAX_RENDER_FACES or previews.height is None:
-            image = figures.mesh_render(mesh)
+            image = figures.mesh_render(mesh, exaggeration=factor)
             what = "mesh.ply"
         else:
             sub, k = figures.thin(previews.height, figures.MESH_RENDER_SIDE)
+            texture = None if previews.albedo is None else previews.albedo[::k, ::k]
             stride = previews.stride * k
-            image = figures.mesh_render(figures.surface_from_height(sub, stride, figures.display_pixel_size(report)))
+            image = figures.mesh_render(figures.surface_from_height(sub, stride, figures.display_pixel_size(report),
+                                                                    texture), exaggeration=factor)
             what = f"mesh.ply's surface ({faces:,} triangles) sampled every {stride} pixels"
         return _figure(figures.encode(image, "JPEG", 90), "image/jpeg",
-                       f"{what}, shaded, seen obliquely from the front (true scale)")
+                       f"{what}, with its colours, seen obliquely from the front ({scale})", "wide")
 
     return _attempt(make, "mesh render", notes, _note)
 
 
+def _lights(photographs: Sequence[tuple[str | os.PathLike, np.ndarray]], notes: list[str]) -> str:
+    def make() -> str:
+        from reconstruct.calibration.lightcheck import polar_plot_png
+
+        directions = np.array([d for _, d in photographs], dtype=np.float64)
+        png = polar_plot_png(directions, names=[str(p) for p, _ in photographs], size=620)
+        return _figure(png, "image/png", f"the {len(photographs)} lights seen from above the object, each labelled "
+                                         "by its photograph; centre = overhead, rim = grazing; 0° = light from the "
+                                         "right, 90° = from the top", "polar")
+
+    return _attempt(make, "light plot", notes, _note)
+
+
 def _comparison(files: _Folder, comparison: dict, notes: list[str]) -> str:
     stats = comparison.get("statistics_mm") or {}
-    tables = [_table(stats.items(), ("scan → reconstruction", "mm"))]
-    if comparison.get("reverse_statistics_mm"):
-        tables.append(_table(comparison["reverse_statistics_mm"].items(), ("reconstruction → scan", "mm")))
-    alignment = {k: v for k, v in (comparison.get("alignment") or {}).items()
-                 if k != "transform_scan_to_reconstruction"}
-    tables.append(_table(alignment.items(), ("alignment", "")))
-    if comparison.get("tolerance"):
-        tables.append(_table(comparison["tolerance"].items(), ("tolerance", "")))
-    parts = [f'<p>{_esc(comparison.get("sign_convention", ""))}. Scan: {_esc(comparison.get("scan", ""))}</p>',
-             f'<div class="tables">{"".join(tables)}</div>']
+    labels = {"rms": "RMS distance", "mean": "mean (signed)", "std": "standard deviation",
+              "median_abs": "median |distance|", "p95_abs": "95% of |distances| below", "max_abs": "largest |distance|"}
+    rows = [(label, f"{stats[key]:.3g} mm") for key, label in labels.items() if stats.get(key) is not None]
+    parts = [f'<p>Scan {_esc(Path(comparison.get("scan", "")).name)} aligned onto the reconstruction; '
+             f'{_esc(comparison.get("sign_convention", ""))}.</p>', _table(rows, ("scan → reconstruction", ""))]
     for name, fmt, caption in (("histogram.png", "PNG", "histogram of the signed distances"),
                                ("overlay.png", "JPEG", "aligned pair and distance map")):
         path = files.find(name)
         if path is not None:
             parts.append(_attempt(lambda path=path, fmt=fmt, caption=caption: _figure(
-                figures.downscale_file(path, fmt=fmt), f"image/{fmt.lower()}", caption), name, notes, _note))
+                figures.downscale_file(path, fmt=fmt), f"image/{fmt.lower()}", caption, "wide"), name, notes, _note))
         elif name == "overlay.png":
             parts.append(_note("no overlay.png (see the warnings)"))
     return "".join(parts)
@@ -294,28 +362,63 @@ def _timings(report: dict | None, comparison: dict | None) -> str:
     return _table([*rows, ("total", round(total, 3), None)], ("stage", "wall time (s)", f"peak memory (MiB, {scope})"))
 
 
-def _run_sections(report: dict, files: _Folder, previews: figures.Previews,
-                  photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None,
-                  thumbnails: Mapping[int, np.ndarray] | None, notes: list[str]) -> list[tuple[str, str, str]]:
-    """The sections of a run before its mesh: inputs, photographs, relit renderings, maps."""
-    inputs = report.get("inputs") or {}
-    tables = [_table(inputs.items(), ("input", "")),
-              _table((report.get("parameters") or {}).items(), ("parameter", "value"))]
-    result = dict(report.get("mesh") or {})
-    for key in ("albedo_scale", "lights", "ptm", "intensities", "leave_one_out"):
-        if report.get(key) is not None:
-            result.update(_flatten({key: report[key]}))
-    tables.append(_table(result.items(), ("result", "")))
-    sections = [("inputs", "Inputs and parameters", f'<div class="tables">{"".join(tables)}</div>')]
-    if photographs is None:
-        photographs = _attempt(lambda: _photographs_from_report(report), "contact sheet", notes)
-    if photographs:
-        sections.append(("photographs", "Photographs",
-                         _attempt(lambda: _contact_sheet(photographs, thumbnails), "contact sheet", notes, _note)))
-    sections.append(("relit", "Relit renderings",
-                     _attempt(lambda: _relit(files, report, previews), "relit renderings", notes, _note)))
-    sections.append(("maps", "Normal map and height map", _maps(report, previews, notes)))
-    return sections
+def _given(rows: Iterable[tuple[str, object]]) -> list[tuple[str, object]]:
+    """Rows with a value: an option not given has no row (it is not a missing result)."""
+    return [(k, v) for k, v in rows if v is not None and v != [] and v != {}]
+
+
+def _parameters(report: dict | None, comparison: dict | None) -> str:
+    """Every technical value of the run and the comparison, in tables (the page folds them)."""
+    blocks = []
+    if report is not None:
+        options = [(f"--{k.replace('_', '-')}", v) for k, v in (report.get("parameters") or {}).items()]
+        results = list(_flatten({"mesh": report.get("mesh") or {}}))
+        for key in ("albedo_scale", "lights", "light_model", "reflectance_lobe", "ptm", "intensities", "leave_one_out"):
+            if report.get(key) is not None:
+                results += _flatten({key: report[key]})
+        blocks += [("Inputs", _table(_given((report.get("inputs") or {}).items()), ("input", "value"))),
+                   ("Options (as on the command line; those not given are left out)",
+                    _table(_given(options), ("option", "value"))),
+                   ("Results", _table(_given(results), ("value", "")))]
+        if report.get("accuracy"):
+            blocks.append(("Accuracy against ground truth", _table(_flatten(report["accuracy"]), ("measure", "value"))))
+    if comparison is not None:
+        tables = [_table((comparison.get("statistics_mm") or {}).items(), ("scan → reconstruction", "mm"))]
+        if comparison.get("reverse_statistics_mm"):
+            tables.append(_table(comparison["reverse_statistics_mm"].items(), ("reconstruction → scan", "mm")))
+        alignment = {k: v for k, v in (comparison.get("alignment") or {}).items()
+                     if k != "transform_scan_to_reconstruction"}
+        tables.append(_table(alignment.items(), ("alignment", "")))
+        if comparison.get("tolerance"):
+            tables.append(_table(comparison["tolerance"].items(), ("tolerance", "")))
+        blocks.append(("Comparison with the scan", f'<div class="tables">{"".join(tables)}</div>'))
+    blocks.append(("Stage timings", _timings(report, comparison)))
+    versions = (report or comparison or {}).get("versions") or {}
+    if versions:
+        blocks.append(("Software versions", _table(versions.items(), ("package", "version"))))
+    body = "".join(f"<h3>{_esc(name)}</h3>{content}" for name, content in blocks)
+    return f"<details><summary>Show the technical parameters, timings and versions</summary>{body}</details>"
+
+
+def _files(folder: Path, written_after: Sequence[str], also: Sequence[Path]) -> str:
+    rows = "".join(f'<tr><td><a href="{_esc(quote(e.name))}">{_esc(e.name)}</a></td><td>{_esc(e.what)}</td>'
+                   f"<td>{_esc(e.how)}</td></tr>" for e in summary.file_entries(folder, written_after))
+    elsewhere = "".join(f"<p>The reconstruction's own files are in {_esc(p)}.</p>" for p in also)
+    return ("<p>In the folder of this page; the links open them where the browser can.</p>"
+            f'<table class="files"><tr><th>file</th><th>what it is</th><th>open it with</th></tr>{rows}</table>'
+            + elsewhere)
+
+
+def _summary(rows: Sequence[tuple[str, str]], warnings: Sequence[str]) -> str:
+    if warnings:
+        items = "".join(f"<li>{_esc(w)}</li>" for w in warnings)
+        box = (f'<div class="warnings" id="warnings"><h3>{len(warnings)} warning{"s" if len(warnings) > 1 else ""}'
+               f"</h3><ul>{items}</ul></div>")
+    else:
+        box = '<p class="ok" id="warnings">No warnings.</p>'
+    ids = {"Accuracy": ' id="accuracy"'}
+    table = "".join(f"<tr{ids.get(label, '')}><th>{_esc(label)}</th><td>{_esc(text)}</td></tr>" for label, text in rows)
+    return f'{box}<table class="summary">{table}</table>'
 
 
 def report_html(
@@ -328,6 +431,7 @@ def report_html(
     also: Sequence[str | os.PathLike] = (),
     previews: figures.Previews | None = None,
     thumbnails: Mapping[int, np.ndarray] | None = None,
+    written_after: Sequence[str] = (),
 ) -> str:
     """The text of ``report.html`` for an output folder.
 
@@ -340,11 +444,11 @@ def report_html(
         after the page, with its time); by default read from ``report.json`` and
         ``comparison.json`` in the folders.
     photographs : sequence of (path, light direction), optional
-        The photographs of the capture, for the contact sheet (at most
+        The photographs of the capture, for the light plot and the contact sheet (at most
         :data:`CONTACT_SHEET`, evenly spread, are shown). Default: those of the ``.lp`` file
         named in ``report.json``, when it still exists.
     title : str, optional
-        The page's title (default: the source's name).
+        The page's title (default: the object's name).
     also : sequence of paths
         Further folders to look in for files not in ``folder`` (an output folder published
         earlier, e.g. the reconstruction a comparison was written beside).
@@ -352,57 +456,79 @@ def report_html(
         Subsamples of the run's normals, heights and albedo
         (:func:`reconstruct.report.figures.previews` of the arrays in memory), from which the
         maps, the Lambertian relighting and the mesh render are made. Default: subsamples of
-        ``normals.npy`` and ``height.tif`` read through memory maps.
+        ``normals.npy``, ``height.tif`` and ``albedo.png``.
     thumbnails : mapping of int to ndarray, optional
         8-bit RGB thumbnails of photographs by their index in ``photographs``
         (:func:`reconstruct.report.figures.stack_thumbnail`; :func:`contact_sheet_picks` says
         which are shown); the others are decoded from the files.
+    written_after : sequence of str
+        Files the caller writes into ``folder`` after the page (the list of files names
+        them; :func:`write_report_html` adds its JSON documents and the page).
 
     Returns
     -------
     str
-        A complete HTML5 document with every picture embedded.
+        A complete HTML5 document with every picture embedded; its only links are to the
+        files of ``folder``.
     """
     # The same folder may be given twice (a comparison written into the run's own folder).
-    places = dict.fromkeys(Path(p).resolve() for p in also if Path(p).resolve() != Path(folder).resolve())
-    files = _Folder(Path(folder), list(places))
+    places = list(dict.fromkeys(Path(p).resolve() for p in also if Path(p).resolve() != Path(folder).resolve()))
+    files = _Folder(Path(folder), places)
     report = report if report is not None else files.json("report.json")
     comparison = comparison if comparison is not None else files.json("comparison.json")
     notes: list[str] = []
     inputs = (report or {}).get("inputs") or {}
     source = inputs.get("capture") or inputs.get("ptm") or inputs.get("normal_map") \
         or (comparison or {}).get("reconstruction") or str(folder)
-    title = title or f"ptm-reconstruct report: {Path(source).name}"
+    name = Path(source).stem if Path(source).suffix.lower() in (".ptm", ".png", ".tif", ".tiff", ".npy", ".jpg",
+                                                                ".ply") else Path(source).name
+    title = title or f"{name} — ptm-reconstruct report"
     versions = (report or comparison or {}).get("versions") or {}
 
-    sections: list[tuple[str, str, str]] = []
+    pictures: list[tuple[str, str, str]] = []
+    extent = None
     if report is not None:
-        previews = previews if previews is not None else _previews(files, notes)
+        previews = previews if previews is not None else _previews(files, report, notes)
+        if previews.height is not None:
+            extent = summary.extent(previews.height, previews.stride, figures.display_pixel_size(report))
         mesh_notes: list[str] = []
         # The mesh is rendered in its own thread while the other pictures are made (see the
         # module's docstring); its notes join the others in the order of the sections.
         with ThreadPoolExecutor(max_workers=1) as render:
-            mesh_section = render.submit(_mesh, files, report, previews, mesh_notes)
-            sections += _run_sections(report, files, previews, photographs, thumbnails, notes)
-            sections.append(("mesh", "Mesh", mesh_section.result()))
+            mesh_section = render.submit(_mesh, files, report, previews, extent, mesh_notes)
+            ptm = _ptm_preview(files, report, notes)
+            pictures.append(("relit", "Relit under several lights",
+                             _attempt(lambda: _relit(report, previews, ptm), "relit renderings", notes, _note)))
+            pictures.append(("surface", "Specular enhancement, albedo and normals", _surface(report, previews, ptm, notes)))
+            pictures.append(("maps", "Height map and profile", _height(report, previews, notes)))
+            if photographs is None:
+                photographs = _attempt(lambda: _photographs_from_report(report), "contact sheet", notes)
+            lights = _lights(photographs, notes) if photographs else None
+            sheet = (_attempt(lambda: _contact_sheet(photographs, thumbnails), "contact sheet", notes, _note)
+                     if photographs else None)
+            pictures.append(("mesh", "The 3D mesh", mesh_section.result()))
         notes += mesh_notes
-        if report.get("accuracy"):
-            sections.append(("accuracy", "Accuracy against ground truth",
-                             _table(_flatten(report["accuracy"]), ("measure", "value"))))
+        if lights:
+            pictures.append(("lights", "The lights", lights))
+        if sheet:
+            pictures.append(("photographs", "Photographs", sheet))
     if comparison is not None:
-        sections.append(("comparison", "Comparison with the scan", _comparison(files, comparison, notes)))
-    sections.append(("timings", "Stage timings", _timings(report, comparison)))
+        pictures.append(("comparison", "Comparison with the scan", _comparison(files, comparison, notes)))
+
     warnings = [*((report or {}).get("warnings") or []), *((comparison or {}).get("warnings") or []), *notes]
-    warning_body = ("<ul class=\"warnings\">" + "".join(f"<li>{_esc(w)}</li>" for w in warnings) + "</ul>"
-                    if warnings else "<p>none</p>")
-    sections.append(("warnings", f"Warnings ({len(warnings)})", warning_body))
+    rows = summary.summary_rows(report, comparison, extent, object_name=name)
+    pictures_body = "".join(f'<section id="{key}"><h3>{_esc(heading)}</h3>{content}</section>'
+                            for key, heading, content in pictures) or _note("no pictures: the folder holds no run")
+    sections = [("summary", "Summary", _summary(rows, warnings)),
+                ("pictures", "Pictures", pictures_body),
+                ("files", "Files", _files(Path(folder), written_after, places)),
+                ("parameters", "Technical parameters", _parameters(report, comparison))]
 
     made = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
     meta = [f"source: {source}", f"made {made}", f"ptm-reconstruct {versions.get('ptm-reconstruct', '?')}"]
-    if report is not None:
-        meta.append(f"heights in {report.get('height_unit')}")
-    nav = "".join(f'<a href="#{key}">{_esc(name)}</a>' for key, name, _ in sections)
-    body = "".join(f'<section id="{key}"><h2>{_esc(name)}</h2>{content}</section>' for key, name, content in sections)
+    nav = "".join(f'<a href="#{key}">{_esc(heading)}</a>' for key, heading, _ in sections)
+    body = "".join(f'<section id="{key}"><h2>{_esc(heading)}</h2>{content}</section>'
+                   for key, heading, content in sections)
     return (
         "<!DOCTYPE html>\n"
         f'<html lang="en"><head><meta charset="utf-8">'
@@ -427,13 +553,18 @@ def write_report_html(
 ) -> Path:
     """Write ``report.html`` into ``folder`` (atomically); see :func:`report_html`.
 
+    The documents given (``report``, ``comparison``) are listed among the files as
+    ``report.json`` and ``comparison.json``: the pipeline writes them right after the page.
+
     Returns
     -------
     Path
         The file written.
     """
+    after = ["report.html", *(["report.json"] if report is not None else []),
+             *(["comparison.json"] if comparison is not None else [])]
     text = report_html(folder, report=report, comparison=comparison, photographs=photographs, title=title,
-                       also=also, previews=previews, thumbnails=thumbnails)
+                       also=also, previews=previews, thumbnails=thumbnails, written_after=after)
     path = Path(folder) / "report.html"
     with atomic_write(path, "w") as f:
         f.write(text)

@@ -45,6 +45,16 @@ The JPEGs are written in the RGB colour space without chroma subsampling (Pillow
 ``keep_rgb``, ``subsampling=0``), as Relight writes LRGB planes (``JCS_RGB``): a YCbCr
 transform would spread each coefficient's compression error over the other two channels of
 its plane. Rows are in image order (row 0 at the top), as the viewer displays them.
+
+Beside these, the folder gets its own viewer, so that it can be published as it is:
+
+* ``index.html`` — a relighting page in plain WebGL, no library (the package's
+  ``webviewer.html``, copied): it renders the planes as OpenLIME's shader does, the mouse (or a
+  hemisphere widget, or the arrow keys) moving the light; wheel zoom and pan; the light and layer
+  in the address (``#light=x,y&layer=relit|normals|height``), so a link shows what its sender saw.
+* ``viewer.json`` — what the page needs beyond ``info.json``: ``encoding`` (``"srgb"``, or
+  ``"linear"`` for a PTM of linear light, which the page encodes to sRGB for display) and
+  ``layers``, the optional normal-map and height-map images :func:`export_web_layers` adds.
 """
 
 from __future__ import annotations
@@ -54,20 +64,31 @@ import json
 import math
 import os
 from concurrent.futures import ThreadPoolExecutor
+from importlib.resources import files
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
+from ptmcore.png import write_png
+from reconstruct.report.figures import stride_for
 
-__all__ = ["PLANE_TERMS", "export_openlime", "lrgb_planes"]
+__all__ = ["LAYER_SIDE", "PLANE_TERMS", "export_openlime", "export_web_layers", "lrgb_planes"]
 
 #: Coefficient index (a0..a5) in each channel of plane_1 and plane_2: (1, x, y) and (x², xy, y²).
 PLANE_TERMS = ((5, 3, 4), (0, 2, 1))
 
 # Number of planes, counting the colour planes, as OpenLIME and Relight count them.
 _NPLANES = 9
+
+#: Longest side of the normal-map and height-map layers, pixels: sharp on a screen at the
+#: whole object's view, and 12 MB of decoded textures at most (the relit planes stay full size).
+LAYER_SIDE = 2048
+
+# The page, in the package: see the module docstring.
+_VIEWER_PAGE = "webviewer.html"
 
 
 def _checked(coefficients: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,13 +187,16 @@ def export_openlime(
     *,
     pixel_size_mm: float | None = None,
     quality: int = 95,
+    encoding: Literal["srgb", "linear"] = "srgb",
 ) -> list[Path]:
-    """Write an LRGB PTM in the layout of OpenLIME's RTI layer (Relight's web format).
+    """Write an LRGB PTM in the layout of OpenLIME's RTI layer (Relight's web format), with
+    a relighting page of its own.
 
-    Writes ``plane_0.jpg``, ``plane_1.jpg``, ``plane_2.jpg`` and then ``info.json`` (last, so
-    that a viewer never finds an ``info.json`` whose planes are missing), each through
-    :func:`ptmcore.atomic.atomic_write`. See the module docstring for the format. Open it in
-    OpenLIME with ``new OpenLIME.Layer({type: 'rti', layout: 'image', url: '…/info.json'})``.
+    Writes ``plane_0.jpg``, ``plane_1.jpg``, ``plane_2.jpg``, then ``info.json`` (so that a
+    viewer never finds an ``info.json`` whose planes are missing), ``viewer.json`` and
+    ``index.html``, each through :func:`ptmcore.atomic.atomic_write`. See the module docstring
+    for the format. Open it in OpenLIME with ``new OpenLIME.Layer({type: 'rti', layout:
+    'image', url: '…/info.json'})``, or serve the folder and open ``index.html``.
 
     Parameters
     ----------
@@ -187,20 +211,28 @@ def export_openlime(
         Size of a pixel on the object, written as ``pixelSizeInMM`` (OpenLIME's scale bar).
     quality : int
         JPEG quality, 1–100.
+    encoding : {"srgb", "linear"}
+        What the coefficients and colour hold (``RunOptions.ptm_encoding``): display
+        (sRGB-encoded) values, or linear light,
+        which ``index.html`` encodes to sRGB for display (OpenLIME itself shows them as they
+        are).
 
     Returns
     -------
     list of Path
-        The files written, in the order written: the three planes, then ``info.json``.
+        The files written, in the order written: the three planes, ``info.json``,
+        ``viewer.json``, ``index.html``.
 
     Raises
     ------
     InputError
         If the folder cannot be created or written to.
     ValueError
-        If the arrays do not match, a coefficient is not finite, the quality is not 1–100 or
-        the pixel size is not a positive number.
+        If the arrays do not match, a coefficient is not finite, the quality is not 1–100,
+        the pixel size is not a positive number or the encoding is neither sRGB nor linear.
     """
+    if encoding not in ("srgb", "linear"):
+        raise ValueError(f"encoding must be 'srgb' or 'linear', not {encoding!r}")
     if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 1 <= quality <= 100:
         raise ValueError(f"JPEG quality must be an integer from 1 to 100, not {quality!r}")
     if pixel_size_mm is not None and not (math.isfinite(float(pixel_size_mm)) and float(pixel_size_mm) > 0):
@@ -243,4 +275,103 @@ def export_openlime(
     with atomic_write(path, "w") as f:
         f.write(json.dumps(info, indent=1) + "\n")
     written.append(path)
+    written.append(_write_viewer_json(folder, {"encoding": encoding, "layers": {}}))
+    path = folder / "index.html"
+    with atomic_write(path, "wb") as f:
+        f.write(files(__package__).joinpath(_VIEWER_PAGE).read_bytes())
+    written.append(path)
+    return written
+
+
+def _write_viewer_json(folder: Path, extras: dict) -> Path:
+    path = folder / "viewer.json"
+    with atomic_write(path, "w") as f:
+        f.write(json.dumps(extras, indent=1) + "\n")
+    return path
+
+
+def export_web_layers(
+    folder: str | os.PathLike,
+    *,
+    normals: np.ndarray | None = None,
+    height: np.ndarray | None = None,
+    unit: str = "pixel",
+    max_side: int = LAYER_SIDE,
+) -> list[Path]:
+    """Add the normal map and the height map as layers of the page :func:`export_openlime` wrote.
+
+    Each map is subsampled (every s-th row and column, s the smallest step bringing the longer
+    side to ``max_side``: only those rows are read, nothing full-size is computed) and written
+    as an 8-bit PNG; ``viewer.json`` is rewritten last to list them, so the page never asks for
+    a missing file.
+
+    * ``normals.png`` — OpenGL-style: ``round((n + 1) · 127.5)`` for (R, G, B) = (x, y up, z);
+      a NaN normal is black.
+    * ``height.png`` — the height quantised to 16 bits over the subsample's range, high byte in
+      R and low byte in G, B = 255 on the object and 0 where the height is NaN (outside the
+      mask); ``viewer.json`` gives the range (``min``, ``max``) and ``unit``. PNG, not JPEG:
+      the bytes are data.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        The folder of :func:`export_openlime` (its ``viewer.json`` is updated).
+    normals : ndarray, shape (H, W, 3), optional
+        Unit normals, x right, y up, z towards the camera.
+    height : ndarray, shape (H, W), optional
+        Heights, NaN outside the object.
+    unit : str
+        The heights' unit, shown by the page (``mm`` or ``pixel``).
+    max_side : int
+        Longest side of the layers, pixels.
+
+    Returns
+    -------
+    list of Path
+        The files written: the layers' images, then ``viewer.json``.
+
+    Raises
+    ------
+    ValueError
+        If a map's shape is wrong or ``max_side`` is not positive.
+    FileNotFoundError
+        If the folder has no ``viewer.json`` (:func:`export_openlime` not called first).
+    """
+    if max_side < 1:
+        raise ValueError(f"max_side must be positive, not {max_side}")
+    folder = Path(folder)
+    extras = json.loads((folder / "viewer.json").read_text())
+    written = []
+    if normals is not None:
+        if np.ndim(normals) != 3 or np.shape(normals)[2] != 3:
+            raise ValueError(f"normals must be (H, W, 3), not {np.shape(normals)}")
+        import cv2
+
+        s = stride_for(np.shape(normals), max_side)
+        small = np.ascontiguousarray(normals[::s, ::s], dtype=np.float32)
+        # One saturating, rounding pass (as outputs.normals_to_rgb16).
+        image = cv2.addWeighted(small, 127.5, small, 0.0, 127.5, dtype=cv2.CV_8U)
+        write_png(folder / "normals.png", image)
+        written.append(folder / "normals.png")
+        extras["layers"]["normals"] = {"src": "normals.png", "width": image.shape[1], "height": image.shape[0]}
+    if height is not None:
+        if np.ndim(height) != 2:
+            raise ValueError(f"height must be (H, W), not {np.shape(height)}")
+        s = stride_for(np.shape(height), max_side)
+        small = np.ascontiguousarray(height[::s, ::s], dtype=np.float32)
+        inside = np.isfinite(small)
+        lo, hi = (float(np.nanmin(small)), float(np.nanmax(small))) if inside.any() else (0.0, 0.0)
+        step = np.float32(65535.0 / (hi - lo)) if hi > lo else np.float32(0.0)
+        code = np.rint((small - np.float32(lo)) * step)
+        code[~inside] = 0
+        image = np.empty(small.shape + (3,), np.uint8)
+        # Little-endian uint16 viewed as bytes: (low, high); high byte to R, low to G.
+        pairs = code.astype("<u2").view(np.uint8).reshape(small.shape + (2,))
+        image[..., 0], image[..., 1] = pairs[..., 1], pairs[..., 0]
+        image[..., 2] = inside * np.uint8(255)
+        write_png(folder / "height.png", image)
+        written.append(folder / "height.png")
+        extras["layers"]["height"] = {"src": "height.png", "width": image.shape[1], "height": image.shape[0],
+                                      "min": lo, "max": hi, "unit": unit}
+    written.append(_write_viewer_json(folder, extras))
     return written

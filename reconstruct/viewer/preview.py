@@ -2,18 +2,28 @@
 
 The arrays come from :mod:`reconstruct.viewer.scene`; this module puts them in a VTK scene
 and wires the controls. :func:`build_plotter` returns a :class:`PreviewWindow` whose methods
-are the window's callbacks (``on_light``, ``set_mode``, ``on_pick``, ``reset_view``,
-``save_screenshot``, ``toggle_help``, ``toggle_profile``), so they run the same off-screen,
-in scripts and tests, as behind the sliders, mouse and keys.
+are the window's callbacks (``on_light``, ``move_light``, ``set_mode``, ``on_pick``,
+``set_exaggeration``, ``export_measurement``, ``save_screenshot``, ``toggle_help``,
+``toggle_profile``, ``quit``), so they run the same off-screen, in scripts and tests, as
+behind the mouse and keys (:mod:`reconstruct.viewer.keys` lists them).
 
-Relighting writes the new colours into the texture's VTK image in place and marks it modified:
-only the texture is uploaded again, the mesh and its actor stay as they are.
+The light is moved by the arrow keys, in the direction they point as seen, and by dragging
+on the hemisphere disk (:class:`reconstruct.viewer.overlays.LightDisk`); pyvista's and VTK's
+own keys are unbound, so nothing but the mouse in the view moves the camera. Relighting
+writes the new colours into the texture's VTK image in place and marks it modified: only the
+texture is uploaded again, the mesh and its actor stay as they are.
+
+Figures (``s``, ``--screenshot``) are the view alone with a scale bar (mm, or pixels without
+a pixel size) and, in the lit views, the light's direction on the disk: no text, help or
+profile strip. They, and exported measurements, go into ``preview/`` in the result's folder.
 """
 
 from __future__ import annotations
 
+import math
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -21,35 +31,41 @@ import numpy as np
 from ptmcore.errors import InputError
 from ptmcore.relight import light_direction
 from reconstruct.report import rendering
+from reconstruct.report.figures import finite_range
+from reconstruct.viewer.keys import help_text
 from reconstruct.viewer.scene import (
+    COLOUR_MODES,
+    LIT_MODES,
     MODES,
     PreviewScene,
+    Style,
     distance,
     mode_colors,
     profile,
 )
-from reconstruct.report.figures import finite_range
 
 __all__ = ["PreviewWindow", "build_plotter", "has_display", "render_screenshot"]
 
 DEFAULT_AZIMUTH = 135.0  # light from the top left, as relief is usually photographed
 DEFAULT_ELEVATION = 40.0
 PROFILE_SAMPLES = 400
-
-HELP = """\
-1 to 5: relit, albedo, normals, height, distance
-arrows: move the light (azimuth, elevation)
-right click: pick a point; two give a distance
-m: measure a distance or a height profile
-s: screenshot (PNG named after the source)
-r: reset the view
-h: this help
-q: quit"""
+#: How far one arrow key moves the light's projection on the image plane (the disk's radius is 1).
+LIGHT_STEP = 0.1
+#: The vertical exaggerations that + and - step through.
+EXAGGERATIONS = (1.0, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0)
+#: Limits of diffuse gain (RTIViewer's slider) and of the specular exponent, and the factor
+#: [ and ] change them by.
+GAIN_RANGE = (1.0, 10.0)
+EXPONENT_RANGE = (1.0, 150.0)
+PARAMETER_STEP = 1.25
+#: Size of an exported profile figure, pixels.
+PROFILE_PNG = (1200, 500)
 
 _BACKGROUND = (0.16, 0.16, 0.18)
-# Scale bars lie along the bottom, where the light sliders are in the relit mode (which has
-# no scale bar); the profile plot sits above them on the right, the status at the top right.
-_BAR = {"vertical": False, "position_x": 0.25, "position_y": 0.02, "width": 0.5, "height": 0.09}
+# Colour bars stand on the right edge; the light disk is in the lower left corner, the scale
+# bar in the lower right, the help at the top left and the status at the top right.
+_BAR = {"vertical": True, "position_x": 0.84, "position_y": 0.3, "width": 0.06, "height": 0.5,
+        "title_font_size": 14, "label_font_size": 12}
 _TEXT = "white"
 
 
@@ -61,29 +77,41 @@ def has_display() -> bool:
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
+def _bar_unit(unit: str) -> str:
+    return {"mm": "mm", "pixel": "px"}.get(unit, "units")
+
+
 class PreviewWindow:
     """A pyvista plotter showing a :class:`PreviewScene`, and the callbacks of its controls.
 
     Build it with :func:`build_plotter`. Attributes worth reading after a callback:
-    ``mode``, ``azimuth``, ``elevation``, ``colors`` (the colour array the GPU shows, a view
-    of VTK's memory), ``last_distance`` and ``last_profile``.
+    ``mode``, ``azimuth``, ``elevation``, ``style`` (gain, specular exponent, exaggeration),
+    ``colors`` (the colour array the GPU shows, a view of VTK's memory), ``last_distance``,
+    ``last_profile``, ``message`` (the last thing said to the user) and ``closed``.
     """
 
     def __init__(self, scene: PreviewScene, *, off_screen: bool, size: tuple[int, int],
-                 mode: str | None, azimuth: float, elevation: float) -> None:
+                 mode: str | None, azimuth: float, elevation: float, style: Style,
+                 output: Path | None) -> None:
         import pyvista as pv
 
         self.scene = scene
-        self.azimuth, self.elevation = float(azimuth), float(elevation)
+        self.style = style
+        self.output = output
+        self.azimuth, self.elevation = float(azimuth) % 360.0, float(elevation)
         self._light()  # checks the angles before anything is built
         self.picks: list[np.ndarray] = []
         self.profile_mode = False
         self.help_shown = False
+        self.closed = False
+        self.message = ""
         self.last_distance: float | None = None
         self.last_profile: tuple[np.ndarray, np.ndarray] | None = None
-        self._chart = None
-        self._screenshots = 0
+        self._last_measure: str | None = None
+        self._profile_ends: tuple[np.ndarray, np.ndarray] | None = None
         self.mode = mode or scene.modes[0]
+
+        from reconstruct.viewer.overlays import ImageStrip, LightDisk, ScaleBar
 
         plotter = rendering.plotter(size, off_screen=off_screen)
         self.plotter = plotter
@@ -95,15 +123,21 @@ class PreviewWindow:
         self._bars: dict[str, str] = {}
         self._add_colour_actor(pv, mesh)
         self._add_scalar_actors(mesh)
+        self._add_scene_light(pv)
 
         self._status = plotter.add_text("", position="upper_right", font_size=9, color=_TEXT)
         self._help = plotter.add_text("h: help", position="upper_left", font_size=9, color=_TEXT)
-        self._light_sliders = []
-        if "relit" in scene.modes:
-            self._add_light_sliders()
-        if plotter.iren is not None:
+        renderer = plotter.renderer
+        interactor = plotter.iren.interactor if plotter.iren is not None else None
+        radius = float(np.clip(0.1 * min(size), 36, 90))
+        self.disk = LightDisk(renderer, interactor, radius, self._on_disk)
+        self.scale_bar = ScaleBar(renderer, _bar_unit(scene.unit))
+        self.strip = ImageStrip(plotter.ren_win, renderer)
+        if interactor is not None:
             self._bind_keys()
 
+        self._apply_exaggeration()
+        self.on_light(self.azimuth, self.elevation)
         self.set_mode(self.mode)
         self.reset_view()
 
@@ -111,11 +145,11 @@ class PreviewWindow:
 
     def _add_colour_actor(self, pv, mesh) -> None:
         scene = self.scene
-        colour_modes = [m for m in scene.modes if m in ("relit", "albedo", "normals")]
+        colour_modes = [m for m in scene.modes if m in COLOUR_MODES]
         if not colour_modes:
             self.colors = None
             return
-        first = mode_colors(scene, colour_modes[0], self._light())
+        first = mode_colors(scene, colour_modes[0], self._light(), self.style)
         surface = mesh.copy(deep=False)
         if scene.uv is not None:
             h, w = first.shape[:2]
@@ -164,33 +198,40 @@ class PreviewWindow:
             )
             self._bars["distance"] = title
 
-    def _add_light_sliders(self) -> None:
-        common = {"style": "modern", "interaction_event": "always", "color": _TEXT, "fmt": "%.0f°"}
-        self._light_sliders = [
-            self.plotter.add_slider_widget(
-                lambda v: self.on_light(v, self.elevation), (0.0, 360.0), value=self.azimuth,
-                title="light azimuth", pointa=(0.03, 0.14), pointb=(0.3, 0.14), **common),
-            self.plotter.add_slider_widget(
-                lambda v: self.on_light(self.azimuth, v), (1.0, 90.0), value=self.elevation,
-                title="light elevation", pointa=(0.33, 0.14), pointb=(0.6, 0.14), **common),
-        ]
+    def _add_scene_light(self, pv) -> None:
+        # The height view is shaded by VTK: one light fixed to the object, the same as the
+        # relit texture's, instead of pyvista's light kit that follows the camera.
+        self.plotter.remove_all_lights()
+        self._scene_light = pv.Light(light_type="scene light")
+        self._scene_light.positional = False
+        self._scene_light.intensity = 1.0
+        self.plotter.add_light(self._scene_light)
 
     def _bind_keys(self) -> None:
         plotter = self.plotter
-        # VTK's own one-letter keys (w wireframe, 3 stereo, e exit...) would fight ours.
+        # VTK's own one-letter keys (w wireframe, 3 stereo, e exit...) and pyvista's (Up and
+        # Down zoom, q only flags a close, + and - thicken lines...) would fight ours.
         plotter.iren.interactor.RemoveObservers("CharEvent")
-        plotter.add_key_event("s", lambda: self.save_screenshot())
-        plotter.add_key_event("r", self.reset_view)
-        plotter.add_key_event("h", self.toggle_help)
-        plotter.add_key_event("m", self.toggle_profile)
+        plotter.iren.clear_key_event_callbacks()
+        bindings = {
+            "q": self.quit, "s": lambda: self.save_screenshot(), "e": lambda: self.export_measurement(),
+            "r": self.reset_view, "h": self.toggle_help, "m": self.toggle_profile,
+            "Left": lambda: self.move_light(-LIGHT_STEP, 0), "Right": lambda: self.move_light(LIGHT_STEP, 0),
+            "Up": lambda: self.move_light(0, LIGHT_STEP), "Down": lambda: self.move_light(0, -LIGHT_STEP),
+            "bracketleft": lambda: self.change_parameter(-1), "bracketright": lambda: self.change_parameter(1),
+        }
+        for key in ("plus", "equal", "KP_Add"):
+            bindings[key] = lambda: self.step_exaggeration(1)
+        for key in ("minus", "underscore", "KP_Subtract"):
+            bindings[key] = lambda: self.step_exaggeration(-1)
         for k, name in enumerate(MODES, start=1):
-            plotter.add_key_event(str(k), lambda name=name: name in self.scene.modes and self.set_mode(name))
-        for key, (da, de) in {"Left": (-15, 0), "Right": (15, 0), "Up": (0, 5), "Down": (0, -5)}.items():
-            plotter.add_key_event(key, lambda da=da, de=de: self._nudge_light(da, de))
+            bindings[str(k)] = lambda name=name: self.request_mode(name)
+        for key, callback in bindings.items():
+            plotter.add_key_event(key, callback)
         plotter.enable_point_picking(callback=self.on_pick, show_message=False, show_point=False,
                                      left_clicking=False, picker="cell")
 
-    # --- callbacks ----------------------------------------------------------------------
+    # --- the light ----------------------------------------------------------------------
 
     def _light(self) -> np.ndarray:
         return light_direction(azimuth_deg=self.azimuth, elevation_deg=self.elevation)
@@ -200,99 +241,211 @@ class PreviewWindow:
         self.colors.VTKObject.Modified()
         self._image.Modified()
 
-    def _nudge_light(self, d_azimuth: float, d_elevation: float) -> None:
-        self.on_light((self.azimuth + d_azimuth) % 360, min(90.0, max(1.0, self.elevation + d_elevation)))
-        self.plotter.render()
-
     def on_light(self, azimuth: float, elevation: float) -> None:
-        """Move the light (degrees) and, in the relit mode, relight the texture.
+        """Move the light (degrees) and relight the lit views.
 
-        It does not render: the slider's interaction renders after its callback, and
+        It does not render: the key and drag callbacks render after it, and
         :meth:`screenshot` renders.
         """
         self.azimuth, self.elevation = float(azimuth) % 360.0, float(elevation)
-        for slider, value in zip(self._light_sliders, (self.azimuth, self.elevation)):
-            slider.GetRepresentation().SetValue(value)
-        if self.mode == "relit":
-            self._show_colours(mode_colors(self.scene, "relit", self._light()))
+        light = self._light()
+        self.disk.set_light(light, self.azimuth, self.elevation)
+        centre = np.asarray(self.plotter.center)
+        self._scene_light.focal_point = tuple(centre)
+        self._scene_light.position = tuple(centre + light * max(self.plotter.length, 1e-6))
+        if self.mode in LIT_MODES and self.mode in COLOUR_MODES:
+            self._show_colours(mode_colors(self.scene, self.mode, light, self.style))
         self._update_status()
+
+    def _set_projection(self, lu: float, lv: float) -> None:
+        r = math.hypot(lu, lv)
+        azimuth = math.degrees(math.atan2(lv, lu)) if r > 1e-9 else self.azimuth
+        self.on_light(azimuth, math.degrees(math.acos(min(1.0, r))))
+
+    def move_light(self, d_lu: float, d_lv: float) -> None:
+        """Move the light's projection on the image plane: (−, 0) to the left as seen,
+        (0, +) upwards; it stays inside the horizon (1° up at least). Renders."""
+        light = self._light()
+        self._set_projection(*self.disk.light_at(*(self.disk.centre + self.disk.radius
+                                                    * (light[:2] + (d_lu, d_lv)))))
+        self.plotter.render()
+
+    def _on_disk(self, lu: float, lv: float) -> None:
+        self._set_projection(lu, lv)
+        self.plotter.render()
+
+    # --- views --------------------------------------------------------------------------
+
+    def request_mode(self, name: str) -> None:
+        """A view key: switch to `name`, or say in the window why it is not there."""
+        if name in self.scene.modes:
+            self.set_mode(name)
+            return
+        why = {"distance": "no comparison with a scan here (reconstruct run --scan, or preview --comparison DIR)",
+               "specular": "specular enhancement needs a PTM", "diffuse-gain": "diffuse gain needs a PTM",
+               "relief": "relief shading needs a normal map on the texture"}.get(name, "")
+        self._say(f"no {name} view: {why}" if why else f"no {name} view for this source")
+        self.plotter.render()
 
     def set_mode(self, name: str) -> None:
         """Show one view mode (see :data:`reconstruct.viewer.scene.MODES`)."""
         if name not in self.scene.modes:
             raise ValueError(f"{self.scene.name} has no {name} view; it has {', '.join(self.scene.modes)}")
         self.mode = name
+        self.message = ""
         shown = self._actors[name]
         for actor in self._actors.values():
             actor.SetVisibility(actor is shown)
         for mode, title in self._bars.items():
             self.plotter.scalar_bars[title].SetVisibility(mode == name)
-        for slider in self._light_sliders:
-            slider.SetEnabled(name == "relit")
-        if name in ("relit", "albedo", "normals"):
-            self._show_colours(mode_colors(self.scene, name, self._light()))
+        self.disk.set_visible(name in LIT_MODES)
+        if name in COLOUR_MODES:
+            self._show_colours(mode_colors(self.scene, name, self._light(), self.style))
         self._update_status()
         self.plotter.render()
 
+    def set_exaggeration(self, factor: float) -> None:
+        """Scale the heights shown (mesh and relief shading) by `factor`; measurements stay
+        in true heights. Renders."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"the vertical exaggeration must be a positive number, not {factor}")
+        self.style = replace(self.style, exaggeration=float(factor))
+        self._apply_exaggeration()
+        if self.mode == "relief":
+            self._show_colours(mode_colors(self.scene, "relief", self._light(), self.style))
+        self._update_status()
+        self.plotter.render()
+
+    def step_exaggeration(self, step: int) -> None:
+        """The next larger (`step` > 0) or smaller vertical exaggeration of :data:`EXAGGERATIONS`."""
+        now = self.style.exaggeration
+        if step > 0:
+            factor = next((e for e in EXAGGERATIONS if e > now), EXAGGERATIONS[-1])
+        else:
+            factor = next((e for e in reversed(EXAGGERATIONS) if e < now), EXAGGERATIONS[0])
+        self.set_exaggeration(factor)
+
+    def _apply_exaggeration(self) -> None:
+        e = self.style.exaggeration
+        for actor in self._scaled_actors():
+            actor.SetScale(1.0, 1.0, e)
+        self.scale_bar.note = f"  (heights ×{e:g})" if e != 1 else ""
+        self.plotter.renderer.ResetCameraClippingRange()
+
+    def _scaled_actors(self) -> list:
+        actors = {id(a): a for a in self._actors.values()}
+        for name in ("picks", "measure"):
+            if name in self.plotter.actors:
+                actors[id(self.plotter.actors[name])] = self.plotter.actors[name]
+        return list(actors.values())
+
+    def change_parameter(self, step: int) -> None:
+        """``[`` and ``]``: the diffuse gain in its view, the highlight's size (the specular
+        exponent, inversely) in the specular view. Renders."""
+        factor = PARAMETER_STEP ** step
+        if self.mode == "diffuse-gain":
+            gain = float(np.clip(round(self.style.gain * factor, 2), *GAIN_RANGE))
+            self.style = replace(self.style, gain=gain)
+        elif self.mode == "specular":
+            exponent = float(np.clip(round(self.style.exponent / factor, 1), *EXPONENT_RANGE))
+            self.style = replace(self.style, exponent=exponent)
+        else:
+            self._say("[ and ] change the diffuse gain or the specular highlight, in those views (7, 6)")
+            self.plotter.render()
+            return
+        self._show_colours(mode_colors(self.scene, self.mode, self._light(), self.style))
+        self._update_status()
+        self.plotter.render()
+
+    # --- measuring ----------------------------------------------------------------------
+
     def on_pick(self, point, *_: object) -> None:
-        """Add a picked surface point; every second one measures a distance, or in profile
-        mode draws the height profile between the two."""
-        p = np.asarray(point, dtype=np.float64).reshape(3)
+        """Add a picked surface point (as drawn: its height divided by the exaggeration);
+        every second one measures a distance, or in profile mode draws the height profile
+        between the two in a strip below the view. Renders."""
+        p = np.asarray(point, dtype=np.float64).reshape(3) / (1.0, 1.0, self.style.exaggeration)
         self.picks = (self.picks + [p])[-2:] if len(self.picks) < 2 else [p]
         self.plotter.add_points(np.array(self.picks), color="yellow", point_size=10,
                                 render_points_as_spheres=True, name="picks", reset_camera=False)
         if len(self.picks) < 2:
             self.plotter.remove_actor("measure", render=False)
-            self._update_status()
-            return
-        p0, p1 = self.picks
+        else:
+            self._measure(*self.picks)
+        self._apply_exaggeration()
+        self._update_status()
+        self.plotter.render()
+
+    def _measure(self, p0: np.ndarray, p1: np.ndarray) -> None:
+        along, heights = profile(self.scene, p0, p1, PROFILE_SAMPLES)
         # Drawn as the path on the surface, slightly lifted towards the camera: the straight
         # chord would pass under the bumps between the two points and vanish.
-        along, heights = profile(self.scene, p0, p1, PROFILE_SAMPLES)
         t = along / along[-1] if along[-1] > 0 else np.linspace(0, 1, len(along))
         chord = p0 + t[:, None] * (p1 - p0)
         path = chord.copy()
-        path[:, 2] = np.where(np.isfinite(heights), heights, chord[:, 2]) + 0.005 * self.plotter.length
+        lift = 0.005 * self.plotter.length / self.style.exaggeration
+        path[:, 2] = np.where(np.isfinite(heights), heights, chord[:, 2]) + lift
         self.plotter.add_lines(np.repeat(path, 2, axis=0)[1:-1], color="yellow", width=3, name="measure")
         if self.profile_mode:
             self.last_profile = along, heights
-            self._draw_profile(*self.last_profile)
+            self._profile_ends = p0, p1
+            self._last_measure = "profile"
+            from reconstruct.viewer.measurements import profile_figure
+
+            self.strip.show(profile_figure(along, heights, self.scene.unit, self.strip.size()))
         else:
             self.last_distance = distance(p0, p1)
-        self._update_status()
+            self._last_measure = "distance"
 
     def toggle_profile(self) -> None:
         """Switch the two-point measurement between a distance and a height profile."""
         self.profile_mode = not self.profile_mode
         self.picks = []
         self.plotter.remove_actor(["picks", "measure"], render=False)
-        if not self.profile_mode and self._chart is not None:
-            self._chart.visible = False
+        if not self.profile_mode:
+            self.strip.set_visible(False)
         self._update_status()
+        self.plotter.render()
 
-    def _draw_profile(self, along: np.ndarray, heights: np.ndarray) -> None:
-        import pyvista as pv
+    def export_measurement(self, folder: str | os.PathLike | None = None) -> list[Path]:
+        """Write the last measurement into `folder` (default: ``preview/`` in the result's
+        folder): a profile as CSV and PNG, a distance as CSV. Returns the files written."""
+        from reconstruct.viewer.measurements import (
+            free_stem,
+            profile_figure,
+            write_distance_csv,
+            write_profile_csv,
+        )
+        from reconstruct.viewer.relighting import write_image
 
-        unit = self.scene.unit
-        if self._chart is None:
-            self._chart = pv.Chart2D(size=(0.36, 0.34), loc=(0.62, 0.16), x_label=f"along the line ({unit})",
-                                     y_label=f"height ({unit})")
-            self._chart.background_color = (1.0, 1.0, 1.0, 0.85)
-            self.plotter.add_chart(self._chart)
-        self._chart.clear()
-        self._chart.visible = True
-        known = np.isfinite(heights)
-        if known.sum() >= 2:
-            self._chart.line(along[known], heights[known], color="b", width=2.0)
-            depth = float(np.ptp(heights[known]))
-            self._chart.title = f"height profile (range {depth:.3g} {unit})"
+        folder = Path(folder) if folder is not None else self._folder()
+        name, unit = self.scene.name, self.scene.unit
+        if self._last_measure == "profile":
+            along, heights = self.last_profile
+            p0, p1 = self._profile_ends
+            t = along / along[-1] if along[-1] > 0 else np.linspace(0, 1, len(along))
+            xy = p0[:2] + t[:, None] * (p1[:2] - p0[:2])
+            stem = free_stem(folder, f"{name}_profile", (".csv", ".png"))
+            written = [write_profile_csv(stem.with_suffix(".csv"), along, xy, heights, unit)]
+            png = stem.with_suffix(".png")
+            write_image(png, profile_figure(along, heights, unit, PROFILE_PNG, title=f"{name}: "))
+            written.append(png)
+        elif self._last_measure == "distance":
+            stem = free_stem(folder, f"{name}_distance", (".csv",))
+            written = [write_distance_csv(stem.with_suffix(".csv"), *self.picks, unit)]
         else:
-            self._chart.title = "height profile: the line misses the object"
+            self._say("nothing measured yet: right-click two points (m: distance or profile)")
+            self.plotter.render()
+            return []
+        self._say("exported " + ", ".join(str(p) for p in written))
+        self.plotter.render()
+        return written
+
+    # --- the window ---------------------------------------------------------------------
 
     def toggle_help(self) -> None:
         """Show or hide the list of keys."""
         self.help_shown = not self.help_shown
-        self._help.SetText(self._help.UpperLeft, HELP if self.help_shown else "h: help")
+        self._help.SetText(self._help.UpperLeft, help_text() if self.help_shown else "h: help")
         self.plotter.render()
 
     def reset_view(self) -> None:
@@ -301,43 +454,83 @@ class PreviewWindow:
         self.plotter.reset_camera()
         self.plotter.render()
 
+    def _say(self, message: str) -> None:
+        """Show a message in the status (and on the terminal, where the window was opened)."""
+        self.message = message
+        print(message, flush=True)
+        self._update_status()
+
     def _update_status(self) -> None:
         unit = self.scene.unit
         lines = [f"{self.scene.name}: {self.mode}"]
-        if self.mode == "relit":
-            lines.append(f"light azimuth {self.azimuth:.0f}°, elevation {self.elevation:.0f}°")
+        if self.style.exaggeration != 1:
+            lines.append(f"vertical exaggeration ×{self.style.exaggeration:g} (+/-)")
+        if self.mode == "diffuse-gain":
+            lines.append(f"diffuse gain {self.style.gain:g} ([ ])")
+        elif self.mode == "specular":
+            lines.append(f"specular exponent {self.style.exponent:g} ([ ])")
         lines.append("measure: " + ("height profile" if self.profile_mode else "distance") + " (m to switch)")
         if len(self.picks) == 2 and not self.profile_mode and self.last_distance is not None:
             lines.append(f"distance {self.last_distance:.4g} {unit}")
         elif len(self.picks) == 1:
             lines.append("pick a second point")
-        # Setting the text does not render (add_text would, at every slider step).
+        if self.message:
+            lines.append(self.message)
+        # Setting the text does not render (add_text would, at every light step).
         self._status.SetText(self._status.UpperRight, "\n".join(lines))
 
     def screenshot(self) -> np.ndarray:
-        """The current image, ``(H, W, 3)`` uint8."""
+        """The current image as the window shows it, ``(H, W, 3)`` uint8."""
         self.plotter.render()
         return np.ascontiguousarray(self.plotter.screenshot(return_img=True)[..., :3])
 
+    def figure(self) -> np.ndarray:
+        """The current view as a clean figure, ``(H, W, 3)`` uint8: the object with its
+        colour bar, the scale bar and (in the lit views) the light's direction; no help,
+        status or profile strip."""
+        texts = (self._status, self._help)
+        strip = self.strip.shown
+        for actor in texts:
+            actor.SetVisibility(False)
+        self.strip.set_visible(False)
+        try:
+            return self.screenshot()
+        finally:
+            for actor in texts:
+                actor.SetVisibility(True)
+            self.strip.set_visible(strip)
+            self.plotter.render()
+
+    def _folder(self) -> Path:
+        """Where figures and measurements go: ``preview/`` in the result's folder."""
+        return (self.output or Path.cwd()) / "preview"
+
     def save_screenshot(self, path: str | os.PathLike | None = None) -> Path:
-        """Write the current image as PNG (atomically); by default ``<source>_preview.png``
-        in the working folder, numbered when it exists. Returns the path."""
+        """Write the current view as a clean figure (:meth:`figure`), PNG, atomically; by
+        default ``preview/<source>_<view>.png`` in the result's folder, numbered when it
+        exists. Says where. Returns the path."""
+        from reconstruct.viewer.measurements import free_stem
         from reconstruct.viewer.relighting import write_image
 
         if path is None:
-            while True:
-                suffix = f"_{self._screenshots}" if self._screenshots else ""
-                path = Path.cwd() / f"{self.scene.name}_preview{suffix}.png"
-                self._screenshots += 1
-                if not path.exists():
-                    break
+            path = free_stem(self._folder(), f"{self.scene.name}_{self.mode}", (".png",)).with_suffix(".png")
         path = Path(path)
-        write_image(path, self.screenshot())
-        self.plotter.add_text(f"saved {path.name}", position="lower_right", font_size=9, color=_TEXT,
-                              name="saved")
+        write_image(path, self.figure())
+        self._say(f"saved {path}")
+        self.plotter.render()
         return path
 
+    def quit(self) -> None:
+        """End the window's event loop (``q``); ``plotter.show`` then closes the window."""
+        self.closed = True
+        self.disk.remove()
+        if self.plotter.iren is not None:
+            # The event loop ends after this event; TerminateApp would also post an X event,
+            # which crashes where there is no X display (EGL).
+            self.plotter.iren.interactor.SetDone(True)
+
     def close(self) -> None:
+        self.disk.remove()
         self.plotter.close()
 
 
@@ -349,6 +542,8 @@ def build_plotter(
     mode: str | None = None,
     azimuth: float = DEFAULT_AZIMUTH,
     elevation: float = DEFAULT_ELEVATION,
+    style: Style = Style(),
+    output: str | os.PathLike | None = None,
 ) -> PreviewWindow:
     """Build the preview window (not shown yet: call ``window.plotter.show()``).
 
@@ -363,6 +558,11 @@ def build_plotter(
         First view mode (default: the first the scene has: relit when it can be relit).
     azimuth, elevation : float
         Light direction in degrees.
+    style : Style
+        Diffuse gain, specular enhancement and vertical exaggeration.
+    output : path, optional
+        The result's folder: figures and measurements go into its ``preview/`` (default:
+        the scene's folder, else the working folder).
 
     Raises
     ------
@@ -373,7 +573,9 @@ def build_plotter(
     """
     if mode is not None and mode not in scene.modes:
         raise ValueError(f"{scene.name} has no {mode} view; it has {', '.join(scene.modes)}")
-    return PreviewWindow(scene, off_screen=off_screen, size=size, mode=mode, azimuth=azimuth, elevation=elevation)
+    folder = Path(output) if output is not None else scene.folder
+    return PreviewWindow(scene, off_screen=off_screen, size=size, mode=mode, azimuth=azimuth,
+                         elevation=elevation, style=style, output=folder)
 
 
 def render_screenshot(
@@ -384,8 +586,10 @@ def render_screenshot(
     azimuth: float = DEFAULT_AZIMUTH,
     elevation: float = DEFAULT_ELEVATION,
     size: tuple[int, int] = (1280, 900),
+    style: Style = Style(),
 ) -> Path:
-    """Render the preview off-screen to a PNG and close it (for scripts and tests).
+    """Render the preview off-screen to a PNG figure (:meth:`PreviewWindow.figure`) and
+    close it (for scripts and tests).
 
     Raises
     ------
@@ -393,12 +597,17 @@ def render_screenshot(
         For a mode the scene lacks, or when this machine cannot render off-screen.
     """
     try:
-        window = build_plotter(scene, off_screen=True, size=size, mode=mode, azimuth=azimuth, elevation=elevation)
+        window = build_plotter(scene, off_screen=True, size=size, mode=mode, azimuth=azimuth,
+                               elevation=elevation, style=style)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     except RuntimeError as exc:
         raise InputError(f"{exc}; install Mesa's EGL or OSMesa (make install does)") from None
     try:
-        return window.save_screenshot(path)
+        from reconstruct.viewer.relighting import write_image
+
+        path = Path(path)
+        write_image(path, window.figure())
+        return path
     finally:
         window.close()

@@ -8,6 +8,7 @@ modes that need a single luminance polynomial, and writes images and animations.
 from __future__ import annotations
 
 import io
+import json
 import os
 from pathlib import Path
 
@@ -22,6 +23,24 @@ from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, relight, specular_enhanc
 from ptmcore.rtifile import RTIFile, read_rti_hsh
 
 MODES = ("default", "specular", "diffuse-gain")
+
+
+def holds_linear_light(source: str | os.PathLike) -> bool:
+    """Whether a relightable file, or an output folder's, holds linear light.
+
+    Its run's ``report.json`` (in the folder, or beside the file) says so in ``ptm.encoding``
+    (``--ptm-encoding linear``, and 16-bit captures before their files were display-encoded);
+    renderings of it are then encoded as sRGB for display
+    (:func:`ptmcore.relight.display_srgb`). A file without a report is taken as display-encoded,
+    as RTIViewer takes it.
+    """
+    source = Path(source)
+    report = (source if source.is_dir() else source.parent) / "report.json"
+    try:
+        encoding = ((json.loads(report.read_text(encoding="utf-8")) or {}).get("ptm") or {}).get("encoding")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return encoding == "linear"
 
 
 def load_source(source: str | os.PathLike, basis: str = "ptm") -> PTMFile | RTIFile:

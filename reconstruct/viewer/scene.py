@@ -13,7 +13,14 @@ View modes:
 * ``albedo``: the surface colour without shading;
 * ``normals``: the normal map in the OpenGL mapping (R = x, G = y, B = z);
 * ``height``: the heights as a colour map (drawn by the window, with a scale bar);
-* ``distance``: the signed distance to a laser scan, when a comparison exists.
+* ``distance``: the signed distance to a laser scan, when a comparison exists;
+* ``specular``: RTIViewer's specular enhancement of the PTM (:mod:`reconstruct.viewer.shading`);
+* ``diffuse-gain``: RTIViewer's diffuse gain of the PTM;
+* ``relief``: the shape alone, grey, with radiance scaling by curvature and the vertical
+  exaggeration applied to the shading (for shallow reliefs; needs normals on the texture grid).
+
+Every colour is display-encoded (sRGB): renderings of a PTM that holds linear light (fitted to
+16-bit photographs, as report.json says) are encoded for display.
 
 Textured scenes (output folders and ``.ptm`` files) carry their colours as images ``(h, w,
 3)``; mesh files carry them per vertex ``(V, 3)``. The colouring functions work on either.
@@ -24,14 +31,14 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.relight import display_srgb, light_direction, relight
+from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, display_srgb, light_direction, relight
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.report.figures import (
     display_pixel_size,
@@ -45,6 +52,7 @@ from reconstruct.report.figures import (
 __all__ = [
     "MODES",
     "PreviewScene",
+    "Style",
     "distance",
     "load_scene",
     "mode_colors",
@@ -52,7 +60,11 @@ __all__ = [
     "relit_texture",
 ]
 
-MODES = ("relit", "albedo", "normals", "height", "distance")
+MODES = ("relit", "albedo", "normals", "height", "distance", "specular", "diffuse-gain", "relief")
+#: The modes drawn as colours (the others through a colour map with a scale bar).
+COLOUR_MODES = ("relit", "albedo", "normals", "specular", "diffuse-gain", "relief")
+#: The modes that a light shades (the window shows its direction in them).
+LIT_MODES = ("relit", "height", "specular", "diffuse-gain", "relief")
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".glb", ".gltf", ".off")
 
 #: Display limits: a mesh of this many vertices turns smoothly in software OpenGL, and one
@@ -96,9 +108,13 @@ class PreviewScene:
     linear_ptm : bool
         The PTM holds linear light (fitted to 16-bit photographs, as report.json says): its
         renderings are encoded as sRGB for display.
+    folder : pathlib.Path or None
+        The result's folder (an output folder, or the folder of a file source), where the
+        window saves figures and measurements.
 
-    The scene is read, not changed, once built: :attr:`modes` and the ray-casting structure
-    of the profiles are computed once, on first use.
+    The scene's data are read, not changed, once built: :attr:`modes`, the normals at the
+    PTM's maxima, the convexity and the ray-casting structure of the profiles are computed
+    once, on first use, and the last diffuse gain's coefficients are kept.
     """
 
     name: str
@@ -115,6 +131,8 @@ class PreviewScene:
     vertex_distance: np.ndarray | None = None
     distance_limit: float | None = None
     linear_ptm: bool = False
+    folder: Path | None = None
+    _gained: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
     def modes(self) -> tuple[str, ...]:
@@ -125,8 +143,35 @@ class PreviewScene:
             "normals": self.normals is not None,
             "height": self.height is not None or float(np.ptp(self.vertices[:, 2])) > 0,
             "distance": self.vertex_distance is not None,
+            "specular": self.coefficients is not None,
+            "diffuse-gain": self.coefficients is not None,
+            "relief": self.normals is not None and self.uv is not None,
         }
         return tuple(m for m in MODES if have[m])
+
+    @cached_property
+    def maximum(self) -> np.ndarray:
+        """``(h, w, 3)`` float32 normals at the PTM's maxima (specular enhancement's normals)."""
+        from ptmcore.normals import ptm_maximum
+
+        nu, nv, _ = ptm_maximum(self.coefficients)
+        nz = np.sqrt(np.clip(1.0 - nu * nu - nv * nv, 0.0, 1.0))
+        return np.stack([nu, nv, nz], axis=-1).astype(np.float32)
+
+    @cached_property
+    def convexity(self) -> np.ndarray:
+        """``(h, w)`` float32 convexity of the normals, −1…1 (:func:`shading.convexity`)."""
+        from reconstruct.viewer.shading import convexity
+
+        return convexity(self.normals)
+
+    def gained(self, gain: float) -> np.ndarray:
+        """The PTM's coefficients with diffuse gain `gain` (the last gain's are kept: a
+        light move then costs one relight)."""
+        if gain not in self._gained:
+            self._gained.clear()
+            self._gained[gain] = diffuse_gain(self.coefficients, gain)
+        return self._gained[gain]
 
     @cached_property
     def _ray_scene(self):
@@ -134,6 +179,19 @@ class PreviewScene:
         from reconstruct.mesh.ops import _scene
 
         return _scene(self.vertices, self.faces)
+
+
+@dataclass(frozen=True)
+class Style:
+    """Parameters of the renderings: RTIViewer's specular enhancement (diffuse weight `kd`,
+    specular weight `ks`, Phong `exponent`) and diffuse `gain` (1 to 10), and the vertical
+    `exaggeration` of the relief shading (and of the window's mesh)."""
+
+    kd: float = 0.4
+    ks: float = 0.7
+    exponent: float = 75.0
+    gain: float = DEFAULT_GAIN
+    exaggeration: float = 1.0
 
 
 # --- colouring ---------------------------------------------------------------------------
@@ -170,26 +228,40 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     return shade_lambertian(scene.normals, scene.albedo, light_direction(light=light))
 
 
-def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None) -> np.ndarray:
-    """Colours of a colour mode (``relit``, ``albedo`` or ``normals``).
+def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None,
+                style: Style = Style()) -> np.ndarray:
+    """Colours of a colour mode (:data:`COLOUR_MODES`), display-encoded.
 
     ``height`` and ``distance`` are scalar modes, drawn through a colour map with a scale bar
-    by the window. `light` is needed for ``relit``.
+    by the window. `light` is needed for the lit modes (:data:`LIT_MODES`); `style` holds the
+    parameters of ``specular``, ``diffuse-gain`` and ``relief``.
 
     Returns
     -------
     numpy.ndarray
         ``(h, w, 3)`` or ``(V, 3)`` uint8, as :func:`relit_texture`.
     """
-    if mode not in scene.modes or mode in ("height", "distance"):
+    from ptmcore.relight import specular_enhancement
+    from reconstruct.viewer.shading import relief_shading
+
+    if mode not in scene.modes or mode not in COLOUR_MODES:
         raise ValueError(f"{mode!r} is not a colour mode of {scene.name} (it has {', '.join(scene.modes)})")
-    if mode == "relit":
-        if light is None:
-            raise ValueError("the relit mode needs a light")
-        return relit_texture(scene, light)
     if mode == "albedo":
         return scene.albedo
-    return normal_colors(scene.normals)
+    if mode == "normals":
+        return normal_colors(scene.normals)
+    if light is None:
+        raise ValueError(f"the {mode} mode needs a light")
+    if mode == "relit":
+        return relit_texture(scene, light)
+    if mode == "relief":
+        return relief_shading(scene.normals, scene.convexity, light, exaggeration=style.exaggeration)
+    if mode == "specular":
+        image = specular_enhancement(scene.coefficients, scene.rgb, light, kd=style.kd, ks=style.ks,
+                                     exponent=style.exponent, maximum=scene.maximum)
+    else:
+        image = relight(scene.gained(style.gain), scene.rgb, light)
+    return display_srgb(image) if scene.linear_ptm else image
 
 
 # --- measuring ---------------------------------------------------------------------------
@@ -427,13 +499,16 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         vertex_distance=d,
         distance_limit=limit,
         linear_ptm=linear_ptm(report),
+        folder=folder,
     )
 
 
 def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
     """A ``.ptm`` file as a flat plane (pixel units) textured by its relit PTM: a PTM holds
-    no heights, and integrating its normals is what ``reconstruct run file.ptm`` does."""
+    no heights, and integrating its normals is what ``reconstruct run file.ptm`` does. A
+    ``report.json`` beside it says whether it holds linear light."""
     from ptmcore.normals import normals_from_ptm
+    from reconstruct.viewer.relighting import holds_linear_light
 
     shape, coef, colour = _lrgb(path, max_texture)
     tex = _texture_shape(shape, max_texture)
@@ -450,6 +525,8 @@ def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
         rgb=rgb,
         normals=normals_from_ptm(coefficients),
         albedo=rgb,
+        linear_ptm=holds_linear_light(path),
+        folder=path.parent,
     )
 
 
@@ -493,6 +570,7 @@ def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:
         unit=_mesh_unit(path),
         normals=_unit_normals(normals),
         albedo=np.ascontiguousarray(colors, dtype=np.uint8),
+        folder=path.parent,
     )
 
 
