@@ -295,3 +295,35 @@ def test_summary_in_words_and_files_listed_only_when_written(tmp_path):
     entries = {e.name: e for e in summary.file_entries(tmp_path, ["report.json"])}
     assert set(entries) == {"mesh.ply", "height.tif", "notes #1.txt", "report.json"}
     assert "MeshLab" in entries["mesh.ply"].how and "float" in entries["height.tif"].what
+
+
+def test_matplotlib_is_imported_before_the_render_thread(tmp_path):
+    """The page's charts (main thread) and the mesh render's pyvista (its own thread) both
+    import matplotlib; imported for the first time from both at once, one got a half-made
+    module and its pictures became notes (two 6 MP reports in three). In a fresh interpreter,
+    matplotlib must be whole before the render thread starts."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / "res"
+    code = f"""
+import sys
+from pathlib import Path
+import numpy as np
+from reconstruct.report import html
+from reconstruct.report.outputs import write_json
+folder = Path({str(folder)!r})
+folder.mkdir()
+write_json(folder / "report.json", {{"inputs": {{"capture": "x"}}, "parameters": {{}}, "height_unit": "pixel"}})
+seen = []
+original = html._mesh
+def mesh(*args, **kwargs):
+    seen.append("matplotlib.backends.backend_agg" in sys.modules and "matplotlib.colors" in sys.modules)
+    return original(*args, **kwargs)
+html._mesh = mesh
+html.write_report_html(folder, report={{"inputs": {{"capture": "x"}}, "parameters": {{}}, "height_unit": "pixel"}})
+print(seen)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[True]"

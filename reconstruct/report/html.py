@@ -38,7 +38,7 @@ import numpy as np
 
 from ptmcore.atomic import atomic_write
 
-from reconstruct.report import figures, plots, summary
+from reconstruct.report import figures, plots, rendering, summary
 
 #: At most this many photographs on the contact sheet.
 CONTACT_SHEET = 8
@@ -493,7 +493,9 @@ def report_html(
             extent = summary.extent(previews.height, previews.stride, figures.display_pixel_size(report))
         mesh_notes: list[str] = []
         # The mesh is rendered in its own thread while the other pictures are made (see the
-        # module's docstring); its notes join the others in the order of the sections.
+        # module's docstring); its notes join the others in the order of the sections. Both
+        # threads use matplotlib: it is imported first, once.
+        rendering.import_plotting()
         with ThreadPoolExecutor(max_workers=1) as render:
             mesh_section = render.submit(_mesh, files, report, previews, extent, mesh_notes)
             ptm = _ptm_preview(files, report, notes)

@@ -10,16 +10,38 @@ crashes VTK; a wrong class segfaults where its library is missing).
 
 from __future__ import annotations
 
+import importlib
 import threading
 
 import numpy as np
 
-__all__ = ["VTK_LOCK", "plotter", "render_image"]
+__all__ = ["VTK_LOCK", "import_plotting", "plotter", "render_image"]
 
 #: Held while VTK reads or renders. VTK is not thread-safe: a batch makes the reports of two
 #: objects in two threads of one worker, and a mesh read in one while the other rendered
 #: aborted the process (seen once in a fresh test run).
 VTK_LOCK = threading.RLock()
+#: Held while matplotlib is imported (:func:`import_plotting`).
+_IMPORTING = threading.Lock()
+
+
+def import_plotting() -> None:
+    """Import matplotlib's figures before threads draw with it, or render with pyvista (which
+    imports it for its colour maps).
+
+    matplotlib's modules import one another; imported for the first time from two threads at
+    once (a page's charts in one, the mesh render's pyvista in the other), a thread can be
+    handed the other's half-made module ("cannot import name 'Colormap' from partially
+    initialized module 'matplotlib.colors'"): two of three 6-megapixel reports lost their
+    height map, profile, light plot and mesh render so. Done once, under a lock, since a batch
+    makes pages in several threads. Without matplotlib, the pictures that need it become notes.
+    """
+    with _IMPORTING:
+        try:
+            for name in ("matplotlib.colors", "matplotlib.figure", "matplotlib.backends.backend_agg"):
+                importlib.import_module(name)
+        except ImportError:
+            pass
 
 
 def plotter(size: tuple[int, int], *, off_screen: bool = True, **kwargs):
