@@ -154,7 +154,11 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     """
     from reconstruct.batch.gallery import write_thumbnails
     from reconstruct.pipeline.profiling import StageTimer
+    from reconstruct.report.rendering import import_plotting
 
+    # A worker runs objects in several threads, each drawing with matplotlib (pages, plots,
+    # thumbnails): it is imported once, whole, before any of them draws.
+    import_plotting()
     out = Path(out)
     folder = out / item.name
     print_ = fingerprint(item)
