@@ -8,8 +8,10 @@ user can call one by one (``docs/tutorial.md``).
 
 Output folder layout (stable; later versions add files, never rename them)::
 
-    coefficients.ptm   the PTM, HP PTM 1.2 (LRGB or RGB), as HP's PTMfitter fits it
-    web/               info.json and plane_0..2.jpg for the OpenLIME web viewer (LRGB)
+    coefficients.ptm   the PTM, HP PTM 1.2 (LRGB or RGB), as HP's PTMfitter fits it, of the
+                       photographs display-encoded (sRGB) unless --ptm-encoding linear
+    web/               a relighting page to publish (index.html, viewer.json, normals.png,
+                       height.png) and the PTM for OpenLIME (info.json, plane_0..2.jpg; LRGB)
     normals.npy        H×W×3 float32 unit normals (x right, y up, z towards the camera)
     normals.png        16-bit RGB normal map, OpenGL convention (R=x, G=y, B=z)
     albedo.png         8-bit sRGB albedo
@@ -24,7 +26,8 @@ Output folder layout (stable; later versions add files, never rename them)::
     light_positions.csv  with near lights: the light positions used (pixels)
     lights.lp          for a capture with spheres: the light directions calibrated from them
     report.json        inputs, parameters, versions, stage times and memory, warnings, accuracy
-    report.html        self-contained page: inputs, photographs, relit renderings, maps, mesh
+    report.html        self-contained page for people: summary, pictures, files, parameters
+    preview/           not written here: what the preview window saves; kept by later runs
 """
 
 from __future__ import annotations
