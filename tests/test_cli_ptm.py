@@ -151,6 +151,7 @@ def test_hsh_rti_written_and_relit(tmp_path, capsys, jpeg_result):
     assert hsh_err < ptm_err
     report = json.loads((out / "report.json").read_text())
     assert report["ptm"]["hsh_rti"]["order"] == 3
+    assert not any("HSH" in w for w in report["warnings"])  # 24 lights hold its 9 coefficients
     code, _, err = _run(["relight", out, "--basis", "hsh", "--light", "0.3,0.2,0.9", "-o", tmp_path / "h.png"], capsys)
     assert code == 0, err
     code, _, err = _run(["relight", out / "coefficients.rti", "--light", "0.3,0.2,0.9", "--mode", "specular",
@@ -158,3 +159,17 @@ def test_hsh_rti_written_and_relit(tmp_path, capsys, jpeg_result):
     assert code == 2 and "needs a PTM" in err
     code, _, err = _run(["relight", info.folder, "--basis", "hsh", "--light", "0,0,1", "-o", tmp_path / "x.png"], capsys)
     assert code == 2 and "coefficients.rti" in err
+
+
+def test_hsh_of_few_lights_is_warned(tmp_path, capsys):
+    """9 coefficients per channel from 12 photographs: relit between the lights the HSH strays
+    (half as bright midway on a 16-light tablet); the run says so, and still writes it."""
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(40, 50), n_lights=12, encoding="jpeg8", seed=2)
+    code, _, err = _run(["run", info.folder, "-o", tmp_path / "out", "--hsh", "-q"], capsys)
+    assert code == 0, err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert any("HSH of order 3" in w and "12 photographs" in w for w in report["warnings"])
+    assert (tmp_path / "out" / "coefficients.rti").is_file()
+
