@@ -47,6 +47,14 @@ def _outcome(read, path):
         return None
 
 
+def _read_written(path, data: bytes, read, check) -> None:
+    """Write ``data`` as ``path``, read it (:func:`_outcome`) and ``check`` what was read."""
+    path.write_bytes(data)
+    result = _outcome(read, path)
+    if result is not None:
+        check(result)
+
+
 def mutated(good: bytes, header: int = 128) -> st.SearchStrategy[bytes]:
     """A valid file truncated, with bytes changed (mostly in its first ``header`` bytes), or
     with bytes inserted."""
@@ -126,11 +134,7 @@ def test_lp_reader_on_malformed_text(folder, text):
 @given(data=st.one_of(st.binary(max_size=300), mutated(b"3\na.jpg 0.5 0 0.866\nb.jpg 0 0.5 0.866\n"
                                                         b"C:\\x\\c.jpg 0 0 1\n", header=80)))
 def test_lp_reader_on_arbitrary_bytes(folder, data):
-    path = folder / "bytes.lp"
-    path.write_bytes(data)
-    lights = _outcome(read_lp, path)
-    if lights is not None:
-        _check_lights(lights)
+    _read_written(folder / "bytes.lp", data, read_lp, _check_lights)
 
 
 def test_lp_fuzzing_reaches_valid_files(folder):
@@ -185,11 +189,8 @@ def _check_mask(mask, shape) -> None:
 @FUZZ
 @given(data=st.one_of(st.binary(max_size=400), *(mutated(seed) for seed in _MASK_SEEDS)))
 def test_mask_reader_on_arbitrary_and_damaged_files(folder, data):
-    path = folder / "mask.png"
-    path.write_bytes(data)
-    mask = _outcome(lambda p: read_mask(p, _MASK_SHAPE), path)
-    if mask is not None:
-        _check_mask(mask, _MASK_SHAPE)
+    _read_written(folder / "mask.png", data, lambda p: read_mask(p, _MASK_SHAPE),
+                  lambda mask: _check_mask(mask, _MASK_SHAPE))
 
 
 @FUZZ
@@ -246,11 +247,8 @@ _CLAIMED = st.one_of(st.tuples(st.integers(1, 64), st.integers(1, 64)),
     mutated(_forged_bmp(*_MASK_SHAPE[::-1]), header=60),
 ))
 def test_mask_reader_on_forged_headers(folder, data):
-    path = folder / "forged_mask.png"
-    path.write_bytes(data)
-    mask = _outcome(lambda p: read_mask(p, _MASK_SHAPE), path)
-    if mask is not None:
-        _check_mask(mask, _MASK_SHAPE)
+    _read_written(folder / "forged_mask.png", data, lambda p: read_mask(p, _MASK_SHAPE),
+                  lambda mask: _check_mask(mask, _MASK_SHAPE))
 
 
 # --- normal maps ------------------------------------------------------------------------------
@@ -279,11 +277,7 @@ def _check_normals(n: np.ndarray) -> None:
 @FUZZ
 @given(data=st.one_of(st.binary(max_size=300), *(mutated(seed, header=128) for seed in _NPY_SEEDS)))
 def test_normal_map_reader_on_arbitrary_and_damaged_npy(folder, data):
-    path = folder / "normals.npy"
-    path.write_bytes(data)
-    normals = _outcome(read_normal_map, path)
-    if normals is not None:
-        _check_normals(normals)
+    _read_written(folder / "normals.npy", data, read_normal_map, _check_normals)
 
 
 _DTYPES = st.sampled_from([np.float16, np.float32, np.float64, ">f4", np.int16, np.uint8, np.bool_,

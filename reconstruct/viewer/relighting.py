@@ -34,13 +34,14 @@ def holds_linear_light(source: str | os.PathLike) -> bool:
     (:func:`ptmcore.relight.display_srgb`). A file without a report is taken as display-encoded,
     as RTIViewer takes it.
     """
+    from reconstruct.report.figures import linear_ptm
+
     source = Path(source)
-    report = (source if source.is_dir() else source.parent) / "report.json"
     try:
-        encoding = ((json.loads(report.read_text(encoding="utf-8")) or {}).get("ptm") or {}).get("encoding")
-    except (OSError, ValueError, AttributeError):
+        report = json.loads(((source if source.is_dir() else source.parent) / "report.json").read_text("utf-8"))
+    except (OSError, ValueError):
         return False
-    return encoding == "linear"
+    return isinstance(report, dict) and linear_ptm(report)
 
 
 def load_source(source: str | os.PathLike, basis: str = "ptm") -> PTMFile | RTIFile:
