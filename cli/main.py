@@ -19,6 +19,7 @@ from pathlib import Path
 
 from ptmcore.errors import InputError
 from reconstruct.cli.parser import build_parser
+from reconstruct.report.summary import unit_words
 
 EXIT_BAD_INPUT = 2
 #: Ended by SIGTERM: 128 + 15, as a shell reports a process the signal killed.
@@ -181,7 +182,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         step = ScanStep(args.scan, CompareOptions(scan_units=scan_units), progress=progress)
-        result = run(args.capture, args.output, options, progress=progress, report_page=False, then=step)
+        result = run(args.capture, args.output, options, progress=progress, then=step)
     try:
         compared = step.result(result.output, result.files)
     except InputError:
@@ -199,7 +200,7 @@ def _print_summary(report, out: Path) -> None:
     inputs = report.inputs
     source = f"{inputs.photographs} photographs" if hasattr(inputs, "photographs") else getattr(inputs, "format", "PTM")
     print(f"Results in {out}/ ({source}, {inputs.width}×{inputs.height}, {total:.1f} s)")
-    print(f"  heights in {_unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
+    print(f"  heights in {unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
           f"{report.mesh.faces:,} triangles (step {report.mesh.step})")
     acc = report.accuracy
     if acc:
@@ -212,11 +213,6 @@ def _print_summary(report, out: Path) -> None:
         print(f"  warning: {w}")
     if (out / "report.html").is_file():
         print(f"  report: {out / 'report.html'}; look at it in 3D: {_own_command()} preview {shlex.quote(str(out))}")
-
-
-def _unit_words(unit: str) -> str:
-    """report.json's height unit as a sentence says it ("pixel" is the file's value)."""
-    return "pixels" if unit == "pixel" else unit
 
 
 def _own_command() -> str:
@@ -259,7 +255,8 @@ def _relight_params(args: argparse.Namespace) -> dict[str, float]:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
-    from ptmcore.relight import display_srgb, light_direction
+    from ptmcore.relight import light_direction
+    from reconstruct.report.figures import for_display
     from reconstruct.viewer.relighting import (
         holds_linear_light,
         load_source,
@@ -287,15 +284,16 @@ def _cmd_relight(args: argparse.Namespace) -> int:
             raise InputError(str(exc)) from None
     ptm = load_source(args.source, args.basis)
     # Every image a person sees is display-encoded: a file of linear light is encoded here.
-    shown = display_srgb if holds_linear_light(args.source) else (lambda image: image)
+    linear = holds_linear_light(args.source)
     try:
         if args.sweep is None:
-            write_image(args.output, shown(render(ptm, light, args.mode, **params)))
+            write_image(args.output, for_display(render(ptm, light, args.mode, **params), linear))
         else:
             elevation = 30.0 if args.elevation is None else args.elevation
             if not 0 < elevation <= 90:
                 raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
-            frames = [shown(render(ptm, lt, args.mode, **params)) for lt in sweep_lights(args.sweep, elevation)]
+            frames = [for_display(render(ptm, lt, args.mode, **params), linear)
+                      for lt in sweep_lights(args.sweep, elevation)]
             write_gif(args.output, frames)
     except ValueError as exc:
         raise InputError(str(exc)) from None
@@ -357,7 +355,7 @@ def _cmd_integrate(args: argparse.Namespace) -> int:
         result = run_normals(args.normal_map, args.output, options, progress=progress)
     report = result.report
     print(f"Results in {result.output}/ ({report.inputs.width}×{report.inputs.height} normal map)")
-    print(f"  heights in {_unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
+    print(f"  heights in {unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
           f"{report.mesh.faces:,} triangles (step {report.mesh.step})")
     for w in report.warnings:
         print(f"  warning: {w}")

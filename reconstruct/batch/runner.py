@@ -125,7 +125,7 @@ def _reconstruct(item: BatchItem, folder: Path, print_: str) -> None:
         run(item.source, folder, item.options, fingerprint=print_)
         return
     step = ScanStep(item.scan, CompareOptions(scan_units=item.scan_units))
-    result = run(item.source, folder, item.options, report_page=False, fingerprint=print_, then=step)
+    result = run(item.source, folder, item.options, fingerprint=print_, then=step)
     step.result(result.output, result.files)
 
 

@@ -152,7 +152,7 @@ def run_compare(
     with staged_output(output) as staged:
         kept = staged.keep_existing(exclude=COMPARISON_FILES)
         names, report = compare_into(staged, rec, rec_path, scan_geometry, Path(scan), opt, initial=initial,
-                                     also=[staged.staging, *([given] if given.is_dir() else [])],
+                                     also=[given] if given.is_dir() else [],
                                      progress=progress)
         files = staged.publish([*kept, *names])
     return CompareResult(staged.output, files, report)
@@ -163,13 +163,14 @@ COMPARISON_FILES = ("distances.ply", "histogram.png", "overlay.png", "comparison
 
 
 def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan: Path, opt: CompareOptions, *,
-                 initial: np.ndarray | None = None, also: list[Path] | None = None,
+                 initial: np.ndarray | None = None, also: list[Path] | None = None, page: dict | None = None,
                  progress: ProgressFn | None = None) -> tuple[list[str], CompareReport]:
     """Compare a loaded scan with a loaded reconstruction and write the comparison's files
     into ``staged`` (``run --scan`` calls it before the run's files are published, so the
     reconstruction and its comparison appear together). ``also``: folders whose report.json
-    the page shows beside the comparison; ``progress`` as in :func:`run_compare`. Returns the
-    files' names and the report."""
+    the page shows beside the comparison; ``page``: the run's own page's arguments (its report,
+    previews, thumbnails: :data:`reconstruct.pipeline.run.Then`), so nothing is read back;
+    ``progress`` as in :func:`run_compare`. Returns the files' names and the report."""
     from reconstruct.compare import align, distances, within_tolerance
 
     stages = Stages(_scan_progress(progress))
@@ -187,7 +188,7 @@ def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan:
     report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     # The page also shows the reconstruction's report; comparison.json follows it, with its time.
     with stages("report"):
-        write_report_html(staged.staging, comparison=report.to_dict(), also=also or [])
+        write_report_html(staged.staging, comparison=report.to_dict(), also=also or [], **(page or {}))
     outputs.write_json(staged / "comparison.json", report.to_dict())
     return [*names, "comparison.json", "report.html"], report
 
@@ -196,8 +197,9 @@ class ScanStep:
     """The comparison of ``run --scan`` (and a batch's scan column) as the last step of a run.
 
     Made before the run, it reads the scan, so an unreadable scan stops the run before any
-    output. Passed as ``run(..., report_page=False, then=step)``, it compares the scan with the
-    staged ``mesh.ply`` and writes its files beside the run's, published together. When the
+    output. Passed as ``run(..., then=step)``, it compares the scan with the staged
+    ``mesh.ply`` and writes its files beside the run's, the page of both among them, published
+    together. When the
     comparison itself fails (no overlap, say) the reconstruction is still published with its
     own page, and :meth:`result` raises the comparison's error after it.
 
@@ -223,16 +225,16 @@ class ScanStep:
         self.report: CompareReport | None = None
         self.error: InputError | None = None
 
-    def __call__(self, staged: StagedOutput) -> list[str]:
+    def __call__(self, staged: StagedOutput, page: dict) -> list[str]:
         from reconstruct.compare import load_geometry
 
         try:
             names, self.report = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
-                                              self.geometry, self.scan, self.options, also=[staged.staging],
+                                              self.geometry, self.scan, self.options, page=page,
                                               progress=self.progress)
         except InputError as exc:
             self.error = exc
-            write_report_html(staged.staging, report=json.loads((staged / "report.json").read_text()))
+            write_report_html(staged.staging, **page)
             return ["report.html"]
         return names
 

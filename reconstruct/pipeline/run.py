@@ -78,8 +78,11 @@ from reconstruct.report.web import export_web_layers
 from reconstruct.surface.accuracy import height_rmse, normal_accuracy
 from reconstruct.surface.normalmaps import read_normal_map, shaded
 
-#: A step after a run that writes files into its staged result: ``then(staged) -> names``.
-Then = Callable[[StagedOutput], list[str]]
+#: A step after a run that writes files into its staged result, the page among them:
+#: ``then(staged, page) -> names``, ``page`` the keyword arguments of the run's own page
+#: (:func:`reconstruct.report.html.write_report_html`: its report, previews, thumbnails,
+#: photographs), so the step's page is made from what the run holds.
+Then = Callable[[StagedOutput, dict], list[str]]
 
 __all__ = ["RunResult", "run", "run_capture", "run_normals", "run_ptm"]
 
@@ -125,16 +128,16 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
 
 
 def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list[str], *,
-            page: bool = True, then: Then | None = None, **html) -> dict[str, Path]:
-    """Write report.html (unless ``page`` is False) and report.json, call ``then(staged)``
-    for the files of a step that follows (its names join the result), then publish every
-    file in one step.
+            then: Then | None = None, **html) -> dict[str, Path]:
+    """Write report.html and report.json, or with ``then`` report.json and then
+    ``then(staged, page)``, the step that follows and writes the page (its names join the
+    result); then publish every file in one step.
 
     report.json comes after the page so that it holds the page's own time.
     """
     report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     report.peak_rss_scope = stages.timer.scope
-    if page:
+    if then is None:
         with stages("report"):
             write_report_html(staged.staging, report=report.to_dict(), **html)
         names = [*names, "report.html"]
@@ -142,7 +145,7 @@ def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list
     outputs.write_json(staged / "report.json", report.to_dict())
     names = [*names, "report.json"]
     if then is not None:
-        names += [n for n in then(staged) if n not in names]
+        names += [n for n in then(staged, {"report": report.to_dict(), **html}) if n not in names]
     return staged.publish(names)
 
 
@@ -152,20 +155,18 @@ def run(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
-    report_page: bool = True,
     fingerprint: str | None = None,
     then: Then | None = None,
 ) -> RunResult:
     """Reconstruct a capture folder, an ``.lp`` file or an existing ``.ptm`` file.
 
-    See :func:`run_capture` and :func:`run_ptm`. ``report_page=False`` leaves report.html
-    to a step that follows; ``then(staged)`` is that step: called with the staged result
-    before it is published, it writes files of its own there and returns their names, which
-    are published with the run's in one step (``run --scan``:
-    :func:`reconstruct.pipeline.compare_run.compare_into`, which writes the page with the
-    comparison). ``fingerprint`` is written into report.json (a batch's, to resume).
+    See :func:`run_capture` and :func:`run_ptm`. ``then(staged, page)`` is a step that
+    follows (:data:`Then`): called with the staged result before it is published, it writes
+    files of its own there, the page among them, and returns their names, which are published
+    with the run's in one step (``run --scan``: :class:`reconstruct.pipeline.compare_run.ScanStep`,
+    whose page shows the comparison too). ``fingerprint`` is written into report.json (a batch's, to resume).
     """
-    kw = {"progress": progress, "report_page": report_page, "fingerprint": fingerprint, "then": then}
+    kw = {"progress": progress, "fingerprint": fingerprint, "then": then}
     if Path(source).suffix.lower() == ".ptm" and Path(source).is_file():
         return run_ptm(source, output, options, **kw)
     return run_capture(source, output, options, **kw)
@@ -193,7 +194,6 @@ def run_capture(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
-    report_page: bool = True,
     fingerprint: str | None = None,
     then: Then | None = None,
 ) -> RunResult:
@@ -211,8 +211,8 @@ def run_capture(
     options : RunOptions, optional
     progress : callable, optional
         ``progress(stage, done, total)`` as work advances.
-    report_page : bool
-        Write report.html (False when a step that follows writes it, as ``run --scan`` does).
+    then : callable, optional
+        A step that follows and writes the page (:data:`Then`; :func:`run`).
     fingerprint : str, optional
         Written into report.json: a batch's fingerprint of the inputs and options.
 
@@ -278,7 +278,7 @@ def run_capture(
             write_lp(staged / "lights.lp", [p.name for p in loaded.lights.paths], loaded.lights.directions)
             names.append("lights.lp")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], page=report_page, then=then,
+        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
                         thumbnails=thumbnails,
                         previews=figures.previews(normals=found.normals, height=height, albedo=texture))
@@ -314,7 +314,6 @@ def run_ptm(
     options: RunOptions | None = None,
     *,
     progress: ProgressFn | None = None,
-    report_page: bool = True,
     fingerprint: str | None = None,
     then: Then | None = None,
 ) -> RunResult:
@@ -342,7 +341,7 @@ def run_ptm(
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
                            fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
-        files = _finish(staged, report, stages, [*web, *names], page=report_page, then=then,
+        files = _finish(staged, report, stages, [*web, *names], then=then,
                         previews=figures.previews(normals=normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 

@@ -73,7 +73,7 @@ import numpy as np
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.png import write_png
-from reconstruct.report.figures import stride_for
+from reconstruct.report.figures import normal_colors, thin
 
 __all__ = ["LAYER_SIDE", "PLANE_TERMS", "export_openlime", "export_web_layers", "lrgb_planes"]
 
@@ -345,20 +345,14 @@ def export_web_layers(
     if normals is not None:
         if np.ndim(normals) != 3 or np.shape(normals)[2] != 3:
             raise ValueError(f"normals must be (H, W, 3), not {np.shape(normals)}")
-        import cv2
-
-        s = stride_for(np.shape(normals), max_side)
-        small = np.ascontiguousarray(normals[::s, ::s], dtype=np.float32)
-        # One saturating, rounding pass (as outputs.normals_to_rgb16).
-        image = cv2.addWeighted(small, 127.5, small, 0.0, 127.5, dtype=cv2.CV_8U)
+        image = normal_colors(thin(normals, max_side)[0])
         write_png(folder / "normals.png", image)
         written.append(folder / "normals.png")
         extras["layers"]["normals"] = {"src": "normals.png", "width": image.shape[1], "height": image.shape[0]}
     if height is not None:
         if np.ndim(height) != 2:
             raise ValueError(f"height must be (H, W), not {np.shape(height)}")
-        s = stride_for(np.shape(height), max_side)
-        small = np.ascontiguousarray(height[::s, ::s], dtype=np.float32)
+        small = np.ascontiguousarray(thin(height, max_side)[0], dtype=np.float32)
         inside = np.isfinite(small)
         lo, hi = (float(np.nanmin(small)), float(np.nanmax(small))) if inside.any() else (0.0, 0.0)
         step = np.float32(65535.0 / (hi - lo)) if hi > lo else np.float32(0.0)
