@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from ptmcore import __version__
+from ptmcore.relight import DEFAULT_EXPONENT, DEFAULT_GAIN, DEFAULT_KD, DEFAULT_KS
 from reconstruct.pipeline.options import BOUNDS, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.relighting import MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
@@ -221,10 +222,10 @@ def _add_relight_command(sub: argparse._SubParsersAction) -> None:
                      help="default rendering, specular enhancement, or diffuse gain (default: default)")
     # No defaults here: given with another --mode they would do nothing, which is an error
     # (cli.main); render() holds the defaults.
-    rel.add_argument("--kd", type=float, help="with --mode specular: diffuse weight (default 0.4)")
-    rel.add_argument("--ks", type=float, help="with --mode specular: specular weight (default 0.7)")
-    rel.add_argument("--exponent", type=float, help="with --mode specular: Phong exponent (default 75)")
-    rel.add_argument("--gain", type=float, help="with --mode diffuse-gain: the gain (default 2)")
+    rel.add_argument("--kd", type=float, help=f"with --mode specular: diffuse weight (default {DEFAULT_KD:g})")
+    rel.add_argument("--ks", type=float, help=f"with --mode specular: specular weight (default {DEFAULT_KS:g})")
+    rel.add_argument("--exponent", type=float, help=f"with --mode specular: Phong exponent (default {DEFAULT_EXPONENT:g})")
+    rel.add_argument("--gain", type=float, help=f"with --mode diffuse-gain: the gain (default {DEFAULT_GAIN:g})")
     rel.add_argument("--basis", choices=("ptm", "hsh"), default="ptm",
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")

@@ -34,6 +34,11 @@ __all__ = ["diffuse_gain", "display_srgb", "light_direction", "relight", "specul
 
 #: RTIViewer's default diffuse gain (``DiffuseGain`` constructor; the slider spans 1–10).
 DEFAULT_GAIN = 2.0
+#: RTIViewer's defaults of specular enhancement (``SpecularEnhancement`` constructor):
+#: diffuse weight, specular weight and Phong exponent.
+DEFAULT_KD = 0.4
+DEFAULT_KS = 0.7
+DEFAULT_EXPONENT = 75.0
 
 # Pixels per band: float64 temporaries of a band stay around 100 MB in ptm_maximum.
 _BAND_PIXELS = 1 << 21
@@ -198,7 +203,8 @@ def display_srgb(image: np.ndarray) -> np.ndarray:
     return table[np.asarray(image, dtype=np.uint8)]
 
 
-def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN) -> np.ndarray:
+def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN, *,
+                 maximum: np.ndarray | None = None) -> np.ndarray:
     """Coefficients with the diffuse gain of Malzbender et al. (2001) applied.
 
     With (nu, nv) the light of each polynomial's maximum (:func:`ptmcore.normals.ptm_maximum`)
@@ -227,6 +233,10 @@ def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN) -> np.nda
         a0..a5 (any luminance units: the transform is linear in them).
     gain : float
         g > 0. RTIViewer's default is 2.
+    maximum : ndarray, shape (H, W, 3), optional
+        The normals (nu, nv, nz) at the polynomials' maxima, when already known (as for
+        :func:`specular_enhancement`): finding them is most of the cost, so a viewer that
+        changes the gain computes them once.
 
     Returns
     -------
@@ -247,7 +257,10 @@ def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN) -> np.nda
     out = np.empty((h, w, 6), dtype=dtype)
     for r0, r1 in _bands(h, w):
         a = coef[r0:r1].astype(np.float64)
-        nu, nv, _ = ptm_maximum(a)
+        if maximum is None:
+            nu, nv, _ = ptm_maximum(a)
+        else:
+            nu, nv = maximum[r0:r1, :, 0], maximum[r0:r1, :, 1]
         nu = nu.astype(np.float64)
         nv = nv.astype(np.float64)
         a0, a1, a2, a3, a4, a5 = (a[..., k] for k in range(6))
@@ -264,9 +277,9 @@ def specular_enhancement(
     rgb: np.ndarray,
     light: np.ndarray,
     *,
-    kd: float = 0.4,
-    ks: float = 0.7,
-    exponent: float = 75,
+    kd: float = DEFAULT_KD,
+    ks: float = DEFAULT_KS,
+    exponent: float = DEFAULT_EXPONENT,
     maximum: np.ndarray | None = None,
 ) -> np.ndarray:
     """Render an LRGB PTM with RTIViewer's "specular enhancement".

@@ -1,6 +1,7 @@
 """``reconstruct preview``: loading sources, relighting, measuring, and the window's callbacks
 rendered off-screen (EGL or OSMesa on machines without a display)."""
 
+import dataclasses
 import json
 import shutil
 
@@ -14,6 +15,7 @@ from ptmcore.errors import InputError
 from ptmcore.relight import light_direction
 from reconstruct.compare.figures import write_distance_ply
 from reconstruct.pipeline import RunOptions, run_capture
+from reconstruct.viewer.measurements import free_paths
 from reconstruct.viewer.preview import _BACKGROUND, build_plotter
 from reconstruct.viewer.scene import (
     MODES,
@@ -123,6 +125,16 @@ def test_a_linear_ptm_is_shown_display_encoded(folder, tmp_path, source):
     assert np.abs(spec.astype(int) - expected).max() <= 1
     (copy / "report.json").unlink()
     assert not load_scene(copy / "coefficients.ptm").linear_ptm  # a bare .ptm says nothing
+
+
+def test_the_maxima_are_computed_once_and_shared(folder, scene):
+    from ptmcore.normals import normals_from_ptm
+    from ptmcore.relight import diffuse_gain
+
+    np.testing.assert_array_equal(scene.maximum, normals_from_ptm(scene.coefficients))
+    np.testing.assert_array_equal(scene.gained(3.0), diffuse_gain(scene.coefficients, 3.0))
+    ptm = load_scene(folder / "coefficients.ptm")
+    assert ptm.maximum is ptm.normals  # a PTM file's normals are its maxima
 
 
 def test_large_sources_are_bounded(folder):
@@ -258,6 +270,53 @@ def test_two_picks_measure_a_distance_and_a_profile(window, scene):
     assert _foreground(window.screenshot()) > 0.2
     window.toggle_profile()
     assert not window.strip.shown and window.plotter.renderer.GetViewport()[1] == 0
+
+
+def test_export_is_the_last_measurement_made_whatever_was_picked_since(scene, tmp_path):
+    # A name with dots: the files keep it whole (not "tablet_v1.csv").
+    w = build_plotter(dataclasses.replace(scene, name="tablet_v1.2"), off_screen=True, size=SIZE, output=tmp_path)
+    try:
+        p0, p1, p2 = scene.vertices[150], scene.vertices[-400], scene.vertices[300]
+        w.on_pick(p0)
+        w.on_pick(p1)
+        w.on_pick(p2)  # a new first point: the distance p0-p1 is still the last measured
+        (csv_path,) = w.export_measurement()
+        assert csv_path == tmp_path / "preview" / "tablet_v1.2_distance.csv"
+        row = [float(v) for v in csv_path.read_text().splitlines()[1].split(",")]
+        np.testing.assert_allclose(row[:6], np.concatenate([p0, p1]), rtol=1e-5, atol=1e-6)
+        assert row[6] == pytest.approx(np.linalg.norm(p1.astype(float) - p0), rel=1e-5)
+        w.toggle_profile()  # the picks are dropped; the distance is still what e exports
+        assert w.export_measurement()[0] == tmp_path / "preview" / "tablet_v1.2_distance_1.csv"
+        w.on_pick(p0)
+        w.on_pick(p1)
+        w.toggle_profile()
+        written = w.export_measurement()
+        assert written == [tmp_path / "preview" / "tablet_v1.2_profile.csv",
+                           tmp_path / "preview" / "tablet_v1.2_profile.png"]
+        lines = written[0].read_text().splitlines()
+        assert lines[0] == "along_mm,x_mm,y_mm,height_mm" and len(lines) == 1 + len(w.last_profile[0])
+        first = [float(v) for v in lines[1].split(",")]
+        np.testing.assert_allclose(first[1:3], p0[:2], rtol=1e-5, atol=1e-6)
+        assert written[1].stat().st_size > 1000
+    finally:
+        w.close()
+
+
+def test_opening_the_window_colours_the_first_view_once(scene, monkeypatch):
+    from reconstruct.viewer import preview
+
+    calls = []
+    monkeypatch.setattr(preview, "mode_colors", lambda *a, **k: calls.append(a[1]) or mode_colors(*a, **k))
+    build_plotter(scene, off_screen=True, size=SIZE, mode="specular").close()
+    assert calls == ["specular"]
+
+
+def test_free_paths_keep_dotted_names(tmp_path):
+    csv_path, png_path = free_paths(tmp_path / "preview", "tablet_v1.2_profile", (".csv", ".png"))
+    assert (csv_path.name, png_path.name) == ("tablet_v1.2_profile.csv", "tablet_v1.2_profile.png")
+    png_path.write_bytes(b"")
+    assert [p.name for p in free_paths(tmp_path / "preview", "tablet_v1.2_profile", (".csv", ".png"))] == [
+        "tablet_v1.2_profile_1.csv", "tablet_v1.2_profile_1.png"]
 
 
 def test_help_reset_and_screenshot_keys(window, tmp_path, monkeypatch):

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ptmcore.fit import fit_ptm, light_matrix
-from ptmcore.normals import ptm_maximum
+from ptmcore.normals import normals_from_ptm, ptm_maximum
 from ptmcore.relight import diffuse_gain, light_direction, relight, specular_enhancement
 
 from helpers import dome, stack_from_luminance
@@ -239,6 +239,15 @@ def test_specular_with_known_maxima_is_the_same():
     for light in ([0.5, 0.2, 0.84], [-0.8, 0.1, 0.59]):
         np.testing.assert_array_equal(specular_enhancement(coef, rgb, light, maximum=maximum),
                                       specular_enhancement(coef, rgb, light))
+
+
+def test_diffuse_gain_with_known_maxima_is_the_same():
+    """A viewer passes the maxima's normals once (``maximum=``) to every gain: the same bytes."""
+    coef = _concave_field(seed=6).astype(np.float32)
+    coef[0, 0] = [5.0, 3.0, 0.0, 1.0, -2.0, 40.0]  # convex: its maximum is on the rim
+    maximum = normals_from_ptm(coef)
+    for gain in (0.5, 2.0, 7.5):
+        np.testing.assert_array_equal(diffuse_gain(coef, gain, maximum=maximum), diffuse_gain(coef, gain))
 
 
 @pytest.mark.parametrize("kd", [0.0, 0.4])

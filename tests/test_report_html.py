@@ -241,7 +241,7 @@ def test_height_figure_scale_bar_measures_the_full_map():
     image = Image.open(io.BytesIO(png))
     assert image.format == "PNG" and image.width == 600
     # 80 pixels at stride 4 and 0.05 mm: 16 mm wide, so the bar is the 2 mm nearest a quarter.
-    assert report_figures._nice_length(0.25 * 80 * 4 * 0.05) == 2
+    assert report_figures.nice_length(0.25 * 80 * 4 * 0.05) == 2
 
 
 def test_run_with_an_unreadable_scan_stops_before_writing_anything(tmp_path, capsys):

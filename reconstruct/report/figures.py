@@ -24,6 +24,7 @@ from ptmcore.ptmfile import PTMFile
 from ptmcore.relight import light_direction
 
 from reconstruct.report import plots, rendering
+from reconstruct.report.summary import unit_words
 
 #: Widest picture in the report, in pixels: a laptop screen shows it whole.
 MAX_WIDTH = 1000
@@ -246,7 +247,7 @@ def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, lin
     from ptmcore.ptmfile import read_ptm
 
     small = ptm if isinstance(ptm, PTMFile) else read_ptm(ptm, max_side=max_side)
-    return [(label, _for_display(small.render(light_direction(azimuth_deg=az, elevation_deg=el)), linear))
+    return [(label, for_display(small.render(light_direction(azimuth_deg=az, elevation_deg=el)), linear))
             for label, az, el in RELIGHT_LIGHTS]
 
 
@@ -260,10 +261,12 @@ def specular_from_ptm(ptm: PTMFile, *, linear: bool = False) -> np.ndarray | Non
         return None
     _, az, el = SPECULAR_LIGHT
     light = light_direction(azimuth_deg=az, elevation_deg=el)
-    return _for_display(specular_enhancement(ptm.coefficients, ptm.rgb, light), linear)
+    return for_display(specular_enhancement(ptm.coefficients, ptm.rgb, light), linear)
 
 
-def _for_display(image: np.ndarray, linear: bool) -> np.ndarray:
+def for_display(image: np.ndarray, linear: bool) -> np.ndarray:
+    """An 8-bit rendering of a PTM as a person is shown it: encoded as sRGB
+    (:func:`ptmcore.relight.display_srgb`) when the PTM holds `linear` light, else as it is."""
     from ptmcore.relight import display_srgb
 
     return display_srgb(image) if linear else np.asarray(image)
@@ -365,10 +368,11 @@ def thin(image: np.ndarray, max_side: int) -> tuple[np.ndarray, int]:
     return image[::k, ::k], k
 
 
-def _nice_length(x: float) -> float:
-    """The largest 1, 2 or 5 × 10^k not above ``x``."""
+def nice_length(x: float) -> float:
+    """The largest 1, 2 or 5 × 10^k not above ``x`` (> 0)."""
     k = 10.0 ** math.floor(math.log10(x))
-    return max(m * k for m in (1, 2, 5) if m * k <= x)
+    # The tolerance keeps a length that is round but for rounding (0.2 as 0.19999...).
+    return max(m * k for m in (1, 2, 5) if m * k <= x * (1 + 1e-9))
 
 
 def height_figure(
@@ -402,7 +406,7 @@ def height_figure(
     full_w, full_h = w * stride, h * stride
     fig_w = width_px / 100
     fig_h = min(fig_w * 1.2, max(2.5, fig_w * 0.8 * full_h / full_w + 0.3))
-    fig = plots._figure(width_px, round(fig_h * 100))
+    fig = plots.figure(width_px, round(fig_h * 100))
     ax = fig.add_subplot()
     lo, hi = finite_range(height)
     cmap = mpl.colormaps["viridis"].with_extremes(bad=(0.92, 0.92, 0.92))
@@ -410,7 +414,7 @@ def height_figure(
                    extent=(0, full_w, full_h, 0), interpolation="antialiased")
     ax.set_xticks([])
     ax.set_yticks([])
-    label = "pixels" if unit == "pixel" else unit
+    label = unit_words(unit)
     bar = fig.colorbar(im, ax=ax, shrink=0.9, ticks=plots.round_ticks())
     bar.set_label(f"height ({label})", fontsize=plots.FONT_SIZE)
     bar.ax.tick_params(labelsize=plots.FONT_SIZE)
@@ -419,13 +423,13 @@ def height_figure(
         ax.plot([0, full_w], [y, y], color="white", linewidth=2.2, linestyle=(0, (6, 4)))
         ax.plot([0, full_w], [y, y], color="black", linewidth=0.9, linestyle=(0, (6, 4)))
     per_px, bar_unit = (pixel_size, "mm") if pixel_size else (1.0, "pixels")
-    length = _nice_length(0.25 * full_w * per_px)
+    length = nice_length(0.25 * full_w * per_px)
     scale = AnchoredSizeBar(ax.transData, length / per_px, f"{length:g} {bar_unit}", "lower right",
                             pad=0.4, sep=4, color="black", frameon=True, size_vertical=max(full_h / 120, 1),
                             fontproperties=FontProperties(size=plots.FONT_SIZE + 1))
     scale.patch.set_alpha(0.8)
     ax.add_artist(scale)
-    return plots._png(fig)
+    return plots.png(fig)
 
 
 def vertical_exaggeration(width: float, height: float, depth: float | None) -> int:
@@ -438,7 +442,7 @@ def vertical_exaggeration(width: float, height: float, depth: float | None) -> i
     if not depth or not math.isfinite(depth) or depth <= 0:
         return 1
     target = 0.15 * max(width, height) / depth
-    return int(_nice_length(target)) if target >= 1 else 1
+    return int(nice_length(target)) if target >= 1 else 1
 
 
 #: Largest mesh rendered from its file; larger ones are rendered from the height map at the

@@ -13,7 +13,9 @@ import io
 
 import numpy as np
 
-__all__ = ["CHART_WIDTH", "FONT_SIZE", "profile_figure", "profile_row", "round_ticks"]
+from reconstruct.report.summary import unit_words
+
+__all__ = ["CHART_WIDTH", "FONT_SIZE", "figure", "png", "profile_figure", "profile_row", "round_ticks"]
 
 #: Width of the charts in pixels, as the page shows them (one column of the page).
 CHART_WIDTH = 900
@@ -29,13 +31,16 @@ def round_ticks(nbins: int = 6):
     return MaxNLocator(nbins=nbins, steps=[1, 2, 5, 10])
 
 
-def _png(fig) -> bytes:
+def png(fig) -> bytes:
+    """A matplotlib figure as PNG bytes."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     return buf.getvalue()
 
 
-def _figure(width_px: int, height_px: int):
+def figure(width_px: int, height_px: int):
+    """A matplotlib ``Figure`` of `width_px` × `height_px` pixels at 100 dpi, laid out by
+    matplotlib's constrained layout, on an Agg canvas of its own (no pyplot)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -68,7 +73,7 @@ def profile_figure(height: np.ndarray, row: int, stride: int, unit: str, pixel_s
         Millimetres per full-size pixel; the distance along the row is in mm when given, else
         in pixels.
     """
-    fig = _figure(width_px, 300)
+    fig = figure(width_px, 300)
     ax = fig.add_subplot()
     per = (pixel_size or 1.0) * stride
     x = np.arange(height.shape[1]) * per
@@ -80,10 +85,10 @@ def profile_figure(height: np.ndarray, row: int, stride: int, unit: str, pixel_s
     ax.set_xlim(0, x[-1] if x.size > 1 else 1)
     ax.xaxis.set_major_locator(round_ticks(10))
     ax.yaxis.set_major_locator(round_ticks(5))
-    unit = "pixels" if unit == "pixel" else unit
+    unit = unit_words(unit)
     ax.set_xlabel(f"distance from the left edge ({'mm' if pixel_size else 'pixels'})", fontsize=FONT_SIZE)
     ax.set_ylabel(f"height ({unit})", fontsize=FONT_SIZE)
     ax.tick_params(labelsize=FONT_SIZE)
     ax.grid(color="#dddddd", linewidth=0.8)
     ax.spines[["top", "right"]].set_visible(False)
-    return _png(fig)
+    return png(fig)

@@ -17,17 +17,27 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["ImageStrip", "LightDisk", "ScaleBar", "nice_length"]
+from reconstruct.report.figures import nice_length
+
+__all__ = ["ImageStrip", "LightDisk", "ScaleBar", "inside_horizon"]
 
 _WHITE = (1.0, 1.0, 1.0)
 _MARKER = (1.0, 0.85, 0.1)
 _MARGIN = 16  # pixels between an overlay and the window's edge
 
 
-def nice_length(x: float) -> float:
-    """The largest 1, 2 or 5 × 10^k not above ``x`` (> 0)."""
-    k = 10.0 ** math.floor(math.log10(x))
-    return max(m * k for m in (1, 2, 5) if m * k <= x * (1 + 1e-9))
+#: The lowest elevation a light is moved to, degrees: a light at the horizon lights nothing.
+MIN_ELEVATION = 1.0
+
+
+def inside_horizon(lu: float, lv: float) -> tuple[float, float]:
+    """A light's projection (lu, lv) pulled inside the rim, to :data:`MIN_ELEVATION` at the
+    lowest."""
+    r = math.hypot(lu, lv)
+    top = math.cos(math.radians(MIN_ELEVATION))
+    if r > top:
+        lu, lv = lu * top / r, lv * top / r
+    return float(lu), float(lv)
 
 
 def _polylines(lines: list[np.ndarray]):
@@ -101,9 +111,6 @@ class LightDisk:
         Called with ``(lu, lv)``, the light's projection on the image plane, while dragging.
     """
 
-    #: Highest elevation's complement kept off the rim: a light at the horizon lights nothing.
-    MIN_ELEVATION = 1.0
-
     def __init__(self, renderer, interactor, radius: float, on_light: Callable[[float, float], None]) -> None:
         self.renderer = renderer
         self.radius = float(radius)
@@ -149,13 +156,8 @@ class LightDisk:
             actor.SetVisibility(self._enabled)
 
     def light_at(self, x: float, y: float) -> tuple[float, float]:
-        """(lu, lv) under display pixel (x, y), pulled inside the rim."""
-        lu, lv = (np.array([x, y], dtype=np.float64) - self.centre) / self.radius
-        r = math.hypot(lu, lv)
-        top = math.cos(math.radians(self.MIN_ELEVATION))
-        if r > top:
-            lu, lv = lu * top / r, lv * top / r
-        return float(lu), float(lv)
+        """(lu, lv) under display pixel (x, y), pulled inside the rim (:func:`inside_horizon`)."""
+        return inside_horizon(*(np.array([x, y], dtype=np.float64) - self.centre) / self.radius)
 
     def _inside(self, x: float, y: float) -> bool:
         origin = self.renderer.GetOrigin()  # the renderer's lower left corner in the window
@@ -211,7 +213,7 @@ class ScaleBar:
         for actor in self.actors:
             renderer.AddViewProp(actor)
         # Before each frame: the zoom may have changed.
-        self._tag = renderer.AddObserver("StartEvent", lambda *_: self.update())
+        renderer.AddObserver("StartEvent", lambda *_: self.update())
 
     def update(self) -> None:
         """Fit the bar to the current zoom: about a fifth of the view's width."""
@@ -230,11 +232,6 @@ class ScaleBar:
         self._bar.GetMapper().SetInputData(_polylines(lines))
         self.label.SetInput(f"{self.length:g} {self.unit}{self.note}")
         self.label.SetPosition(right, base + tick + 4)
-
-    def set_visible(self, visible: bool) -> None:
-        for actor in self.actors:
-            actor.SetVisibility(bool(visible))
-
 
 class ImageStrip:
     """A picture in a viewport along the bottom of the window, the main view above it.

@@ -33,6 +33,8 @@ from ptmcore.relight import light_direction
 from reconstruct.report import rendering
 from reconstruct.report.figures import finite_range
 from reconstruct.viewer.keys import help_text
+from reconstruct.viewer.measurements import Measurement
+from reconstruct.viewer.overlays import ImageStrip, LightDisk, ScaleBar, inside_horizon
 from reconstruct.viewer.scene import (
     COLOUR_MODES,
     LIT_MODES,
@@ -86,32 +88,28 @@ class PreviewWindow:
 
     Build it with :func:`build_plotter`. Attributes worth reading after a callback:
     ``mode``, ``azimuth``, ``elevation``, ``style`` (gain, specular exponent, exaggeration),
-    ``colors`` (the colour array the GPU shows, a view of VTK's memory), ``last_distance``,
-    ``last_profile``, ``message`` (the last thing said to the user) and ``closed``.
+    ``colors`` (the colour array the GPU shows, a view of VTK's memory), ``measurement``
+    (with ``last_distance`` and ``last_profile`` read from it), ``message`` (the last thing
+    said to the user) and ``closed``.
     """
 
     def __init__(self, scene: PreviewScene, *, off_screen: bool, size: tuple[int, int],
-                 mode: str | None, azimuth: float, elevation: float, style: Style,
-                 output: Path | None) -> None:
+                 mode: str | None, azimuth: float, elevation: float, output: Path | None) -> None:
         import pyvista as pv
 
         self.scene = scene
-        self.style = style
+        self.style = Style()
         self.output = output
         self.azimuth, self.elevation = float(azimuth) % 360.0, float(elevation)
-        self._light()  # checks the angles before anything is built
+        light = self._light()  # checks the angles before anything is built
         self.picks: list[np.ndarray] = []
         self.profile_mode = False
         self.help_shown = False
         self.closed = False
         self.message = ""
-        self.last_distance: float | None = None
-        self.last_profile: tuple[np.ndarray, np.ndarray] | None = None
-        self._last_measure: str | None = None
-        self._profile_ends: tuple[np.ndarray, np.ndarray] | None = None
+        #: The last measurement made (what ``e`` exports), whatever was picked since.
+        self.measurement: Measurement | None = None
         self.mode = mode or scene.modes[0]
-
-        from reconstruct.viewer.overlays import ImageStrip, LightDisk, ScaleBar
 
         plotter = rendering.plotter(size, off_screen=off_screen)
         self.plotter = plotter
@@ -121,7 +119,7 @@ class PreviewWindow:
         mesh = pv.PolyData.from_regular_faces(scene.vertices, scene.faces)
         self._actors: dict[str, object] = {}
         self._bars: dict[str, str] = {}
-        self._add_colour_actor(pv, mesh)
+        self._add_colour_actor(pv, mesh, light)
         self._add_scalar_actors(mesh)
         self._add_scene_light(pv)
 
@@ -137,19 +135,35 @@ class PreviewWindow:
             self._bind_keys()
 
         self._apply_exaggeration()
-        self.on_light(self.azimuth, self.elevation)
-        self.set_mode(self.mode)
+        self._aim_light(light)
+        self._show_view(self.mode)
+        self._update_status()
         self.reset_view()
+
+    @property
+    def last_distance(self) -> float | None:
+        """The distance last measured (None before one, or when the last was a profile)."""
+        m = self.measurement
+        return distance(m.p0, m.p1) if m is not None and m.kind == "distance" else None
+
+    @property
+    def last_profile(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(along, heights)`` of the profile last measured (None before one, or when the
+        last was a distance)."""
+        m = self.measurement
+        return (m.along, m.heights) if m is not None and m.kind == "profile" else None
 
     # --- building -----------------------------------------------------------------------
 
-    def _add_colour_actor(self, pv, mesh) -> None:
+    def _add_colour_actor(self, pv, mesh, light: np.ndarray) -> None:
         scene = self.scene
         colour_modes = [m for m in scene.modes if m in COLOUR_MODES]
         if not colour_modes:
             self.colors = None
             return
-        first = mode_colors(scene, colour_modes[0], self._light(), self.style)
+        # The first view's colours, computed once here: a scalar first view (height) leaves
+        # them hidden until a colour view is chosen, which recolours.
+        first = mode_colors(scene, self.mode if self.mode in COLOUR_MODES else colour_modes[0], light, self.style)
         surface = mesh.copy(deep=False)
         if scene.uv is not None:
             h, w = first.shape[:2]
@@ -241,6 +255,13 @@ class PreviewWindow:
         self.colors.VTKObject.Modified()
         self._image.Modified()
 
+    def _aim_light(self, light: np.ndarray) -> None:
+        """Point the disk's marker and VTK's scene light (the height view's) at `light`."""
+        self.disk.set_light(light, self.azimuth, self.elevation)
+        centre = np.asarray(self.plotter.center)
+        self._scene_light.focal_point = tuple(centre)
+        self._scene_light.position = tuple(centre + light * max(self.plotter.length, 1e-6))
+
     def on_light(self, azimuth: float, elevation: float) -> None:
         """Move the light (degrees) and relight the lit views.
 
@@ -249,10 +270,7 @@ class PreviewWindow:
         """
         self.azimuth, self.elevation = float(azimuth) % 360.0, float(elevation)
         light = self._light()
-        self.disk.set_light(light, self.azimuth, self.elevation)
-        centre = np.asarray(self.plotter.center)
-        self._scene_light.focal_point = tuple(centre)
-        self._scene_light.position = tuple(centre + light * max(self.plotter.length, 1e-6))
+        self._aim_light(light)
         if self.mode in LIT_MODES and self.mode in COLOUR_MODES:
             self._show_colours(mode_colors(self.scene, self.mode, light, self.style))
         self._update_status()
@@ -265,9 +283,8 @@ class PreviewWindow:
     def move_light(self, d_lu: float, d_lv: float) -> None:
         """Move the light's projection on the image plane: (−, 0) to the left as seen,
         (0, +) upwards; it stays inside the horizon (1° up at least). Renders."""
-        light = self._light()
-        self._set_projection(*self.disk.light_at(*(self.disk.centre + self.disk.radius
-                                                    * (light[:2] + (d_lu, d_lv)))))
+        lu, lv = self._light()[:2]
+        self._set_projection(*inside_horizon(lu + d_lu, lv + d_lv))
         self.plotter.render()
 
     def _on_disk(self, lu: float, lv: float) -> None:
@@ -293,16 +310,20 @@ class PreviewWindow:
             raise ValueError(f"{self.scene.name} has no {name} view; it has {', '.join(self.scene.modes)}")
         self.mode = name
         self.message = ""
+        self._show_view(name)
+        if name in COLOUR_MODES:
+            self._show_colours(mode_colors(self.scene, name, self._light(), self.style))
+        self._update_status()
+        self.plotter.render()
+
+    def _show_view(self, name: str) -> None:
+        """Show the actor, colour bar and light disk of view `name`, and hide the others'."""
         shown = self._actors[name]
         for actor in self._actors.values():
             actor.SetVisibility(actor is shown)
         for mode, title in self._bars.items():
             self.plotter.scalar_bars[title].SetVisibility(mode == name)
         self.disk.set_visible(name in LIT_MODES)
-        if name in COLOUR_MODES:
-            self._show_colours(mode_colors(self.scene, name, self._light(), self.style))
-        self._update_status()
-        self.plotter.render()
 
     def set_exaggeration(self, factor: float) -> None:
         """Scale the heights shown (mesh and relief shading) by `factor`; measurements stay
@@ -376,25 +397,23 @@ class PreviewWindow:
         self.plotter.render()
 
     def _measure(self, p0: np.ndarray, p1: np.ndarray) -> None:
+        """Measure between two picks: keep the record (:attr:`measurement`), draw its path,
+        and in profile mode its chart in the strip."""
         along, heights = profile(self.scene, p0, p1, PROFILE_SAMPLES)
+        # The samples of profile(), evenly spaced from p0 to p1.
+        chord = p0 + np.linspace(0.0, 1.0, len(along))[:, None] * (p1 - p0)
+        self.measurement = Measurement("profile" if self.profile_mode else "distance", p0, p1, along,
+                                       chord[:, :2], heights)
         # Drawn as the path on the surface, slightly lifted towards the camera: the straight
         # chord would pass under the bumps between the two points and vanish.
-        t = along / along[-1] if along[-1] > 0 else np.linspace(0, 1, len(along))
-        chord = p0 + t[:, None] * (p1 - p0)
         path = chord.copy()
         lift = 0.005 * self.plotter.length / self.style.exaggeration
         path[:, 2] = np.where(np.isfinite(heights), heights, chord[:, 2]) + lift
         self.plotter.add_lines(np.repeat(path, 2, axis=0)[1:-1], color="yellow", width=3, name="measure")
         if self.profile_mode:
-            self.last_profile = along, heights
-            self._profile_ends = p0, p1
-            self._last_measure = "profile"
-            from reconstruct.viewer.measurements import profile_figure
+            from reconstruct.viewer.measurements import profile_figure, rgb_pixels
 
-            self.strip.show(profile_figure(along, heights, self.scene.unit, self.strip.size()))
-        else:
-            self.last_distance = distance(p0, p1)
-            self._last_measure = "distance"
+            self.strip.show(rgb_pixels(profile_figure(along, heights, self.scene.unit, self.strip.size())))
 
     def toggle_profile(self) -> None:
         """Switch the two-point measurement between a distance and a height profile."""
@@ -407,35 +426,17 @@ class PreviewWindow:
         self.plotter.render()
 
     def export_measurement(self, folder: str | os.PathLike | None = None) -> list[Path]:
-        """Write the last measurement into `folder` (default: ``preview/`` in the result's
-        folder): a profile as CSV and PNG, a distance as CSV. Returns the files written."""
-        from reconstruct.viewer.measurements import (
-            free_stem,
-            profile_figure,
-            write_distance_csv,
-            write_profile_csv,
-        )
-        from reconstruct.viewer.relighting import write_image
+        """Write the last measurement made (:attr:`measurement`, whatever was picked since)
+        into `folder` (default: ``preview/`` in the result's folder): a profile as CSV and
+        PNG, a distance as CSV. Returns the files written."""
+        from reconstruct.viewer.measurements import export_measurement
 
-        folder = Path(folder) if folder is not None else self._folder()
-        name, unit = self.scene.name, self.scene.unit
-        if self._last_measure == "profile":
-            along, heights = self.last_profile
-            p0, p1 = self._profile_ends
-            t = along / along[-1] if along[-1] > 0 else np.linspace(0, 1, len(along))
-            xy = p0[:2] + t[:, None] * (p1[:2] - p0[:2])
-            stem = free_stem(folder, f"{name}_profile", (".csv", ".png"))
-            written = [write_profile_csv(stem.with_suffix(".csv"), along, xy, heights, unit)]
-            png = stem.with_suffix(".png")
-            write_image(png, profile_figure(along, heights, unit, PROFILE_PNG, title=f"{name}: "))
-            written.append(png)
-        elif self._last_measure == "distance":
-            stem = free_stem(folder, f"{name}_distance", (".csv",))
-            written = [write_distance_csv(stem.with_suffix(".csv"), *self.picks, unit)]
-        else:
+        if self.measurement is None:
             self._say("nothing measured yet: right-click two points (m: distance or profile)")
             self.plotter.render()
             return []
+        folder = Path(folder) if folder is not None else self._folder()
+        written = export_measurement(self.measurement, folder, self.scene.name, self.scene.unit, PROFILE_PNG)
         self._say("exported " + ", ".join(str(p) for p in written))
         self.plotter.render()
         return written
@@ -509,12 +510,11 @@ class PreviewWindow:
         """Write the current view as a clean figure (:meth:`figure`), PNG, atomically; by
         default ``preview/<source>_<view>.png`` in the result's folder, numbered when it
         exists. Says where. Returns the path."""
-        from reconstruct.viewer.measurements import free_stem
+        from reconstruct.viewer.measurements import free_paths
         from reconstruct.viewer.relighting import write_image
 
-        if path is None:
-            path = free_stem(self._folder(), f"{self.scene.name}_{self.mode}", (".png",)).with_suffix(".png")
-        path = Path(path)
+        path = Path(path) if path is not None else free_paths(self._folder(), f"{self.scene.name}_{self.mode}",
+                                                              (".png",))[0]
         write_image(path, self.figure())
         self._say(f"saved {path}")
         self.plotter.render()
@@ -542,7 +542,6 @@ def build_plotter(
     mode: str | None = None,
     azimuth: float = DEFAULT_AZIMUTH,
     elevation: float = DEFAULT_ELEVATION,
-    style: Style = Style(),
     output: str | os.PathLike | None = None,
 ) -> PreviewWindow:
     """Build the preview window (not shown yet: call ``window.plotter.show()``).
@@ -558,8 +557,6 @@ def build_plotter(
         First view mode (default: the first the scene has: relit when it can be relit).
     azimuth, elevation : float
         Light direction in degrees.
-    style : Style
-        Diffuse gain, specular enhancement and vertical exaggeration.
     output : path, optional
         The result's folder: figures and measurements go into its ``preview/`` (default:
         the scene's folder, else the working folder).
@@ -575,7 +572,7 @@ def build_plotter(
         raise ValueError(f"{scene.name} has no {mode} view; it has {', '.join(scene.modes)}")
     folder = Path(output) if output is not None else scene.folder
     return PreviewWindow(scene, off_screen=off_screen, size=size, mode=mode, azimuth=azimuth,
-                         elevation=elevation, style=style, output=folder)
+                         elevation=elevation, output=folder)
 
 
 def render_screenshot(
@@ -586,7 +583,6 @@ def render_screenshot(
     azimuth: float = DEFAULT_AZIMUTH,
     elevation: float = DEFAULT_ELEVATION,
     size: tuple[int, int] = (1280, 900),
-    style: Style = Style(),
 ) -> Path:
     """Render the preview off-screen to a PNG figure (:meth:`PreviewWindow.figure`) and
     close it (for scripts and tests).
@@ -598,7 +594,7 @@ def render_screenshot(
     """
     try:
         window = build_plotter(scene, off_screen=True, size=size, mode=mode, azimuth=azimuth,
-                               elevation=elevation, style=style)
+                               elevation=elevation)
     except ValueError as exc:
         raise InputError(str(exc)) from None
     except RuntimeError as exc:

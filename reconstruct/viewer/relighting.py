@@ -19,7 +19,15 @@ from ptmcore.errors import InputError
 from ptmcore.images import LUMA_WEIGHTS
 from ptmcore.normals import ptm_maximum
 from ptmcore.ptmfile import PTMFile, read_ptm
-from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, relight, specular_enhancement
+from ptmcore.relight import (
+    DEFAULT_EXPONENT,
+    DEFAULT_GAIN,
+    DEFAULT_KD,
+    DEFAULT_KS,
+    diffuse_gain,
+    relight,
+    specular_enhancement,
+)
 from ptmcore.rtifile import RTIFile, read_rti_hsh
 
 MODES = ("default", "specular", "diffuse-gain")
@@ -88,9 +96,9 @@ def render(
     light: np.ndarray,
     mode: str = "default",
     *,
-    kd: float = 0.4,
-    ks: float = 0.7,
-    exponent: float = 75.0,
+    kd: float = DEFAULT_KD,
+    ks: float = DEFAULT_KS,
+    exponent: float = DEFAULT_EXPONENT,
     gain: float = DEFAULT_GAIN,
 ) -> np.ndarray:
     """Render a PTM under one light in one of RTIViewer's modes.

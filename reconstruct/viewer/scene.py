@@ -38,10 +38,19 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError
-from ptmcore.relight import DEFAULT_GAIN, diffuse_gain, display_srgb, light_direction, relight
+from ptmcore.relight import (
+    DEFAULT_EXPONENT,
+    DEFAULT_GAIN,
+    DEFAULT_KD,
+    DEFAULT_KS,
+    diffuse_gain,
+    light_direction,
+    relight,
+)
 from reconstruct.mesh.grid import grid_mesh
 from reconstruct.report.figures import (
     display_pixel_size,
+    for_display,
     linear_ptm,
     normal_colors,
     ply_header,
@@ -114,7 +123,8 @@ class PreviewScene:
 
     The scene's data are read, not changed, once built: :attr:`modes`, the normals at the
     PTM's maxima, the convexity and the ray-casting structure of the profiles are computed
-    once, on first use, and the last diffuse gain's coefficients are kept.
+    once, on first use, and the last diffuse gain's coefficients and the last exaggeration's
+    normals are kept.
     """
 
     name: str
@@ -132,7 +142,7 @@ class PreviewScene:
     distance_limit: float | None = None
     linear_ptm: bool = False
     folder: Path | None = None
-    _gained: dict = field(default_factory=dict, repr=False, compare=False)
+    _kept: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
     def modes(self) -> tuple[str, ...]:
@@ -151,12 +161,11 @@ class PreviewScene:
 
     @cached_property
     def maximum(self) -> np.ndarray:
-        """``(h, w, 3)`` float32 normals at the PTM's maxima (specular enhancement's normals)."""
-        from ptmcore.normals import ptm_maximum
+        """``(h, w, 3)`` float32 normals at the PTM's maxima (specular enhancement's and
+        diffuse gain's normals)."""
+        from ptmcore.normals import normals_from_ptm
 
-        nu, nv, _ = ptm_maximum(self.coefficients)
-        nz = np.sqrt(np.clip(1.0 - nu * nu - nv * nv, 0.0, 1.0))
-        return np.stack([nu, nv, nz], axis=-1).astype(np.float32)
+        return normals_from_ptm(self.coefficients)
 
     @cached_property
     def convexity(self) -> np.ndarray:
@@ -165,13 +174,27 @@ class PreviewScene:
 
         return convexity(self.normals)
 
+    def _keep(self, kind: str, value: float, make) -> np.ndarray:
+        """``make(value)``, kept until `kind` is asked for with another value: the light
+        moves far more often than the gain or the exaggeration change."""
+        last = self._kept.get(kind)
+        if last is None or last[0] != value:
+            last = self._kept[kind] = (value, make(value))
+        return last[1]
+
     def gained(self, gain: float) -> np.ndarray:
         """The PTM's coefficients with diffuse gain `gain` (the last gain's are kept: a
         light move then costs one relight)."""
-        if gain not in self._gained:
-            self._gained.clear()
-            self._gained[gain] = diffuse_gain(self.coefficients, gain)
-        return self._gained[gain]
+        return self._keep("gain", gain, lambda g: diffuse_gain(self.coefficients, g, maximum=self.maximum))
+
+    def relief_normals(self, exaggeration: float) -> np.ndarray:
+        """The normals with the heights multiplied by `exaggeration`
+        (:func:`reconstruct.viewer.shading.exaggerated_normals`; the last factor's are kept)."""
+        from reconstruct.viewer.shading import exaggerated_normals
+
+        if exaggeration == 1:
+            return self.normals
+        return self._keep("relief", exaggeration, lambda e: exaggerated_normals(self.normals, e))
 
     @cached_property
     def _ray_scene(self):
@@ -183,13 +206,11 @@ class PreviewScene:
 
 @dataclass(frozen=True)
 class Style:
-    """Parameters of the renderings: RTIViewer's specular enhancement (diffuse weight `kd`,
-    specular weight `ks`, Phong `exponent`) and diffuse `gain` (1 to 10), and the vertical
-    `exaggeration` of the relief shading (and of the window's mesh)."""
+    """Parameters of the renderings the window changes: the Phong `exponent` of RTIViewer's
+    specular enhancement (its weights are RTIViewer's defaults), the diffuse `gain` (1 to 10),
+    and the vertical `exaggeration` of the relief shading (and of the window's mesh)."""
 
-    kd: float = 0.4
-    ks: float = 0.7
-    exponent: float = 75.0
+    exponent: float = DEFAULT_EXPONENT
     gain: float = DEFAULT_GAIN
     exaggeration: float = 1.0
 
@@ -222,7 +243,7 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     """
     if scene.coefficients is not None:
         image = relight(scene.coefficients, scene.rgb, light)  # checks the light
-        return display_srgb(image) if scene.linear_ptm else image
+        return for_display(image, scene.linear_ptm)
     if scene.normals is None or scene.albedo is None:
         raise ValueError(f"{scene.name} has neither PTM coefficients nor normals and colours to relight")
     return shade_lambertian(scene.normals, scene.albedo, light_direction(light=light))
@@ -255,13 +276,13 @@ def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None,
     if mode == "relit":
         return relit_texture(scene, light)
     if mode == "relief":
-        return relief_shading(scene.normals, scene.convexity, light, exaggeration=style.exaggeration)
+        return relief_shading(scene.relief_normals(style.exaggeration), scene.convexity, light)
     if mode == "specular":
-        image = specular_enhancement(scene.coefficients, scene.rgb, light, kd=style.kd, ks=style.ks,
+        image = specular_enhancement(scene.coefficients, scene.rgb, light, kd=DEFAULT_KD, ks=DEFAULT_KS,
                                      exponent=style.exponent, maximum=scene.maximum)
     else:
         image = relight(scene.gained(style.gain), scene.rgb, light)
-    return display_srgb(image) if scene.linear_ptm else image
+    return for_display(image, scene.linear_ptm)
 
 
 # --- measuring ---------------------------------------------------------------------------
@@ -515,7 +536,8 @@ def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
     coefficients, rgb = _resize(coef, tex).astype(np.float32), _resize(colour, tex)
     del coef, colour
     mesh = grid_mesh(np.zeros(shape, np.float32), step=_grid_step(shape, max_vertices))
-    return PreviewScene(
+    normals = normals_from_ptm(coefficients)
+    scene = PreviewScene(
         name=path.stem,
         vertices=mesh.vertices,
         faces=mesh.faces,
@@ -523,11 +545,14 @@ def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
         uv=mesh.uv,
         coefficients=coefficients,
         rgb=rgb,
-        normals=normals_from_ptm(coefficients),
+        normals=normals,
         albedo=rgb,
         linear_ptm=holds_linear_light(path),
         folder=path.parent,
     )
+    # A PTM file's normals are its maxima: specular enhancement and diffuse gain reuse them.
+    scene.maximum = normals
+    return scene
 
 
 def _mesh_unit(path: Path) -> str:

@@ -70,7 +70,6 @@ def relief_shading(
     convex: np.ndarray,
     light: np.ndarray,
     *,
-    exaggeration: float = 1.0,
     strength: float = RELIEF_STRENGTH,
 ) -> np.ndarray:
     """A grey rendering of the shape: Lambertian shading of the exaggerated normals with
@@ -79,14 +78,13 @@ def relief_shading(
     Parameters
     ----------
     normals : numpy.ndarray
-        ``(h, w, 3)`` unit normals.
+        ``(h, w, 3)`` unit normals, exaggerated as the view shows them
+        (:func:`exaggerated_normals`).
     convex : numpy.ndarray
         ``(h, w)`` convexity from :func:`convexity` (of the unexaggerated normals: it is
         scale-free).
     light : array_like, shape (3,)
         Direction towards the light.
-    exaggeration : float
-        Vertical exaggeration of the shading (1: the true slopes).
     strength : float
         Radiance scaling's weight, 0 to 1.
 
@@ -96,8 +94,7 @@ def relief_shading(
         ``(h, w, 3)`` uint8 sRGB grey image.
     """
     l_vec = light_direction(light=light).astype(np.float32)
-    n = exaggerated_normals(normals, exaggeration) if exaggeration != 1 else np.asarray(normals, np.float32)
-    lambert = np.maximum(n @ l_vec, np.float32(0.0))
+    lambert = np.maximum(np.asarray(normals, np.float32) @ l_vec, np.float32(0.0))
     linear = RELIEF_ALBEDO * (RELIEF_AMBIENT + (1 - RELIEF_AMBIENT) * lambert) * (1 + np.float32(strength) * convex)
     grey = np.round(linear_to_srgb(np.clip(linear, 0.0, 1.0)) * 255).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=2)
