@@ -32,6 +32,7 @@ import numpy as np
 from .bands import run_bands
 from .diskstack import is_disk_array, release_rows
 from .errors import InputError, first_few
+from .lp import MIN_PHOTOGRAPHS
 
 if TYPE_CHECKING:
     from .ptmencoded import EncodedFit, EncodedFits
@@ -381,7 +382,7 @@ def load_stack(
     *,
     linearize: bool = True,
     channel_gains: np.ndarray | None = None,
-    min_photographs: int = 3,
+    min_photographs: int = MIN_PHOTOGRAPHS,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",
@@ -483,7 +484,7 @@ def load_stack_and_fits(
     fit: EncodedFit | None = None,
     linearize: bool = True,
     channel_gains: np.ndarray | None = None,
-    min_photographs: int = 3,
+    min_photographs: int = MIN_PHOTOGRAPHS,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",

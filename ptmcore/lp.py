@@ -28,7 +28,7 @@ from pathlib import Path, PureWindowsPath
 import numpy as np
 
 from .atomic import atomic_write
-from .errors import InputError, read_input_text
+from .errors import InputError, first_few, read_input_text
 
 #: Lights lower than this above the horizon (z ≤ sin 0.5°) are rejected: they light nothing
 #: of a flat object and make the fit ill-conditioned.
@@ -156,15 +156,13 @@ def unit_directions(
     raise InputError(f"line {lines[k]}: {problem}", path)
 
 
-def read_lp(path: str | os.PathLike, *, min_photographs: int = MIN_PHOTOGRAPHS) -> LightSet:
+def read_lp(path: str | os.PathLike) -> LightSet:
     """Read an ``.lp`` light file.
 
     Parameters
     ----------
     path : str or PathLike
         The ``.lp`` file.
-    min_photographs : int
-        Fewest photographs the file may list (default 3, the fewest that determine a normal).
 
     Returns
     -------
@@ -177,7 +175,7 @@ def read_lp(path: str | os.PathLike, *, min_photographs: int = MIN_PHOTOGRAPHS) 
     InputError
         If the file is missing or unreadable, the count does not match the lines, a line does
         not parse or has no file name, a vector is (nearly) zero, not finite, absurdly long,
-        or at or below the horizon, or the file lists fewer than ``min_photographs``.
+        or at or below the horizon, or the file lists fewer than :data:`MIN_PHOTOGRAPHS`.
     """
     path = Path(path)
     text = read_input_text(path, "light file")
@@ -216,9 +214,9 @@ def read_lp(path: str | os.PathLike, *, min_photographs: int = MIN_PHOTOGRAPHS) 
         paths.append(resolved)
     numbers = [no for no, _ in entries]
     directions = unit_directions(vectors, numbers, path, names)
-    if count < min_photographs:
+    if count < MIN_PHOTOGRAPHS:
         raise InputError(
-            f"lists {count} photograph{'s' if count != 1 else ''}; at least {min_photographs} "
+            f"lists {count} photograph{'s' if count != 1 else ''}; at least {MIN_PHOTOGRAPHS} "
             "are needed to recover normals",
             path,
         )
@@ -253,7 +251,7 @@ def duplicate_warnings(paths: list[Path], directions: np.ndarray, lines: list[in
     shared.sort(key=lambda ks: ks[0])
     for ks in shared[:_SHOWN]:
         out.append(f"{_line_list([lines[k] for k in ks])} give the same light direction "
-                   f"({', '.join(paths[k].name for k in ks[:3])}{', ...' if len(ks) > 3 else ''})")
+                   f"({first_few([paths[k].name for k in ks])})")
     if len(shared) > _SHOWN:
         out.append(f"{len(shared) - _SHOWN} more light direction(s) are shared by several photographs")
     return tuple(out)

@@ -32,7 +32,7 @@ import numpy as np
 from .errors import InputError, read_input_text
 from .images import ImageStack, load_stack, read_image
 from .intensity import check_positive, read_numeric_rows
-from .lp import LightSet, unit_directions
+from .lp import MIN_PHOTOGRAPHS, LightSet, unit_directions
 
 FILENAMES = "filenames.txt"
 DIRECTIONS = "light_directions.txt"
@@ -259,8 +259,8 @@ def read_ps_dataset(
             f"lists {len(paths)} images but {DIRECTIONS} lists {n} lights", folder / FILENAMES
         )
     intensities = _read_intensities(folder / INTENSITIES, n)
-    if n < 3:
-        raise InputError(f"lists {n} light(s); at least 3 photographs are needed to recover normals",
+    if n < MIN_PHOTOGRAPHS:
+        raise InputError(f"lists {n} light(s); at least {MIN_PHOTOGRAPHS} photographs are needed to recover normals",
                          directions_path)
     for p in paths:
         if not p.is_file():

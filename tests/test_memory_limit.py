@@ -12,7 +12,7 @@ from data_synthetic import write_capture
 from ptmcore.diskstack import disk_array
 from reconstruct.cli.main import main
 from reconstruct.pipeline import RunOptions, load_capture, run_capture
-from reconstruct.pipeline.capture import stack_on_disk
+from reconstruct.pipeline.capture import plan_stack
 
 
 @pytest.fixture(scope="module")
@@ -32,8 +32,8 @@ def test_disk_array_leaves_nothing_behind(tmp_path):
 def test_the_limit_decides(capture):
     photographs = sorted(capture.glob("*.png")) or sorted(capture.glob("*.jp*g")) or sorted(capture.glob("*.tif"))
     assert photographs
-    assert stack_on_disk(photographs, RunOptions(memory_limit=1.0))
-    assert not stack_on_disk(photographs, RunOptions(memory_limit=1e6))
+    assert plan_stack(photographs, RunOptions(memory_limit=1.0)).on_disk
+    assert not plan_stack(photographs, RunOptions(memory_limit=1e6)).on_disk
     in_memory = load_capture(capture, RunOptions(memory_limit=1e6), scratch=capture.parent)
     assert not isinstance(in_memory.stack.luminance, np.memmap)
     on_disk = load_capture(capture, RunOptions(memory_limit=1.0), scratch=capture.parent)
@@ -99,10 +99,10 @@ def test_a_large_stack_goes_to_a_file_by_default(capture, tmp_path, monkeypatch)
     import reconstruct.pipeline.capture as capture_module
 
     photographs = sorted(capture.glob("*.png")) or sorted(capture.glob("*.jp*g")) or sorted(capture.glob("*.tif"))
-    assert not stack_on_disk(photographs, RunOptions())  # a small stack stays in memory
+    assert not plan_stack(photographs, RunOptions()).on_disk  # a small stack stays in memory
     monkeypatch.setattr(capture_module, "STACK_FILE_MB", 0.0)
-    assert stack_on_disk(photographs, RunOptions())
-    assert not stack_on_disk(photographs, RunOptions(memory_limit=1e6))  # an explicit limit it fits in
+    assert plan_stack(photographs, RunOptions()).on_disk
+    assert not plan_stack(photographs, RunOptions(memory_limit=1e6)).on_disk  # an explicit limit it fits in
     b = run_capture(capture, tmp_path / "file", RunOptions())
     a = run_capture(capture, tmp_path / "memory", RunOptions(memory_limit=1e6))
     np.testing.assert_array_equal(np.load(a.output / "normals.npy"), np.load(b.output / "normals.npy"))

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, first_few
 from ptmcore.images import ImageStack, check_content, image_size, load_stack, load_stack_and_fits, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
@@ -211,8 +211,7 @@ def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) 
     by_name = dict(zip(names, positions))
     missing = [p.name for p in lights.paths if p.name not in by_name]
     if missing:
-        raise InputError(f"no light position for {missing[0]}"
-                         + (f" and {len(missing) - 1} more photograph(s)" if len(missing) > 1 else ""), path)
+        raise InputError(f"no light position for {first_few(missing)}", path)
     return NearLights(np.array([by_name[p.name] for p in lights.paths]), str(path))
 
 
@@ -382,12 +381,6 @@ def peak_memory_mb(paths: Sequence[Path], opt: RunOptions) -> float | None:
     return None if plan is None else plan.peak_mb
 
 
-def stack_on_disk(paths: Sequence[Path], opt: RunOptions) -> bool:
-    """Whether a capture's stack should go to a memory-mapped file (:class:`StackPlan`)."""
-    plan = plan_stack(paths, opt)
-    return plan is not None and plan.on_disk
-
-
 def _stack_place(paths: list[Path], opt: RunOptions, scratch: str | os.PathLike | None
                  ) -> tuple[str | os.PathLike | None, list[str]]:
     """Where the stack goes (``scratch`` for a file, None for memory) and, when it goes to a
@@ -452,7 +445,7 @@ def load_capture(
         The run's stage log (times, memory, progress); a new one when not given.
     scratch : path, optional
         A folder for the stack of a capture too large for ``options.memory_limit``
-        (:func:`stack_on_disk`); without it the stack is always held in memory.
+        (:func:`plan_stack`); without it the stack is always held in memory.
 
     Returns
     -------

@@ -60,8 +60,10 @@ def _reconstruction_mesh(path: Path) -> Path:
     if report_file.exists():
         unit = json.loads(report_file.read_text()).get("height_unit")
         if unit != "mm":
-            unit = "pixels" if unit == "pixel" else unit
-            raise InputError(f"this reconstruction's heights are in {unit}, not mm: run it with --pixel-size", path)
+            from reconstruct.report.summary import unit_words
+
+            raise InputError(f"this reconstruction's heights are in {unit_words(unit)}, not mm: run it with "
+                             "--pixel-size", path)
     return path / "mesh.ply"
 
 

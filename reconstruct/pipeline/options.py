@@ -248,7 +248,7 @@ class RunOptions:
         process band by band (:mod:`ptmcore.diskstack`). Default (None): a stack of
         ``STACK_FILE_MB`` (256 MB) or more always goes to the file, a smaller one when the run
         would not fit in the memory available
-        (:func:`reconstruct.pipeline.capture.stack_on_disk`).
+        (:func:`reconstruct.pipeline.capture.plan_stack`).
     ground_truth : Path or None
         Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
         default: ``CAPTURE/ground_truth`` when it exists.

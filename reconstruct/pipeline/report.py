@@ -84,7 +84,7 @@ class CaptureInputs:
     height: int
     bit_depth: int
     mask: str | None
-    #: Where the stack was held: "memory", or "file" (:func:`reconstruct.pipeline.capture.stack_on_disk`).
+    #: Where the stack was held: "memory", or "file" (:func:`reconstruct.pipeline.capture.plan_stack`).
     stack: str = "memory"
 
 

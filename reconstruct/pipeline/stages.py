@@ -344,9 +344,7 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     to the object's median).
     """
     method, why = _integrator(options.integrator, mask)
-    if options.intrinsics is not None:
-        if method == "fc":
-            raise InputError("a perspective camera integrates with masked, bilateral or dct, not fc")
+    if options.intrinsics is not None:  # RunOptions refuses fc with intrinsics
         camera = parse_intrinsics(options.intrinsics)
         height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance)
         unit = "mm" if options.distance else "relative depth"

@@ -24,6 +24,7 @@ import contextlib
 import ctypes
 import errno
 import fnmatch
+import glob
 import os
 import secrets
 import shutil
@@ -114,13 +115,9 @@ class StagedOutput:
         skip = set(exclude)
         kept = []
         for entry in sorted(self.output.iterdir()):
-            if entry.name in skip or entry.name.startswith(STAGING_PREFIX):
-                continue
-            if entry.is_dir() and not entry.is_symlink():
-                shutil.copytree(entry, self.staging / entry.name, copy_function=_link_or_copy, symlinks=True)
-            else:
-                _link_or_copy(entry, self.staging / entry.name)
-            kept.append(entry.name)
+            if entry.name not in skip:
+                _carry(entry, self.staging / entry.name)
+                kept.append(entry.name)
         return kept
 
     def publish(self, names: Iterable[str]) -> dict[str, Path]:
@@ -134,8 +131,7 @@ class StagedOutput:
         if self.output.is_dir():  # the user's figures live on in the new result
             for name in CARRIED:
                 if (self.output / name).is_dir() and not (self.staging / name).exists():
-                    shutil.copytree(self.output / name, self.staging / name, copy_function=_link_or_copy,
-                                    symlinks=True)
+                    _carry(self.output / name, self.staging / name)
                     keep.add(Path(name))
         missing = [str(n) for n in keep if not (self.staging / n).exists()]
         if missing:
@@ -144,6 +140,14 @@ class StagedOutput:
         _swap_in(self.staging, self.output)
         self.files = {str(n): self.output / n for n in sorted(keep, key=str)}
         return self.files
+
+
+def _carry(src: Path, dst: Path) -> None:
+    """A file or folder of the old result carried into the new one, by hard links."""
+    if src.is_dir() and not src.is_symlink():
+        shutil.copytree(src, dst, copy_function=_link_or_copy, symlinks=True)
+    else:
+        _link_or_copy(src, dst)
 
 
 def _link_or_copy(src: str | os.PathLike, dst: str | os.PathLike) -> None:
@@ -206,30 +210,24 @@ def _foreign(folder: Path) -> list[str]:
     any is not replaced, since they would go with the old result and might be anything of the
     user's (notes put beside a result, or the photographs themselves)."""
     return sorted(p.name for p in folder.iterdir()
-                  if not p.name.startswith(STAGING_PREFIX)
-                  and not any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES))
+                  if not any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES))
 
 
 def _recover(output: Path) -> None:
     """Undo what dead runs left beside ``output`` (called with its lock held): an old result
     renamed aside comes back when ``output`` is missing; everything else goes."""
     building, aside = staging_names(output)
-    stale = sorted(output.parent.glob(glob_escape(aside) + "*"), key=lambda p: p.stat().st_mtime)
+    stale = sorted(output.parent.glob(glob.escape(aside) + "*"), key=lambda p: p.stat().st_mtime)
     if not output.exists() and not output.is_symlink():
         for folder in reversed(stale):
             if (folder / "result").is_dir():
                 os.rename(folder / "result", output)
                 break
-    for leftover in [*stale, *output.parent.glob(glob_escape(building) + "*")]:
+    for leftover in [*stale, *output.parent.glob(glob.escape(building) + "*")]:
         shutil.rmtree(leftover, ignore_errors=True)
     if output.is_dir():  # staging folders of earlier versions, inside the result
         for leftover in output.glob(STAGING_PREFIX + "*"):
             shutil.rmtree(leftover, ignore_errors=True)
-
-
-def glob_escape(name: str) -> str:
-    """``name`` with glob's special characters taken literally."""
-    return "".join(f"[{c}]" if c in "*?[" else c for c in name)
 
 
 @contextmanager

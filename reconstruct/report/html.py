@@ -232,10 +232,10 @@ def _relit(report: dict, previews: figures.Previews, ptm) -> str:
         how = f"RTIViewer's default rendering of {name}" + (
             " (a PTM of linear light, from 16-bit photographs: shown sRGB-encoded)" if linear else "")
     elif previews.normals is not None:
-        from_normal_map = "normal_map" in (report.get("inputs") or {})
-        albedo = None if from_normal_map else previews.albedo
-        images = figures.relit_lambertian(previews.normals, albedo)
-        how = "Lambertian shading of the normals" + (" and albedo" if albedo is not None else " (uniform grey)")
+        # Previews hold no albedo for a normal map made elsewhere (its albedo.png is a rendering).
+        images = figures.relit_lambertian(previews.normals, previews.albedo)
+        how = "Lambertian shading of the normals" + (" and albedo" if previews.albedo is not None
+                                                     else " (uniform grey)")
     else:
         return _note("no relit renderings: neither coefficients.ptm nor normals.npy is in the folder")
     items = "".join(_figure(figures.encode(img, "JPEG"), "image/jpeg", label) for label, img in images)
@@ -256,7 +256,7 @@ def _surface(report: dict, previews: figures.Previews, ptm, notes: list[str]) ->
                            f"specular enhancement (RTIViewer's, light {label}): surface shape without colour")
 
         parts.append(_attempt(specular, "specular enhancement", notes, _note))
-    if previews.albedo is not None and "normal_map" not in (report.get("inputs") or {}):
+    if previews.albedo is not None:
         albedo = figures.fit_side(previews.albedo, figures.MAX_WIDTH // 2)
         parts.append(_figure(figures.encode(albedo, "JPEG"), "image/jpeg",
                              "albedo: the surface's colour without shading (sRGB)"))

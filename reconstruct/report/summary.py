@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FileEntry", "Extent", "extent", "file_entries", "summary_rows"]
+__all__ = ["FileEntry", "Extent", "extent", "file_entries", "summary_rows", "unit_words"]
 
 _FIT = {
     "lobe": "robust fit with the object's glossy reflectance lobe",
@@ -167,7 +167,7 @@ def _photographs(inputs: dict) -> str | None:
             + f", {inputs.get('width')} × {inputs.get('height')} pixels")
 
 
-def _accuracy(report: dict, unit: str) -> str | None:
+def _accuracy(report: dict) -> str | None:
     acc = report.get("accuracy") or {}
     parts = []
     normals = acc.get("normals") or {}
@@ -194,6 +194,12 @@ def _scan(comparison: dict) -> str | None:
     return text + "."
 
 
+def unit_words(unit: str) -> str:
+    """A unit as a sentence or a label says it: report.json's ``"pixel"`` is ``"pixels"``;
+    ``"mm"`` and the others are said as they are written."""
+    return "pixels" if unit == "pixel" else unit
+
+
 def summary_rows(report: dict | None, comparison: dict | None, size: Extent | None, *,
                  object_name: str) -> list[tuple[str, str]]:
     """The summary table of ``report.html``: (label, sentence) rows in reading order.
@@ -217,8 +223,7 @@ def summary_rows(report: dict | None, comparison: dict | None, size: Extent | No
         where = "the whole frame" if size.whole_frame else "the object's outline"
         rows.append(("Size", f"{_num(size.width)} × {_num(size.height)} {size.unit} ({where})"))
         if size.depth is not None:
-            unit = report.get("height_unit", size.unit)
-            unit = "pixels" if unit == "pixel" else unit
+            unit = unit_words(report.get("height_unit", size.unit))
             rows.append(("Relief depth", f"{_num(size.depth)} {unit} (lowest to highest point, "
                                          "leaving out the extreme 0.5% at each end)"))
     elif "width" in inputs:
@@ -228,7 +233,7 @@ def summary_rows(report: dict | None, comparison: dict | None, size: Extent | No
                  "no pixel size given: lengths and heights in pixels (give --pixel-size for millimetres)"))
     if report:
         rows.append(("Method", _method(report)))
-    accuracy = [a for a in (_accuracy(report, size.unit if size else ""), _scan(comparison or {})) if a]
+    accuracy = [a for a in (_accuracy(report), _scan(comparison or {})) if a]
     if accuracy:
         rows.append(("Accuracy", " ".join(a[0].upper() + a[1:] for a in accuracy)))
     elif report:
