@@ -5,8 +5,8 @@ grid mesh of 4 M vertices and 8 M triangles (:func:`reconstruct.mesh.grid.grid_m
 as ``mesh.obj`` with ``v``, ``vt``, ``vn`` and ``f a/a/a`` lines, ``mesh.mtl`` and the PNG
 texture by three writers:
 
-* ``ours``: :func:`reconstruct.mesh.obj.write_obj` (vectorised formatting,
-  :mod:`reconstruct.mesh.textfmt`, in threads);
+* ``ours``: :func:`reconstruct.mesh.obj.write_obj` (the lines formatted by the
+  compiled kernels of :mod:`reconstruct.mesh.objtext`, in threads);
 * ``trimesh``: a :class:`trimesh.Trimesh` with the vertex normals and a ``TextureVisuals``
   (UVs and a white material holding the texture), exported by
   ``trimesh.exchange.obj.export_obj(include_normals=True, include_texture=True, digits=6)``;

@@ -126,8 +126,9 @@ def _progress_display(enabled: bool) -> Iterator[Callable[[str, int, int], None]
         "normals": "Estimating normals",
         "albedo": "Albedo and mask",
         "integrate": "Integrating heights",
-        "mesh": "Writing meshes",
-        "write": "Writing images",
+        "mesh": "Building the mesh",
+        "write": "Writing files",
+        "report": "Making report.html",
         "scan_read": "Reading the scan",
         "scan_align": "Aligning the scan",
         "scan_distances": "Scan distances",
@@ -196,7 +197,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _print_summary(report, out: Path) -> None:
     """What a run made, in a few lines: size, time, unit, mesh, accuracy, warnings."""
-    total = sum(s["seconds"] for s in report.stages.values())
+    total = report.seconds if report.seconds is not None else sum(s["seconds"] for s in report.stages.values())
     inputs = report.inputs
     source = f"{inputs.photographs} photographs" if hasattr(inputs, "photographs") else getattr(inputs, "format", "PTM")
     print(f"Results in {out}/ ({source}, {inputs.width}×{inputs.height}, {total:.1f} s)")

@@ -229,10 +229,15 @@ def test_report_json_keys(capture, tmp_path):
     run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert list(report) == ["inputs", "parameters", "height_unit", "albedo_scale", "lights", "light_model",
-                            "intensities", "reflectance_lobe", "ptm", "leave_one_out", "accuracy", "mesh", "stages",
-                            "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
+                            "intensities", "reflectance_lobe", "ptm", "leave_one_out", "accuracy", "mesh", "seconds",
+                            "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
     # The whole run's peak: the largest stage's, so no stage can hide it.
     assert report["peak_rss_mb"] == max(s["peak_rss_mb"] for s in report["stages"].values()) > 0
+    # The files are written ("write") while later stages compute; the run's wall time is at
+    # least any stage's.
+    stages = report["stages"]
+    assert list(stages) == ["decode", "ptm", "normals", "albedo", "integrate", "mesh", "report", "write"]
+    assert report["seconds"] >= max(s["seconds"] for s in stages.values())
     assert report["accuracy"]["ground_truth"].endswith("ground_truth")
     assert set(report["mesh"]) == {"vertices", "faces", "unit", "step", "integrator", "integrator_reason",
                                    "decimation"}

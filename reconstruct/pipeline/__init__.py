@@ -2,7 +2,8 @@
 
 Owns the options (:mod:`.options`), loading a capture (:mod:`.capture`), the stages from
 normals to written files (:mod:`.stages`), the typed report (:mod:`.report`), staged output
-folders (:mod:`.staging`), stage timing (:mod:`.profiling`), and the runs composing them
+folders (:mod:`.staging`), stage timing (:mod:`.profiling`), files written in background
+threads (:mod:`.writer`), and the runs composing them
 (:mod:`.run`, :mod:`.compare_run`). ``docs/tutorial.md`` runs the stages one by one.
 """
 
@@ -22,6 +23,8 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "staging": ["StagedOutput", "staged_output"],
         "stages": ["AUTO_MESH_VERTICES", "NormalsResult", "Relighting", "Surface", "auto_step", "web_export",
                    "estimate_normals", "fit_relighting", "integrate_surface", "leave_one_out",
-                   "light_model", "make_mesh", "resolve_mask", "write_surface_files"],
+                   "light_model", "make_mesh", "resolve_mask", "write_height", "write_maps", "write_meshes",
+                   "write_surface_files"],
+        "writer": ["FileWriter"],
     },
 )

@@ -76,18 +76,33 @@ class StageTimer:
 
     stages: dict[str, dict[str, float]] = field(default_factory=dict)
     scope: str = "per stage (sampled)"
+    started: float = field(default_factory=time.perf_counter)
 
-    @contextmanager
-    def stage(self, name: str) -> Iterator[None]:
+    def elapsed(self) -> float:
+        """Wall-clock seconds since the timer was made."""
+        return time.perf_counter() - self.started
+
+    def start(self, name: str) -> Callable[[], None]:
+        """Start timing stage ``name``; call what is returned when it ends (once). For a stage
+        that runs beside others (files written in the background), whose times then overlap."""
         sampler = _Sampler()
         t0 = time.perf_counter()
-        try:
-            yield
-        finally:
+
+        def stop() -> None:
             peak = sampler.stop()
             if peak is None:
                 peak, self.scope = peak_rss_mb(), "process since start"
             self.stages[name] = {"seconds": round(time.perf_counter() - t0, 3), "peak_rss_mb": round(peak, 1)}
+
+        return stop
+
+    @contextmanager
+    def stage(self, name: str) -> Iterator[None]:
+        stop = self.start(name)
+        try:
+            yield
+        finally:
+            stop()
 
 
 class Stages:
@@ -104,16 +119,37 @@ class Stages:
 
     @contextmanager
     def __call__(self, name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
+        advance, end = self.begin(name, total)
+        try:
+            yield advance
+        except BaseException:
+            end(complete=False)
+            raise
+        end()
+
+    def begin(self, name: str, total: int = 1) -> tuple[Callable[[int], None], Callable[..., None]]:
+        """Start stage ``name`` of ``total`` steps; return ``advance(k)`` (callable from any
+        thread) and ``end(complete=True)``, which records its time and, unless told not to (a
+        failed stage), completes its progress. For a stage that runs beside others;
+        :meth:`__call__` is the usual ``with`` form."""
         done = [0]
+        lock = threading.Lock()
 
         def advance(k: int) -> None:
-            done[0] += k
-            if self.progress is not None:
-                self.progress(name, done[0], total)
+            with lock:
+                done[0] += k
+                if self.progress is not None:
+                    self.progress(name, done[0], total)
 
         if self.progress is not None:
             self.progress(name, 0, total)
-        with self.timer.stage(name):
-            yield advance
-        if done[0] < total:
-            advance(total - done[0])
+        stop = self.timer.start(name)
+
+        def end(complete: bool = True) -> None:
+            stop()
+            with lock:
+                left = total - done[0] if complete else 0
+            if left > 0:
+                advance(left)
+
+        return advance, end

@@ -196,6 +196,8 @@ class RunReport:
     The capture-only sections (``albedo_scale`` … ``leave_one_out``) are written for runs from
     photographs; runs from a ``.ptm`` file or a normal map have no such sections.
     ``peak_rss_mb`` is the whole run's peak: the largest of the stages' peaks, as sampled.
+    ``seconds`` is the run's wall-clock time up to ``report.json``: the stages' times add up to
+    more, since the files are written (stage ``write``) while later stages compute.
     """
 
     inputs: CaptureInputs | PtmInputs | NormalMapInputs
@@ -216,6 +218,7 @@ class RunReport:
     leave_one_out: dict | None = None
     versions: dict[str, str] = field(default_factory=versions)
     fingerprint: str | None = None
+    seconds: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``report.json`` document, keys in their documented order.
@@ -226,7 +229,7 @@ class RunReport:
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
             keys += ["albedo_scale", "lights", "light_model", "intensities", "reflectance_lobe", "ptm", "leave_one_out"]
-        keys += ["accuracy", "mesh", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
+        keys += ["accuracy", "mesh", "seconds", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
         if self.fingerprint is not None:
             keys.append("fingerprint")
         return {k: json_safe(getattr(self, k)) for k in keys}

@@ -69,8 +69,11 @@ from reconstruct.pipeline.stages import (
     make_mesh,
     resolve_mask,
     web_export,
-    write_surface_files,
+    write_height,
+    write_maps,
+    write_meshes,
 )
+from reconstruct.pipeline.writer import FileWriter
 from reconstruct.report import figures, outputs
 from reconstruct.report.html import contact_sheet_picks
 from reconstruct.report.html import write_report_html
@@ -109,38 +112,56 @@ def _mask_source(option: Path | str | None, mask: np.ndarray | None) -> str | No
 
 
 def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarray | None, opt: RunOptions,
-                       staged: StagedOutput, stages: Stages) -> tuple[np.ndarray, MeshFacts, list[str]]:
-    """Integrate, mesh and write the files every run has; return height, mesh facts, file names."""
+                       staged: StagedOutput, stages: Stages,
+                       writer: FileWriter) -> tuple[np.ndarray, MeshFacts, list[str], Callable[[], None]]:
+    """Integrate and mesh while the files every run has are written by ``writer``, each
+    started as soon as its data exists; return height, mesh facts, the files' names, and
+    ``written()``, which waits for them (the stage "write", which overlaps the others)."""
+    folder = staged.staging
+    _, end = stages.begin("write")
+    names = write_maps(folder, writer, normals=normals, texture=texture, mask=mask)
     with stages("integrate"):
         surface = integrate_surface(normals, mask, opt)
+    names += write_height(folder, writer, surface, opt)
+    web = folder / "web"
+    if (web / "info.json").is_file():  # the web page of an LRGB PTM: its normal and height layers
+        names += writer.submit(["web/normals.png", "web/height.png", "web/viewer.json"], export_web_layers, web,
+                               normals=normals, height=surface.height, unit=surface.unit)
     with stages("mesh"):
         mesh, step, decimation = make_mesh(surface, texture, normals, opt)
-    with stages("write"):
-        names = write_surface_files(staged.staging, normals=normals, texture=texture, surface=surface,
-                                    mesh=mesh, mask=mask, options=opt)
-        web = staged.staging / "web"
-        if (web / "info.json").is_file():  # the web page of an LRGB PTM: its normal and height layers
-            names += [f"web/{p.name}" for p in export_web_layers(web, normals=normals, height=surface.height,
-                                                                 unit=surface.unit)]
+    names += write_meshes(folder, writer, mesh, texture, opt)
     facts = MeshFacts(len(mesh.vertices), len(mesh.faces), surface.unit, step, surface.integrator,
                       surface.reason, json_safe(decimation))
-    return surface.height, facts, names
+
+    def written() -> None:
+        try:
+            writer.wait()
+        except BaseException:
+            end(complete=False)
+            raise
+        end()
+
+    return surface.height, facts, names, written
 
 
 def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list[str], *,
-            then: Then | None = None, **html) -> dict[str, Path]:
-    """Write report.html and report.json, or with ``then`` report.json and then
-    ``then(staged, page)``, the step that follows and writes the page (its names join the
-    result); then publish every file in one step.
+            writer: FileWriter, written: Callable[[], None], then: Then | None = None, **html) -> dict[str, Path]:
+    """Write report.html while ``writer`` finishes the files, then, once ``written()``,
+    report.json; or with ``then``, report.json and then ``then(staged, page)``, the step that
+    follows and writes the page (its names join the result); then publish every file in one
+    step.
 
-    report.json comes after the page so that it holds the page's own time.
+    report.json comes after the page and the files so that it holds their times.
     """
     report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     report.peak_rss_scope = stages.timer.scope
     if then is None:
         with stages("report"):
-            write_report_html(staged.staging, report=report.to_dict(), **html)
+            write_report_html(staged.staging, report=report.to_dict(), written_after=writer.names,
+                              wait_for=writer.wait_for, **html)
         names = [*names, "report.html"]
+    written()
+    report.seconds = round(stages.timer.elapsed(), 3)
     report.peak_rss_mb = max((s.get("peak_rss_mb", 0.0) for s in report.stages.values()), default=None)
     outputs.write_json(staged / "report.json", report.to_dict())
     names = [*names, "report.json"]
@@ -227,7 +248,7 @@ def run_capture(
     """
     opt = options or RunOptions()
     stages = Stages(progress)
-    with staged_output(output) as staged:
+    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
         loaded = load_capture(capture, opt, stages=stages, scratch=staged.staging)
         (h, w), warnings = loaded.shape, loaded.warnings
         relit = None
@@ -260,7 +281,7 @@ def run_capture(
             with stages("ptm", len(loaded.lights)) as advance:
                 relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance)
         warnings += relit.warnings
-        height, mesh, names = _surface_and_files(found.normals, texture, mask, opt, staged, stages)
+        height, mesh, names, written = _surface_and_files(found.normals, texture, mask, opt, staged, stages, writer)
         report = RunReport(
             inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
@@ -278,7 +299,8 @@ def run_capture(
             write_lp(staged / "lights.lp", [p.name for p in loaded.lights.paths], loaded.lights.directions)
             names.append("lights.lp")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], then=then,
+        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], writer=writer, written=written,
+                        then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
                         thumbnails=thumbnails,
                         previews=figures.previews(normals=found.normals, height=height, albedo=texture))
@@ -327,7 +349,7 @@ def run_ptm(
     ptm_path = Path(ptm_path)
     stages = Stages(progress)
     warnings = ["normals come from the PTM's maximum: a .ptm file carries no photographs for photometric stereo"]
-    with staged_output(output) as staged:
+    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
         with stages("decode"):
             ptm = read_ptm(ptm_path)
         h, w = ptm.coefficients.shape[:2]
@@ -336,12 +358,12 @@ def run_ptm(
             normals, texture = _ptm_normals_and_texture(ptm)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
         web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size)
-        height, mesh, names = _surface_and_files(normals, texture, mask, opt, staged, stages)
+        height, mesh, names, written = _surface_and_files(normals, texture, mask, opt, staged, stages, writer)
         inputs = PtmInputs(str(ptm_path.resolve()), ptm.format, w, h, _mask_source(opt.mask, mask))
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
                            fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
-        files = _finish(staged, report, stages, [*web, *names], then=then,
+        files = _finish(staged, report, stages, [*web, *names], writer=writer, written=written, then=then,
                         previews=figures.previews(normals=normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 
@@ -363,7 +385,7 @@ def run_normals(
     path = Path(normal_map)
     stages = Stages(progress)
     warnings: list[str] = []
-    with staged_output(output) as staged:
+    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
         with stages("decode"):
             normals = read_normal_map(path)
         h, w = normals.shape[:2]
@@ -376,9 +398,10 @@ def run_normals(
                 warnings.append(f"{int((mask & ~valid).sum())} pixels inside the mask have no valid normal")
         else:
             mask = None if valid.all() else valid
-        height, mesh, names = _surface_and_files(normals, shaded(normals), mask, opt, staged, stages)
+        height, mesh, names, written = _surface_and_files(normals, shaded(normals), mask, opt, staged, stages, writer)
         source = _mask_source(opt.mask, mask) if opt.mask else ("valid normals" if mask is not None else None)
         report = RunReport(NormalMapInputs(str(path.resolve()), w, h, source), _parameters(opt, mesh.step),
                            mesh.unit, mesh, {}, "", warnings)
-        files = _finish(staged, report, stages, names, previews=figures.previews(normals=normals, height=height))
+        files = _finish(staged, report, stages, names, writer=writer, written=written,
+                        previews=figures.previews(normals=normals, height=height))
     return RunResult(staged.output, files, report)

@@ -20,7 +20,6 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -51,6 +50,7 @@ from reconstruct.mesh.ply import write_ply
 from reconstruct.pipeline.capture import Capture, NearLights
 from reconstruct.pipeline.options import RunOptions
 from reconstruct.pipeline.report import LightModel, PtmSummary
+from reconstruct.pipeline.writer import FileWriter
 from reconstruct.report import outputs
 from reconstruct.report.web import export_openlime
 from reconstruct.surface.flatten import flatten
@@ -72,6 +72,9 @@ __all__ = [
     "make_mesh",
     "resolve_mask",
     "web_export",
+    "write_height",
+    "write_maps",
+    "write_meshes",
     "write_surface_files",
 ]
 
@@ -384,6 +387,52 @@ def make_mesh(surface: Surface, texture: np.ndarray, normals: np.ndarray,
     return mesh, step, decimation
 
 
+def write_maps(folder: str | os.PathLike, writer: FileWriter, *, normals: np.ndarray, texture: np.ndarray,
+               mask: np.ndarray | None) -> list[str]:
+    """Start writing ``albedo.png``, ``normals.png``, ``normals.npy`` and ``mask.png`` (when
+    there is a mask) with ``writer``; return their names. The arrays must not change until
+    the writer is done."""
+    folder = Path(folder)
+    names = writer.submit(["normals.png"], outputs.write_normals_png, folder / "normals.png", normals)
+    names += writer.submit(["albedo.png"], write_png, folder / "albedo.png", texture)
+    names += writer.submit(["normals.npy"], outputs.write_npy, folder / "normals.npy", normals)
+    if mask is not None:
+        names += writer.submit(["mask.png"], lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255))
+    return names
+
+
+def write_height(folder: str | os.PathLike, writer: FileWriter, surface: Surface, options: RunOptions) -> list[str]:
+    """Start writing ``height.tif`` with ``writer``; return its name."""
+    return writer.submit(["height.tif"], outputs.write_height_tiff, Path(folder) / "height.tif", surface.height,
+                         surface.unit, options.pixel_size)
+
+
+def write_meshes(folder: str | os.PathLike, writer: FileWriter, mesh: GridMesh, texture: np.ndarray,
+                 options: RunOptions) -> list[str]:
+    """Start writing ``mesh.obj`` (with ``mesh.mtl`` and ``mesh_texture.png``), ``mesh.ply``,
+    and ``mesh.glb`` / ``solid.stl`` when ``options`` asks, with ``writer``; return their
+    names. The OBJ refers to ``albedo.png`` for its texture: :func:`write_maps` writes it."""
+    folder = Path(folder)
+    # Longest first: the writer's threads take jobs in order.
+    names = writer.submit(["mesh.obj", "mesh.mtl", "mesh_texture.png"],
+                          lambda: write_obj(folder / "mesh.obj", mesh, _written(writer, folder / "albedo.png")))
+    names += writer.submit(["mesh.ply"], write_ply, folder / "mesh.ply", mesh, texture_file="mesh_texture.png")
+    if options.glb or options.solid is not None:
+        from reconstruct.mesh.ops import solid, write_glb, write_stl  # trimesh: imported only when used
+    if options.glb:
+        names += writer.submit(["mesh.glb"], write_glb, folder / "mesh.glb", mesh, texture)
+    if options.solid is not None:
+        names += writer.submit(["solid.stl"], lambda: write_stl(folder / "solid.stl", solid(mesh, options.solid)))
+    return names
+
+
+def _written(writer: FileWriter, path: Path) -> Path:
+    """``path`` once the writer has written it. Called in a job of the same writer, which is
+    safe for a file submitted earlier: its job has started by then (jobs start in order)."""
+    writer.wait_for(path.name)
+    return path
+
+
 def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, texture: np.ndarray,
                         surface: Surface, mesh: GridMesh, mask: np.ndarray | None,
                         options: RunOptions) -> list[str]:
@@ -391,29 +440,13 @@ def write_surface_files(folder: str | os.PathLike, *, normals: np.ndarray, textu
 
     ``albedo.png``, ``normals.png``, ``normals.npy``, ``height.tif``, ``mesh.ply``,
     ``mesh.obj`` (with ``mesh.mtl`` and ``mesh_texture.png``), ``mask.png`` when there is a
-    mask, ``mesh.glb`` with ``options.glb``, ``solid.stl`` with ``options.solid``.
+    mask, ``mesh.glb`` with ``options.glb``, ``solid.stl`` with ``options.solid``. They are
+    written in parallel threads; a run starts each group as soon as its data exists instead
+    (:func:`write_maps`, :func:`write_height`, :func:`write_meshes` with a
+    :class:`reconstruct.pipeline.writer.FileWriter`).
     """
-    folder = Path(folder)
-    write_png(folder / "albedo.png", texture)
-    jobs: dict[str, Callable[[], None]] = {
-        # Longest first: OBJ text formatting holds the GIL, while PNG encoding and file
-        # writes release it and proceed alongside.
-        "mesh.obj": lambda: write_obj(folder / "mesh.obj", mesh, folder / "albedo.png"),
-        "normals.png": lambda: outputs.write_normals_png(folder / "normals.png", normals),
-        "mesh.ply": lambda: write_ply(folder / "mesh.ply", mesh, texture_file="mesh_texture.png"),
-        "normals.npy": lambda: outputs.write_npy(folder / "normals.npy", normals),
-        "height.tif": lambda: outputs.write_height_tiff(folder / "height.tif", surface.height, surface.unit,
-                                                        options.pixel_size),
-    }
-    if mask is not None:
-        jobs["mask.png"] = lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255)
-    if options.glb or options.solid is not None:
-        from reconstruct.mesh.ops import solid, write_glb, write_stl  # trimesh: imported only when used
-    if options.glb:
-        jobs["mesh.glb"] = lambda: write_glb(folder / "mesh.glb", mesh, texture)
-    if options.solid is not None:
-        jobs["solid.stl"] = lambda: write_stl(folder / "solid.stl", solid(mesh, options.solid))
-    with ThreadPoolExecutor(max_workers=options.threads or os.cpu_count() or 1) as pool:
-        for future in [pool.submit(job) for job in jobs.values()]:
-            future.result()
-    return ["albedo.png", *jobs, "mesh.mtl", "mesh_texture.png"]
+    with FileWriter(options.threads) as writer:
+        write_maps(folder, writer, normals=normals, texture=texture, mask=mask)
+        write_height(folder, writer, surface, options)
+        write_meshes(folder, writer, mesh, texture, options)
+        return writer.wait()

@@ -126,12 +126,19 @@ def _note(text: str) -> str:
 
 
 class _Folder:
-    """Files of the report: the folder being written first, then earlier output folders."""
+    """Files of the report: the folder being written first, then earlier output folders.
 
-    def __init__(self, folder: Path, also: Sequence[Path]) -> None:
+    ``wait_for(name)``, when given, is called before a file is looked for: files the caller is
+    still writing in other threads (:class:`reconstruct.pipeline.writer.FileWriter`).
+    """
+
+    def __init__(self, folder: Path, also: Sequence[Path], wait_for: Callable[[str], None] | None = None) -> None:
         self.places = [folder, *also]
+        self.wait_for = wait_for
 
     def find(self, name: str) -> Path | None:
+        if self.wait_for is not None:
+            self.wait_for(name)
         return next((p / name for p in self.places if (p / name).is_file()), None)
 
     def json(self, name: str) -> dict | None:
@@ -293,17 +300,26 @@ def _height(report: dict, previews: figures.Previews, notes: list[str]) -> str:
 
 def _mesh(files: _Folder, report: dict, previews: figures.Previews, extent: summary.Extent | None,
           notes: list[str]) -> str:
-    mesh = files.find("mesh.ply")
-    if mesh is None:
-        return _note("no mesh.ply in the folder")
-    faces = figures.ply_face_count(mesh)
+    # The run's own count when it has one: then mesh.ply is read only to be drawn whole (it
+    # may still be being written).
+    faces = (report.get("mesh") or {}).get("faces")
+
+    def whole() -> bool:
+        return previews.height is None or (faces is not None and faces <= figures.MAX_RENDER_FACES)
+
+    mesh = None
+    if faces is None or whole():
+        mesh = files.find("mesh.ply")
+        if mesh is None:
+            return _note("no mesh.ply in the folder")
+        faces = faces if faces is not None else figures.ply_face_count(mesh)
     # x, y and z share a unit only with a pixel size on an orthographic camera, or in pixels.
     same_units = figures.display_pixel_size(report) or report.get("height_unit") == "pixel"
     factor = figures.vertical_exaggeration(extent.width, extent.height, extent.depth) if extent and same_units else 1
     scale = "true scale" if factor == 1 else f"vertical exaggeration ×{factor}: heights drawn {factor} times deeper"
 
     def make() -> str:
-        if faces is not None and faces <= figures.MAX_RENDER_FACES or previews.height is None:
+        if whole():
             image = figures.mesh_render(mesh, exaggeration=factor)
             what = "mesh.ply"
         else:
@@ -432,6 +448,7 @@ def report_html(
     previews: figures.Previews | None = None,
     thumbnails: Mapping[int, np.ndarray] | None = None,
     written_after: Sequence[str] = (),
+    wait_for: Callable[[str], None] | None = None,
 ) -> str:
     """The text of ``report.html`` for an output folder.
 
@@ -462,8 +479,14 @@ def report_html(
         (:func:`reconstruct.report.figures.stack_thumbnail`; :func:`contact_sheet_picks` says
         which are shown); the others are decoded from the files.
     written_after : sequence of str
-        Files the caller writes into ``folder`` after the page (the list of files names
-        them; :func:`write_report_html` adds its JSON documents and the page).
+        Files the caller writes into ``folder`` after the page, or is still writing (the
+        list of files names them; :func:`write_report_html` adds its JSON documents and the
+        page).
+    wait_for : callable, optional
+        ``wait_for(name)`` returns once the file ``name`` of ``folder`` is written, when the
+        caller writes files in other threads while the page is made
+        (:meth:`reconstruct.pipeline.writer.FileWriter.wait_for`); the page waits only for
+        the files it reads.
 
     Returns
     -------
@@ -473,7 +496,7 @@ def report_html(
     """
     # The same folder may be given twice (a comparison written into the run's own folder).
     places = list(dict.fromkeys(Path(p).resolve() for p in also if Path(p).resolve() != Path(folder).resolve()))
-    files = _Folder(Path(folder), places)
+    files = _Folder(Path(folder), places, wait_for)
     report = report if report is not None else files.json("report.json")
     comparison = comparison if comparison is not None else files.json("comparison.json")
     notes: list[str] = []
@@ -552,6 +575,8 @@ def write_report_html(
     also: Sequence[str | os.PathLike] = (),
     previews: figures.Previews | None = None,
     thumbnails: Mapping[int, np.ndarray] | None = None,
+    written_after: Sequence[str] = (),
+    wait_for: Callable[[str], None] | None = None,
 ) -> Path:
     """Write ``report.html`` into ``folder`` (atomically); see :func:`report_html`.
 
@@ -563,10 +588,11 @@ def write_report_html(
     Path
         The file written.
     """
-    after = ["report.html", *(["report.json"] if report is not None else []),
+    after = [*written_after, "report.html", *(["report.json"] if report is not None else []),
              *(["comparison.json"] if comparison is not None else [])]
     text = report_html(folder, report=report, comparison=comparison, photographs=photographs, title=title,
-                       also=also, previews=previews, thumbnails=thumbnails, written_after=after)
+                       also=also, previews=previews, thumbnails=thumbnails, written_after=after,
+                       wait_for=wait_for)
     path = Path(folder) / "report.html"
     with atomic_write(path, "w") as f:
         f.write(text)

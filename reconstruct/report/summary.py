@@ -257,7 +257,7 @@ def file_entries(folder: str | os.PathLike, also_written: Iterable[str] = ()) ->
         The output folder (or the staging folder it is being written in).
     also_written : iterable of str
         Names written after the page (``report.json``, ``comparison.json``, ``report.html``
-        itself), listed even though they are not there yet.
+        itself) or while it is made, listed even though they are not there yet.
 
     Returns
     -------
@@ -268,7 +268,7 @@ def file_entries(folder: str | os.PathLike, also_written: Iterable[str] = ()) ->
     """
     folder = Path(folder)
     present = {p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")}
-    present |= set(also_written)
+    present |= {n for n in also_written if "/" not in n}  # web/ is one entry, below
     web = folder / "web"
     if (web / "index.html").is_file():
         present.add("web/index.html")

@@ -29,7 +29,7 @@ import math
 import numpy as np
 import scipy.fft
 
-__all__ = ["frankot_chellappa", "poisson_dct"]
+__all__ = ["frankot_chellappa", "poisson_dct", "solve_neumann"]
 
 
 def _prepare(
@@ -126,6 +126,7 @@ def poisson_dct(
     h, w = g_row.shape
     # f = Dᵀg, the right-hand side of the normal equations DᵀD z = Dᵀg; D takes forward
     # differences, so f is minus the divergence with zero flux through the border.
+    # (reconstruct.surface.divergence makes the same f from normals in one compiled pass.)
     f = np.zeros((h, w), dtype=np.float32)
     edge = g_col[:, :-1] + g_col[:, 1:]
     edge *= np.float32(0.5)
@@ -137,16 +138,22 @@ def poisson_dct(
     f[:-1, :] -= edge
     f[1:, :] += edge
     del edge, g_row
+    return solve_neumann(f, mask, pixel_size, workers=workers)
 
+
+def solve_neumann(f: np.ndarray, mask: np.ndarray | None, pixel_size: float = 1.0, *,
+                  workers: int | None = -1) -> np.ndarray:
+    """Heights z with DᵀD z = f (the Neumann Poisson problem of :func:`poisson_dct`), by the
+    DCT; ``f`` (float32) is overwritten. Scaled by ``pixel_size``, NaN outside ``mask``, mean 0
+    over it (over the image without one)."""
+    from reconstruct.surface.divergence import divide_by_eigenvalues
+
+    h, w = f.shape
     spectrum = scipy.fft.dctn(f, type=2, norm="ortho", workers=workers, overwrite_x=True)
     del f
     eig_row = _dct_eigenvalues(h).astype(np.float32)
     eig_col = _dct_eigenvalues(w).astype(np.float32)
-    denom = eig_row[:, None] + eig_col[None, :]
-    denom[0, 0] = 1.0  # the constant is free; its coefficient is zeroed below
-    spectrum /= denom
-    del denom
-    spectrum[0, 0] = 0.0
+    divide_by_eigenvalues(spectrum, eig_row, eig_col, workers=workers)  # the constant's (0) becomes 0
     height = scipy.fft.idctn(spectrum, type=2, norm="ortho", workers=workers, overwrite_x=True)
     return _finish(height.astype(np.float32, copy=False), mask, pixel_size)
 
