@@ -14,7 +14,7 @@ from typing import NoReturn
 
 from ptmcore import __version__
 from ptmcore.relight import DEFAULT_EXPONENT, DEFAULT_GAIN, DEFAULT_KD, DEFAULT_KS
-from reconstruct.pipeline.options import BOUNDS, CompareOptions, RunOptions, choices, default
+from reconstruct.pipeline.options import BOUNDS, STACK_FILE_MB, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.relighting import MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
 from reconstruct.viewer.keys import help_text as preview_keys
@@ -441,8 +441,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--memory-limit", type=_positive_float, metavar="MB",
                    help="memory the run may use: the photographs' stack stays in memory when the run fits "
                         "in it, else it goes to a temporary file beside the output folder. Default: a stack of "
-                        "256 MB or more always goes to the file (measured as fast), a smaller one when the run "
-                        "would not fit in the memory available")
+                        f"{STACK_FILE_MB} MB or more always goes to the file (measured as fast), a smaller one when "
+                        "the run would not fit in the memory available")
     p.add_argument("--ground-truth", type=_path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
     p.add_argument("--light-positions", default=default(RunOptions, "light_positions"), metavar="FILE|auto|none",
                    help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "

@@ -77,7 +77,10 @@ def test_a_failed_background_write_fails_the_run_and_publishes_nothing(tmp_path,
         raise InputError("cannot write mesh.ply: no space left on device")
 
     monkeypatch.setattr("reconstruct.pipeline.stages.write_ply", broken)
+    samplers = {t for t in threading.enumerate() if t.name == "rss-sampler"}
     with pytest.raises(InputError, match="no space left"):
         run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.1))
     assert not (tmp_path / "out").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["capture"]  # no staging folder left either
+    # The stage "write", left open by the error, was ended: its memory sampler stopped.
+    assert {t for t in threading.enumerate() if t.name == "rss-sampler"} <= samplers

@@ -28,7 +28,7 @@ from ptmcore.nearlight import read_light_positions
 from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.solvers import RankInfo, analyse_lights
-from reconstruct.pipeline.options import RunOptions
+from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
 from reconstruct.surface.accuracy import GroundTruth, load_ground_truth
 
@@ -316,12 +316,6 @@ def _storage(opt: RunOptions) -> str:
 #: and texture; benchmarks/speed.py), and for the interpreter and libraries.
 _BYTES_PER_PIXEL = 70
 _BASE_MB = 400
-#: A stack this large (MiB) or larger goes to a file by default (:mod:`ptmcore.diskstack`),
-#: whatever memory is free: read from the page cache it was measured as fast as in memory on
-#: 48 × 24 MP (BENCHMARKS.md), and the run's resident memory drops by its size, so more runs of
-#: a batch fit side by side and a machine short of memory writes it out instead of failing.
-#: Below this the stack is a small part of the run's memory.
-STACK_FILE_MB = 256
 
 
 @dataclass(frozen=True)

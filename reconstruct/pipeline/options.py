@@ -19,8 +19,17 @@ from typing import Literal, Union
 
 from ptmcore.errors import InputError
 
+#: A stack this large (MiB) or larger goes to a file by default (:mod:`ptmcore.diskstack`,
+#: :func:`reconstruct.pipeline.capture.plan_stack`), whatever memory is free: read from the page
+#: cache it was measured as fast as in memory on 48 × 24 MP (BENCHMARKS.md), and the run's
+#: resident memory drops by its size, so more runs of a batch fit side by side and a machine
+#: short of memory writes it out instead of failing. Below this the stack is a small part of
+#: the run's memory. Here, not in capture.py, so that the command line's help can say it.
+STACK_FILE_MB = 256
+
 __all__ = [
     "BOUNDS",
+    "STACK_FILE_MB",
     "CompareOptions",
     "Fit",
     "Flattening",

@@ -110,12 +110,26 @@ class Stages:
 
     ``with stages("normals", total=h) as advance: ...`` times the stage and calls
     ``progress("normals", done, total)`` as ``advance(k)`` is called; stages without steps of
-    their own show 0/1 then 1/1.
+    their own show 0/1 then 1/1. A stage begun with :meth:`begin` and left open by an error is
+    ended by :meth:`close` (``with Stages(progress) as stages:`` closes them all), so that its
+    memory sampler stops.
     """
 
     def __init__(self, progress: ProgressFn | None = None) -> None:
         self.timer = StageTimer()
         self.progress = progress
+        self._open: dict[int, Callable[..., None]] = {}
+
+    def __enter__(self) -> Stages:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End the stages still open, without completing their progress."""
+        for end in list(self._open.values()):
+            end(complete=False)
 
     @contextmanager
     def __call__(self, name: str, total: int = 1) -> Iterator[Callable[[int], None]]:
@@ -146,10 +160,13 @@ class Stages:
         stop = self.timer.start(name)
 
         def end(complete: bool = True) -> None:
+            if self._open.pop(id(end), None) is None:
+                return  # ended already
             stop()
             with lock:
                 left = total - done[0] if complete else 0
             if left > 0:
                 advance(left)
 
+        self._open[id(end)] = end
         return advance, end

@@ -247,8 +247,7 @@ def run_capture(
         For any problem with the inputs or the output folder.
     """
     opt = options or RunOptions()
-    stages = Stages(progress)
-    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
+    with Stages(progress) as stages, staged_output(output) as staged, FileWriter(opt.threads) as writer:
         loaded = load_capture(capture, opt, stages=stages, scratch=staged.staging)
         (h, w), warnings = loaded.shape, loaded.warnings
         relit = None
@@ -347,9 +346,8 @@ def run_ptm(
     """
     opt = dataclasses.replace(options or RunOptions(), normals="ptm")
     ptm_path = Path(ptm_path)
-    stages = Stages(progress)
     warnings = ["normals come from the PTM's maximum: a .ptm file carries no photographs for photometric stereo"]
-    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
+    with Stages(progress) as stages, staged_output(output) as staged, FileWriter(opt.threads) as writer:
         with stages("decode"):
             ptm = read_ptm(ptm_path)
         h, w = ptm.coefficients.shape[:2]
@@ -383,9 +381,8 @@ def run_normals(
     """
     opt = options or RunOptions()
     path = Path(normal_map)
-    stages = Stages(progress)
     warnings: list[str] = []
-    with staged_output(output) as staged, FileWriter(opt.threads) as writer:
+    with Stages(progress) as stages, staged_output(output) as staged, FileWriter(opt.threads) as writer:
         with stages("decode"):
             normals = read_normal_map(path)
         h, w = normals.shape[:2]
