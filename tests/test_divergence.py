@@ -36,6 +36,21 @@ def test_heights_are_the_numpy_steps_to_the_bit(shape, masked, workers):
     np.testing.assert_array_equal(heights, expected)
 
 
+def test_backward_infinite_normals_and_loose_masks_as_the_numpy_steps():
+    normals = _normals((40, 30), seed=4)
+    normals[3, 4] = (0.5, 0.2, -np.inf)  # finite slope by np.maximum, outside the object
+    normals[7, 8] = (0.0, 0.3, np.inf)
+    finite = np.isfinite(normals).all(axis=-1)
+    p, q = gradients_from_normals(normals)
+    np.testing.assert_array_equal(integrate(normals, "dct"), poisson_dct(p, q, mask=finite))
+    mask = np.random.default_rng(1).random((40, 30)) < 0.7
+    for loose in (mask.astype(np.uint8), mask.astype(int), mask.tolist()):  # as poisson_dct takes them
+        np.testing.assert_array_equal(integrate(normals, "dct", mask=loose), poisson_dct(p, q, mask=mask))
+    for bad in (0.0, -2.0, float("nan")):
+        with pytest.raises(ValueError, match="pixel_size"):
+            integrate(normals, "dct", pixel_size=bad)
+
+
 def test_divergence_counts_nonfinite_normals_across_bands():
     normals = _normals((700, 40), seed=9)  # several bands of rows
     _, nonfinite = divergence_from_normals(normals, None, workers=2)

@@ -160,8 +160,10 @@ def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     stats = json.loads((out / "comparison.json").read_text())["statistics_mm"]
     assert f"{stats['rms']:.4g}" in text
     report = json.loads((out / "report.json").read_text())
-    for name in ("decode", "normals", "ptm", "integrate", "mesh", "write", "compare: align"):
+    for name in ("decode", "normals", "ptm", "integrate", "mesh", "write (in the background)", "compare: align"):
         assert name in checker.in_section("parameters"), name
+    # The files were written beside the later stages: the total is the run's wall time, not a sum.
+    assert "total (wall time)" in checker.in_section("parameters") and report["seconds"] > 0
     # The page is made once, by the comparison that follows the run: its own time is recorded
     # in comparison.json, written after it (a run alone records it in report.json).
     assert "report" in json.loads((out / "comparison.json").read_text())["stages"]
@@ -292,8 +294,8 @@ def test_summary_in_words_and_files_listed_only_when_written(tmp_path):
     assert "pixels" in rows["Size"] and "no pixel size" in rows["Scale"]
     for name in ("mesh.ply", "height.tif", "notes #1.txt", ".stack.tmp"):
         (tmp_path / name).write_bytes(b"x")
-    entries = {e.name: e for e in summary.file_entries(tmp_path, ["report.json"])}
-    assert set(entries) == {"mesh.ply", "height.tif", "notes #1.txt", "report.json"}
+    entries = {e.name: e for e in summary.file_entries(tmp_path, ["report.json", "mesh.obj", "web/index.html"])}
+    assert set(entries) == {"mesh.ply", "height.tif", "notes #1.txt", "report.json", "mesh.obj", "web/index.html"}
     assert "MeshLab" in entries["mesh.ply"].how and "float" in entries["height.tif"].what
 
 
@@ -327,3 +329,19 @@ print(seen)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[True]"
+
+
+def test_a_run_page_made_while_its_files_are_written(tmp_path):
+    """The page of a run is made while the files are written: it lists them, and its timings
+    say the total is so far."""
+    from data_synthetic import write_capture
+
+    info = write_capture(tmp_path / "cap", "tablet", shape=(40, 56), n_lights=16, seed=2)
+    out = tmp_path / "out"
+    assert main(["run", str(info.folder), "-o", str(out), "-q"]) == 0
+    checker = check_page(out / "report.html")
+    assert {"mesh.obj", "mesh.ply", "normals.npy", "height.tif", "web/index.html"} <= _files_linked(checker)
+    params = checker.in_section("parameters")
+    assert "total so far (files still being written)" in params and "write (in the background)" not in params
+    report = json.loads((out / "report.json").read_text())
+    assert "write" in report["stages"] and report["seconds"] >= report["stages"]["write"]["seconds"]

@@ -84,3 +84,33 @@ def test_a_failed_background_write_fails_the_run_and_publishes_nothing(tmp_path,
     assert [p.name for p in tmp_path.iterdir()] == ["capture"]  # no staging folder left either
     # The stage "write", left open by the error, was ended: its memory sampler stopped.
     assert {t for t in threading.enumerate() if t.name == "rss-sampler"} <= samplers
+
+
+def test_check_raises_a_failed_job_without_waiting(tmp_path):
+    release = threading.Event()
+
+    def fail():
+        raise InputError("disk full")
+
+    with pytest.raises(InputError, match="disk full"):
+        with FileWriter(2) as writer:
+            writer.submit(["slow"], release.wait, 5)
+            writer.submit(["x"], fail)
+            time.sleep(0.1)
+            writer.check()  # "slow" still running: check does not wait for it
+    release.set()
+
+
+def test_meshes_without_the_maps_take_the_texture_array(tmp_path):
+    import numpy as np
+
+    from reconstruct.mesh.grid import grid_mesh
+    from reconstruct.pipeline.stages import write_meshes
+
+    texture = np.full((6, 7, 3), 200, np.uint8)
+    mesh = grid_mesh(np.zeros((6, 7), np.float32), texture=texture)
+    with FileWriter(1) as writer:
+        names = write_meshes(tmp_path, writer, mesh, texture, RunOptions())
+        writer.wait()
+    assert {"mesh.obj", "mesh_texture.png", "mesh.ply"} <= set(names)
+    assert (tmp_path / "mesh_texture.png").read_bytes().startswith(b"\x89PNG")

@@ -77,7 +77,8 @@ def write_obj(
     texture's own colours. The texture is stored as given: with v up in the UVs, image row 0
     is the top of the mesh.
 
-    Numbers are written with six decimals, correctly rounded, without trailing zeros
+    Numbers are written with six decimals, correctly rounded from their float32 values (the
+    type of a GridMesh's arrays; others are rounded to it first), without trailing zeros
     (``0.05``, ``-12.345678``, ``1``), never in exponent notation. The text is formatted
     by compiled kernels in parallel threads, a chunk of rows at a time
     (:mod:`reconstruct.mesh.objtext`; against trimesh's OBJ export: BENCHMARKS.md).
@@ -141,7 +142,7 @@ def write_obj(
                     pool,
                     n_vertices,
                     lambda sl: objtext.number_lines(
-                        np.hstack([vertices[sl], mesh.colors[sl] / np.float32(255)]), b"v"
+                        np.hstack([vertices[sl], np.asarray(mesh.colors[sl], np.float32) / np.float32(255)]), b"v"
                     ),
                 )
             else:

@@ -122,6 +122,7 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
     names = write_maps(folder, writer, normals=normals, texture=texture, mask=mask)
     with stages("integrate"):
         surface = integrate_surface(normals, mask, opt)
+    writer.check()
     names += write_height(folder, writer, surface, opt)
     web = folder / "web"
     if (web / "info.json").is_file():  # the web page of an LRGB PTM: its normal and height layers
@@ -129,6 +130,7 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
                                normals=normals, height=surface.height, unit=surface.unit)
     with stages("mesh"):
         mesh, step, decimation = make_mesh(surface, texture, normals, opt)
+    writer.check()
     names += write_meshes(folder, writer, mesh, texture, opt)
     facts = MeshFacts(len(mesh.vertices), len(mesh.faces), surface.unit, step, surface.integrator,
                       surface.reason, json_safe(decimation))
@@ -155,6 +157,7 @@ def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list
     """
     report.stages = stages.timer.stages  # the same dict: the page's own time joins it
     report.peak_rss_scope = stages.timer.scope
+    writer.check()
     if then is None:
         with stages("report"):
             write_report_html(staged.staging, report=report.to_dict(), written_after=writer.names,

@@ -411,11 +411,14 @@ def write_meshes(folder: str | os.PathLike, writer: FileWriter, mesh: GridMesh, 
                  options: RunOptions) -> list[str]:
     """Start writing ``mesh.obj`` (with ``mesh.mtl`` and ``mesh_texture.png``), ``mesh.ply``,
     and ``mesh.glb`` / ``solid.stl`` when ``options`` asks, with ``writer``; return their
-    names. The OBJ refers to ``albedo.png`` for its texture: :func:`write_maps` writes it."""
+    names. The OBJ's texture is a copy of ``albedo.png`` when this writer writes it
+    (:func:`write_maps`) or it is there already, else ``texture`` encoded again."""
     folder = Path(folder)
+    albedo = folder / "albedo.png"
+    copy = "albedo.png" in writer.names or albedo.is_file()
     # Longest first: the writer's threads take jobs in order.
     names = writer.submit(["mesh.obj", "mesh.mtl", "mesh_texture.png"],
-                          lambda: write_obj(folder / "mesh.obj", mesh, _written(writer, folder / "albedo.png")))
+                          lambda: write_obj(folder / "mesh.obj", mesh, _written(writer, albedo) if copy else texture))
     names += writer.submit(["mesh.ply"], write_ply, folder / "mesh.ply", mesh, texture_file="mesh_texture.png")
     if options.glb or options.solid is not None:
         from reconstruct.mesh.ops import solid, write_glb, write_stl  # trimesh: imported only when used
@@ -428,7 +431,8 @@ def write_meshes(folder: str | os.PathLike, writer: FileWriter, mesh: GridMesh, 
 
 def _written(writer: FileWriter, path: Path) -> Path:
     """``path`` once the writer has written it. Called in a job of the same writer, which is
-    safe for a file submitted earlier: its job has started by then (jobs start in order)."""
+    safe for a file submitted earlier: a worker has taken its job by then (they take jobs in
+    order, and a job taken is never cancelled)."""
     writer.wait_for(path.name)
     return path
 

@@ -6,8 +6,8 @@ a :class:`FileWriter` a run hands each file over as soon as its data exists (the
 the albedo, the height map after integrating, the meshes after meshing) and integrates,
 meshes and makes the page while they are written; it waits for them before ``report.json``.
 
-An error in a file's job (a full disk) is raised by :meth:`FileWriter.wait` (or
-:meth:`FileWriter.wait_for`) in the run's thread. Leaving the ``with`` block on an error
+An error in a file's job (a full disk) is raised in the run's thread by :meth:`FileWriter.check`
+between stages, or by :meth:`FileWriter.wait` (or :meth:`FileWriter.wait_for`). Leaving the ``with`` block on an error
 cancels the jobs not yet started and waits for those running, so nothing is written into a
 staging folder after it is removed.
 """
@@ -64,6 +64,15 @@ class FileWriter:
             futures = [f for names, f in self._jobs if name in names]
         for future in futures:
             future.result()
+
+    def check(self) -> None:
+        """Raise the error of the first job (in submission order) that has already failed, if
+        any, without waiting: a full disk stops the run between stages, not at its end."""
+        with self._lock:
+            jobs = list(self._jobs)
+        for _, future in jobs:
+            if future.done() and not future.cancelled() and future.exception() is not None:
+                raise future.exception()
 
     def wait(self) -> list[str]:
         """Wait for every job; raise the first failed job's error (in submission order);

@@ -132,9 +132,15 @@ class _Folder:
     still writing in other threads (:class:`reconstruct.pipeline.writer.FileWriter`).
     """
 
-    def __init__(self, folder: Path, also: Sequence[Path], wait_for: Callable[[str], None] | None = None) -> None:
+    def __init__(self, folder: Path, also: Sequence[Path], wait_for: Callable[[str], None] | None = None,
+                 pending: Sequence[str] = ()) -> None:
         self.places = [folder, *also]
         self.wait_for = wait_for
+        self.pending = set(pending)
+
+    def has(self, name: str) -> bool:
+        """Whether the file is there or being written, without waiting for it."""
+        return name in self.pending or any((p / name).is_file() for p in self.places)
 
     def find(self, name: str) -> Path | None:
         if self.wait_for is not None:
@@ -313,6 +319,8 @@ def _mesh(files: _Folder, report: dict, previews: figures.Previews, extent: summ
         if mesh is None:
             return _note("no mesh.ply in the folder")
         faces = faces if faces is not None else figures.ply_face_count(mesh)
+    elif not files.has("mesh.ply"):
+        return _note("no mesh.ply in the folder")
     # x, y and z share a unit only with a pixel size on an orthographic camera, or in pixels.
     same_units = figures.display_pixel_size(report) or report.get("height_unit") == "pixel"
     factor = figures.vertical_exaggeration(extent.width, extent.height, extent.depth) if extent and same_units else 1
@@ -373,9 +381,19 @@ def _timings(report: dict | None, comparison: dict | None) -> str:
             rows.append((prefix + name, s.get("seconds"), s.get("peak_rss_mb")))
     if not rows:
         return _note("no stage timings recorded")
-    total = sum(r[1] or 0 for r in rows)
+    # The files are written in the background beside the later stages: their stage "write"
+    # overlaps the others, so the run's own wall time is the total, when report.json has it.
+    rows = [(f"{name} (in the background)" if name == "write" else name, t, m) for name, t, m in rows]
+    run_stages = (report or {}).get("stages") or {}
+    seconds = (report or {}).get("seconds")
+    if seconds is not None:
+        total = seconds + sum(s.get("seconds") or 0 for s in ((comparison or {}).get("stages") or {}).values())
+        label = "total (wall time)"
+    else:
+        total = sum(r[1] or 0 for r in rows)
+        label = "total so far (files still being written)" if run_stages and "write" not in run_stages else "total"
     scope = (report or {}).get("peak_rss_scope", "per stage")
-    return _table([*rows, ("total", round(total, 3), None)], ("stage", "wall time (s)", f"peak memory (MiB, {scope})"))
+    return _table([*rows, (label, round(total, 3), None)], ("stage", "wall time (s)", f"peak memory (MiB, {scope})"))
 
 
 def _given(rows: Iterable[tuple[str, object]]) -> list[tuple[str, object]]:
@@ -496,7 +514,7 @@ def report_html(
     """
     # The same folder may be given twice (a comparison written into the run's own folder).
     places = list(dict.fromkeys(Path(p).resolve() for p in also if Path(p).resolve() != Path(folder).resolve()))
-    files = _Folder(Path(folder), places, wait_for)
+    files = _Folder(Path(folder), places, wait_for, written_after)
     report = report if report is not None else files.json("report.json")
     comparison = comparison if comparison is not None else files.json("comparison.json")
     notes: list[str] = []

@@ -268,11 +268,12 @@ def file_entries(folder: str | os.PathLike, also_written: Iterable[str] = ()) ->
     """
     folder = Path(folder)
     present = {p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")}
-    present |= {n for n in also_written if "/" not in n}  # web/ is one entry, below
+    also = set(also_written)
+    present |= {n for n in also if "/" not in n}  # web/ is one entry, below
     web = folder / "web"
-    if (web / "index.html").is_file():
+    if (web / "index.html").is_file() or "web/index.html" in also:
         present.add("web/index.html")
-    elif (web / "info.json").is_file():
+    elif (web / "info.json").is_file() or "web/info.json" in also:
         present.add("web/info.json")
     order = {name: k for k, (name, _, _) in enumerate(_FILES)}
     names = sorted(present, key=lambda n: (order.get(n, len(order)), n))

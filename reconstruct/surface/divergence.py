@@ -37,7 +37,8 @@ def _gradient_row(normals, mask, r, tan_max, g_row, g_col):  # pragma: no cover 
         nx = normals[r, c, 0]
         ny = normals[r, c, 1]
         nz = normals[r, c, 2]
-        if not (math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz)):
+        finite = math.isfinite(nx) and math.isfinite(ny) and math.isfinite(nz)
+        if not finite:
             bad += 1
         denom = np.float32(np.hypot(nx, ny)) / tan_max
         if math.isnan(denom) or math.isnan(nz):
@@ -50,7 +51,9 @@ def _gradient_row(normals, mask, r, tan_max, g_row, g_col):  # pragma: no cover 
             p = np.float32(0.0)
         if not math.isfinite(q):
             q = np.float32(0.0)
-        if mask is None or mask[r, c]:
+        # Without a mask, the pixels whose normal is not finite are outside the object (as
+        # integrate makes its mask); a normal of (x, y, −inf) would otherwise keep a slope.
+        if mask[r, c] if mask is not None else finite:
             g_row[c] = -q
             g_col[c] = p
         else:
@@ -123,7 +126,7 @@ def divergence_from_normals(
     normals : ndarray (H, W, 3), float32
         Normals (x right, y up, z towards the camera); non-finite ones give zero gradients.
     mask : ndarray (H, W) of bool, or None
-        Gradients outside it are 0.
+        Gradients outside it are 0; without one, those of normals that are not finite.
     max_slope_deg : float
         Slope limit, as in ``gradients_from_normals``.
     workers : int or None

@@ -148,6 +148,8 @@ def solve_neumann(f: np.ndarray, mask: np.ndarray | None, pixel_size: float = 1.
     over it (over the image without one)."""
     from reconstruct.surface.divergence import divide_by_eigenvalues
 
+    if not (math.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be a positive number, not {pixel_size}")
     h, w = f.shape
     spectrum = scipy.fft.dctn(f, type=2, norm="ortho", workers=workers, overwrite_x=True)
     del f

@@ -136,6 +136,7 @@ def integrate(
     normals = np.asarray(normals)
     if method == "dct":
         # The same arithmetic as below in two compiled passes instead of a dozen NumPy ones.
+        mask = None if mask is None else np.asarray(mask, dtype=bool)
         f, nonfinite = divergence_from_normals(normals, mask, max_slope_deg=max_slope_deg, workers=workers)
         if mask is None and nonfinite:
             mask = np.isfinite(normals).all(axis=-1)
