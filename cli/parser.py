@@ -437,7 +437,8 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="with --flatten highpass (needs it): the wavelength in pixels that keeps half its height, "
                    "%g to %g (default 200)" % BOUNDS["flatten_cutoff"])
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
-    p.add_argument("--threads", type=_positive_int, help="image decoding threads (default: all CPUs)")
+    p.add_argument("--threads", type=_positive_int,
+                   help="threads for decoding, the per-pixel fits and writing files (default: all CPUs)")
     p.add_argument("--memory-limit", type=_positive_float, metavar="MB",
                    help="memory the run may use: the photographs' stack stays in memory when the run fits "
                         "in it, else it goes to a temporary file beside the output folder. Default: a stack of "

@@ -250,7 +250,8 @@ class RunOptions:
         its albedo and normals (:func:`reconstruct.surface.foreground_mask`); height and mesh
         are restricted to it.
     threads : int or None
-        Decoding threads (default: all CPUs).
+        Threads decoding the photographs, running the per-pixel fits and writing the files
+        (default: all CPUs).
     memory_limit : float or None
         Megabytes the run may hold in memory: the stack stays in memory when the whole run fits
         in it, else it is a memory-mapped file in the staging folder whose pages leave the
