@@ -6,10 +6,11 @@ a :class:`FileWriter` a run hands each file over as soon as its data exists (the
 the albedo, the height map after integrating, the meshes after meshing) and integrates,
 meshes and makes the page while they are written; it waits for them before ``report.json``.
 
-An error in a file's job (a full disk) is raised in the run's thread by :meth:`FileWriter.check`
-between stages, or by :meth:`FileWriter.wait` (or :meth:`FileWriter.wait_for`). Leaving the ``with`` block on an error
-cancels the jobs not yet started and waits for those running, so nothing is written into a
-staging folder after it is removed.
+An error in a file's job (a full disk) is raised in the run's thread by
+:meth:`FileWriter.check` between stages, or by :meth:`FileWriter.wait` (or
+:meth:`FileWriter.wait_for`). Leaving the ``with`` block on an error cancels the jobs not yet
+started and waits for those running, so nothing is written into a staging folder after it is
+removed.
 """
 
 from __future__ import annotations
