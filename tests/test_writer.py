@@ -51,8 +51,10 @@ def test_a_failed_job_raises_in_the_caller():
 
 def test_leaving_on_an_error_drops_waiting_jobs_and_waits_for_running_ones(tmp_path):
     done = []
+    started = threading.Event()
 
     def job(k):
+        started.set()
         time.sleep(0.2)
         done.append(k)
 
@@ -60,7 +62,7 @@ def test_leaving_on_an_error_drops_waiting_jobs_and_waits_for_running_ones(tmp_p
         with FileWriter(1) as writer:
             for k in range(5):
                 writer.submit([f"{k}"], job, k)
-            time.sleep(0.05)
+            assert started.wait(5)
             raise RuntimeError("the run failed")
     # The running job finished before the block was left (nothing writes into a removed
     # staging folder afterwards); the waiting ones never started.
@@ -92,13 +94,19 @@ def test_check_raises_a_failed_job_without_waiting(tmp_path):
     def fail():
         raise InputError("disk full")
 
-    with pytest.raises(InputError, match="disk full"):
-        with FileWriter(2) as writer:
-            writer.submit(["slow"], release.wait, 5)
-            writer.submit(["x"], fail)
-            time.sleep(0.1)
-            writer.check()  # "slow" still running: check does not wait for it
-    release.set()
+    writer = FileWriter(2)
+    try:
+        writer.submit(["slow"], release.wait, 5)
+        writer.submit(["x"], fail)
+        deadline = time.monotonic() + 5
+        with pytest.raises(InputError, match="disk full"):
+            while time.monotonic() < deadline:  # "slow" still running: check never waits for it
+                writer.check()
+                time.sleep(0.01)
+        assert not release.is_set()
+    finally:
+        release.set()
+        writer.close()
 
 
 def test_meshes_without_the_maps_take_the_texture_array(tmp_path):
