@@ -262,3 +262,13 @@ def test_the_names_a_result_may_hold_cover_the_documented_layout():
     assert {"coefficients.ptm", "web", "mesh.obj", "report.json"} <= documented
     for name in documented | set(COMPARISON_FILES):
         assert any(fnmatch.fnmatchcase(name, pattern) for pattern in _OUTPUT_NAMES), name
+    # The page's table of files (report.summary._FILES) describes the same names: a file a
+    # result may hold gets its own description on the page, not "written by the run".
+    from reconstruct.report.summary import _FILES
+
+    described = {name.split("/")[0] for name, _, _ in _FILES}
+    for pattern in _OUTPUT_NAMES:
+        if pattern != "preview":  # the preview window's folder: not a file the page lists
+            assert any(fnmatch.fnmatchcase(name, pattern) for name in described), pattern
+    for name in described:
+        assert any(fnmatch.fnmatchcase(name, pattern) for pattern in _OUTPUT_NAMES), name
