@@ -20,7 +20,7 @@ import numpy as np
 
 from ptmcore.bands import run_bands
 
-__all__ = ["divergence_from_normals", "divide_by_eigenvalues"]
+__all__ = ["checked_normals", "divergence_from_normals", "divide_by_eigenvalues"]
 
 # Rows per band of work: a thread's unit.
 _BAND_ROWS = 256
@@ -106,6 +106,23 @@ def _divide_rows(spectrum, eig_row, eig_col, r0, r1):  # pragma: no cover - comp
             spectrum[i, j] = spectrum[i, j] / d if d != 0 else np.float32(0.0)
 
 
+def checked_normals(normals, max_slope_deg: float, dtype: type = np.float32) -> np.ndarray:
+    """``normals`` as an ``(H, W, 3)`` array of ``dtype``, with ``max_slope_deg`` in (0, 90):
+    the integrators' common check.
+
+    Raises
+    ------
+    ValueError
+        If the shape or the slope limit is not so.
+    """
+    normals = np.asarray(normals, dtype=dtype)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
+    if not 0.0 < max_slope_deg < 90.0:
+        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
+    return normals
+
+
 def _threads(workers: int | None) -> int:
     """scipy.fft's ``workers`` as a thread count: −1 (or any negative) all CPUs, None one."""
     if workers is None:
@@ -138,11 +155,7 @@ def divergence_from_normals(
     nonfinite : int
         Normals with a NaN or infinite component.
     """
-    normals = np.ascontiguousarray(normals, dtype=np.float32)
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
-    if not 0.0 < max_slope_deg < 90.0:
-        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
+    normals = np.ascontiguousarray(checked_normals(normals, max_slope_deg))
     h, w = normals.shape[:2]
     if h == 0 or w == 0:
         raise ValueError(f"normals must be a non-empty (H, W, 3) array, not {normals.shape}")

@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from reconstruct.surface.divergence import divergence_from_normals
+from reconstruct.surface.divergence import checked_normals, divergence_from_normals
 from reconstruct.surface.fourier import frankot_chellappa, poisson_dct, solve_neumann
 from reconstruct.surface.bilateral import discontinuity_preserving
 from reconstruct.surface.masked import masked_poisson
@@ -54,11 +54,7 @@ def gradients_from_normals(
     ValueError
         If `normals` is not ``(H, W, 3)`` or `max_slope_deg` is not in (0, 90).
     """
-    normals = np.asarray(normals, dtype=np.float32)
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
-    if not 0.0 < max_slope_deg < 90.0:
-        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
+    normals = checked_normals(normals, max_slope_deg)
     nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
     # |∇z| = hypot(nx, ny) / nz, so nz >= hypot / tan(max) bounds the slope; this also gives
     # normals facing away from the camera (nz <= 0) the maximum slope instead of a sign flip.

@@ -25,6 +25,7 @@ import numpy as np
 
 from reconstruct.calibration.camera import Intrinsics
 from reconstruct.surface.bilateral import discontinuity_preserving
+from reconstruct.surface.divergence import checked_normals
 from reconstruct.surface.fourier import poisson_dct
 from reconstruct.surface.masked import masked_poisson
 
@@ -87,11 +88,7 @@ def _log_depth_terms(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """float64 p, q of :func:`perspective_gradients` and the cosine between each normal and
     its line of sight (after the slope limit), BiNI's weight of the pixel's equations."""
-    normals = np.asarray(normals, dtype=np.float64)
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
-    if not 0.0 < max_slope_deg < 90.0:
-        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
+    normals = checked_normals(normals, max_slope_deg, np.float64)
     h, w = normals.shape[:2]
     k = intrinsics
     u = (np.arange(w, dtype=np.float64) - k.cx)[None, :]
