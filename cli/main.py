@@ -197,10 +197,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 def _print_summary(report, out: Path) -> None:
     """What a run made, in a few lines: size, time, unit, mesh, accuracy, warnings."""
-    total = report.seconds if report.seconds is not None else sum(s["seconds"] for s in report.stages.values())
     inputs = report.inputs
     source = f"{inputs.photographs} photographs" if hasattr(inputs, "photographs") else getattr(inputs, "format", "PTM")
-    print(f"Results in {out}/ ({source}, {inputs.width}×{inputs.height}, {total:.1f} s)")
+    print(f"Results in {out}/ ({source}, {inputs.width}×{inputs.height}, {report.seconds:.1f} s)")
     print(f"  heights in {unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
           f"{report.mesh.faces:,} triangles (step {report.mesh.step})")
     acc = report.accuracy

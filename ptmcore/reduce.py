@@ -356,10 +356,13 @@ class Reduced:
 
 
 class _Tables:
-    """Per sample type: each channel's luminance contribution, for every photograph's gains."""
+    """Per sample type: each channel's luminance contribution, for every photograph's gains, and
+    the samples' values in the encoded fits' ``encoding`` (:func:`_encoding_table`)."""
 
-    def __init__(self, linearize: bool, gains: np.ndarray | None, n: int) -> None:
+    def __init__(self, linearize: bool, gains: np.ndarray | None, n: int, encoding: str = "stored") -> None:
         self.linearize = linearize
+        self.encoding = encoding
+        self._encoded: dict[np.dtype, np.ndarray | None] = {}
         # One set of tables without gains; one per photograph with them.
         self.weights = (LUMA_WEIGHTS[None, :] if gains is None
                         else (LUMA_WEIGHTS[None, :] * gains).astype(np.float32))
@@ -377,6 +380,13 @@ class _Tables:
         rows = self.lut_of[ks]
         rows = np.concatenate([rows, np.repeat(rows[:1], _BATCH - len(rows))])
         return tuple(luts[i] for i in rows), self.wscale[rows]
+
+    def encoded(self, dtype: np.dtype) -> np.ndarray | None:
+        """The kernel's ``enc`` for samples of ``dtype`` (made on first use; two threads may
+        both make it: harmless)."""
+        if dtype not in self._encoded:
+            self._encoded[dtype] = _encoding_table(dtype, self.encoding, self.linearize)
+        return self._encoded[dtype]
 
     def _build(self, dtype: np.dtype) -> np.ndarray:
         import cv2
@@ -552,14 +562,7 @@ def reduce_photographs(
     # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in
     # the shadows); gains or linear 8-bit input would need finer steps in the highlights.
     eight = storage == "auto" and first.dtype == np.uint8 and linearize and channel_gains is None
-    tables = _Tables(linearize, channel_gains, n)
-    encoding = "stored" if fit is None else fit.encoding
-    enc_tables: dict[np.dtype, np.ndarray | None] = {}
-
-    def encodings(dtype: np.dtype) -> np.ndarray | None:
-        if dtype not in enc_tables:  # two threads may both make it on first use: harmless
-            enc_tables[dtype] = _encoding_table(dtype, encoding, linearize)
-        return enc_tables[dtype]
+    tables = _Tables(linearize, channel_gains, n, "stored" if fit is None else fit.encoding)
 
     f32 = np.float32
     zeroed: list[np.ndarray] = []
@@ -631,7 +634,7 @@ def reduce_photographs(
             ks = np.arange(k0 + i, k0 + j, dtype=np.int64)
             luts, wscale = tables.for_photographs(dtype, ks)
             counts = _reduce_rows(padded, len(group), ks, r0, r1, luts, wscale, _top(dtype), _encoded_scale(dtype),
-                                  encodings(dtype), lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
+                                  tables.encoded(dtype), lum16, lum8, to8, chan, hp, ptm_pinv, ptm_sums, ptm_aux, mat_a, sums_a,
                                   mat_b, sums_b)
             with counting:
                 clipped[ks] += counts[: len(group)]

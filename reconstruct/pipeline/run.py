@@ -115,8 +115,9 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
                        staged: StagedOutput, stages: Stages,
                        writer: FileWriter) -> tuple[np.ndarray, MeshFacts, list[str], Callable[[], None]]:
     """Integrate and mesh while the files every run has are written by ``writer``, each
-    started as soon as its data exists; return height, mesh facts, the files' names, and
-    ``written()``, which waits for them (the stage "write", which overlaps the others)."""
+    started as soon as its data exists; return height, mesh facts, the files' names, and the
+    end of the stage "write" (which overlaps the others) to call once they are written (an
+    error leaves it to ``Stages.close``)."""
     folder = staged.staging
     _, end = stages.begin("write")
     names = write_maps(folder, writer, normals=normals, texture=texture, mask=mask)
@@ -134,24 +135,16 @@ def _surface_and_files(normals: np.ndarray, texture: np.ndarray, mask: np.ndarra
     names += write_meshes(folder, writer, mesh, texture, opt)
     facts = MeshFacts(len(mesh.vertices), len(mesh.faces), surface.unit, step, surface.integrator,
                       surface.reason, json_safe(decimation))
-
-    def written() -> None:
-        try:
-            writer.wait()
-        except BaseException:
-            end(complete=False)
-            raise
-        end()
-
-    return surface.height, facts, names, written
+    return surface.height, facts, names, end
 
 
 def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list[str], *,
-            writer: FileWriter, written: Callable[[], None], then: Then | None = None, **html) -> dict[str, Path]:
-    """Write report.html while ``writer`` finishes the files, then, once ``written()``,
-    report.json; or with ``then``, report.json and then ``then(staged, page)``, the step that
-    follows and writes the page (its names join the result); then publish every file in one
-    step.
+            writer: FileWriter, end_write: Callable[[], None], then: Then | None = None,
+            **html) -> dict[str, Path]:
+    """Write report.html while ``writer`` finishes the files, then, once they are written (and
+    ``end_write()`` ended their stage), report.json; or with ``then``, report.json and then
+    ``then(staged, page)``, the step that follows and writes the page (its names join the
+    result); then publish every file in one step.
 
     report.json comes after the page and the files so that it holds their times.
     """
@@ -163,7 +156,8 @@ def _finish(staged: StagedOutput, report: RunReport, stages: Stages, names: list
             write_report_html(staged.staging, report=report.to_dict(), written_after=writer.names,
                               wait_for=writer.wait_for, **html)
         names = [*names, "report.html"]
-    written()
+    writer.wait()
+    end_write()
     report.seconds = round(stages.timer.elapsed(), 3)
     report.peak_rss_mb = max((s.get("peak_rss_mb", 0.0) for s in report.stages.values()), default=None)
     outputs.write_json(staged / "report.json", report.to_dict())
@@ -283,7 +277,7 @@ def run_capture(
             with stages("ptm", len(loaded.lights)) as advance:
                 relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance)
         warnings += relit.warnings
-        height, mesh, names, written = _surface_and_files(found.normals, texture, mask, opt, staged, stages, writer)
+        height, mesh, names, end_write = _surface_and_files(found.normals, texture, mask, opt, staged, stages, writer)
         report = RunReport(
             inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
@@ -301,7 +295,7 @@ def run_capture(
             write_lp(staged / "lights.lp", [p.name for p in loaded.lights.paths], loaded.lights.directions)
             names.append("lights.lp")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], writer=writer, written=written,
+        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], writer=writer, end_write=end_write,
                         then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
                         thumbnails=thumbnails,
@@ -359,12 +353,12 @@ def run_ptm(
             normals, texture = _ptm_normals_and_texture(ptm)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
         web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size)
-        height, mesh, names, written = _surface_and_files(normals, texture, mask, opt, staged, stages, writer)
+        height, mesh, names, end_write = _surface_and_files(normals, texture, mask, opt, staged, stages, writer)
         inputs = PtmInputs(str(ptm_path.resolve()), ptm.format, w, h, _mask_source(opt.mask, mask))
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,
                            fingerprint=fingerprint)
         # The page relights a subsample of the source .ptm: read again, only that is decoded.
-        files = _finish(staged, report, stages, [*web, *names], writer=writer, written=written, then=then,
+        files = _finish(staged, report, stages, [*web, *names], writer=writer, end_write=end_write, then=then,
                         previews=figures.previews(normals=normals, height=height, albedo=texture))
     return RunResult(staged.output, files, report)
 
@@ -398,10 +392,10 @@ def run_normals(
                 warnings.append(f"{int((mask & ~valid).sum())} pixels inside the mask have no valid normal")
         else:
             mask = None if valid.all() else valid
-        height, mesh, names, written = _surface_and_files(normals, shaded(normals), mask, opt, staged, stages, writer)
+        height, mesh, names, end_write = _surface_and_files(normals, shaded(normals), mask, opt, staged, stages, writer)
         source = _mask_source(opt.mask, mask) if opt.mask else ("valid normals" if mask is not None else None)
         report = RunReport(NormalMapInputs(str(path.resolve()), w, h, source), _parameters(opt, mesh.step),
                            mesh.unit, mesh, {}, "", warnings)
-        files = _finish(staged, report, stages, names, writer=writer, written=written,
+        files = _finish(staged, report, stages, names, writer=writer, end_write=end_write,
                         previews=figures.previews(normals=normals, height=height))
     return RunResult(staged.output, files, report)

@@ -37,6 +37,9 @@ from ptmcore.errors import InputError, first_few
 
 __all__ = ["StagedOutput", "abandon_runs", "staged_output"]
 
+#: The user's own files inside a result: figures, profiles and distances saved from the preview
+#: window (``reconstruct.viewer``). Every new result of the folder carries them over.
+CARRIED = ("preview",)
 #: Hidden names beside an output folder ``NAME``: ``.NAME.partial-…`` (a result being built),
 #: ``.NAME.old-…`` (an old result renamed aside for a moment), ``.NAME.lock``.
 STAGING_PREFIX = ".partial-"
@@ -48,10 +51,7 @@ _LOCK_SUFFIX = ".lock"
 _OUTPUT_NAMES = ("coefficients.ptm", "coefficients.rti", "web", "solid.stl", "mesh.glb", "normals.npy",
                  "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj", "mesh.mtl",
                  "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "lights.lp", "report.json",
-                 "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png", "preview")
-#: The user's own files inside a result: figures, profiles and distances saved from the preview
-#: window (``reconstruct.viewer``). Every new result of the folder carries them over.
-CARRIED = ("preview",)
+                 "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png", *CARRIED)
 
 
 #: The staging folders and lock files of this process's runs in progress, for

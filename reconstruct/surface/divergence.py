@@ -19,8 +19,9 @@ import numba
 import numpy as np
 
 from ptmcore.bands import run_bands
+from reconstruct.surface.fourier import checked_normals
 
-__all__ = ["checked_normals", "divergence_from_normals", "divide_by_eigenvalues"]
+__all__ = ["divergence_from_normals", "divide_by_eigenvalues"]
 
 # Rows per band of work: a thread's unit.
 _BAND_ROWS = 256
@@ -104,23 +105,6 @@ def _divide_rows(spectrum, eig_row, eig_col, r0, r1):  # pragma: no cover - comp
         for j in range(spectrum.shape[1]):
             d = eig_row[i] + eig_col[j]
             spectrum[i, j] = spectrum[i, j] / d if d != 0 else np.float32(0.0)
-
-
-def checked_normals(normals, max_slope_deg: float, dtype: type = np.float32) -> np.ndarray:
-    """``normals`` as an ``(H, W, 3)`` array of ``dtype``, with ``max_slope_deg`` in (0, 90):
-    the integrators' common check.
-
-    Raises
-    ------
-    ValueError
-        If the shape or the slope limit is not so.
-    """
-    normals = np.asarray(normals, dtype=dtype)
-    if normals.ndim != 3 or normals.shape[2] != 3:
-        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
-    if not 0.0 < max_slope_deg < 90.0:
-        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
-    return normals
 
 
 def _threads(workers: int | None) -> int:

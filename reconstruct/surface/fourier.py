@@ -29,7 +29,24 @@ import math
 import numpy as np
 import scipy.fft
 
-__all__ = ["frankot_chellappa", "poisson_dct", "solve_neumann"]
+__all__ = ["checked_normals", "frankot_chellappa", "poisson_dct", "solve_neumann"]
+
+
+def checked_normals(normals, max_slope_deg: float, dtype: type = np.float32) -> np.ndarray:
+    """``normals`` as an ``(H, W, 3)`` array of ``dtype``, with ``max_slope_deg`` in (0, 90):
+    the integrators' common check (here, beside them, without numba's import).
+
+    Raises
+    ------
+    ValueError
+        If the shape or the slope limit is not so.
+    """
+    normals = np.asarray(normals, dtype=dtype)
+    if normals.ndim != 3 or normals.shape[2] != 3:
+        raise ValueError(f"normals must have shape (H, W, 3), not {normals.shape}")
+    if not 0.0 < max_slope_deg < 90.0:
+        raise ValueError(f"max_slope_deg must be in (0, 90), not {max_slope_deg}")
+    return normals
 
 
 def _prepare(

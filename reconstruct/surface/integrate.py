@@ -20,8 +20,7 @@ import math
 
 import numpy as np
 
-from reconstruct.surface.divergence import checked_normals, divergence_from_normals
-from reconstruct.surface.fourier import frankot_chellappa, poisson_dct, solve_neumann
+from reconstruct.surface.fourier import checked_normals, frankot_chellappa, poisson_dct, solve_neumann
 from reconstruct.surface.bilateral import discontinuity_preserving
 from reconstruct.surface.masked import masked_poisson
 
@@ -132,6 +131,8 @@ def integrate(
     normals = np.asarray(normals)
     if method == "dct":
         # The same arithmetic as below in two compiled passes instead of a dozen NumPy ones.
+        from reconstruct.surface.divergence import divergence_from_normals  # numba: imported when used
+
         mask = None if mask is None else np.asarray(mask, dtype=bool)
         f, nonfinite = divergence_from_normals(normals, mask, max_slope_deg=max_slope_deg, workers=workers)
         if mask is None and nonfinite:

@@ -25,8 +25,7 @@ import numpy as np
 
 from reconstruct.calibration.camera import Intrinsics
 from reconstruct.surface.bilateral import discontinuity_preserving
-from reconstruct.surface.divergence import checked_normals
-from reconstruct.surface.fourier import poisson_dct
+from reconstruct.surface.fourier import checked_normals, poisson_dct
 from reconstruct.surface.masked import masked_poisson
 
 __all__ = ["integrate_perspective", "perspective_gradients"]
