@@ -345,3 +345,17 @@ def test_a_run_page_made_while_its_files_are_written(tmp_path):
     assert "total so far (files still being written)" in params and "write (in the background)" not in params
     report = json.loads((out / "report.json").read_text())
     assert "write" in report["stages"] and report["seconds"] >= report["stages"]["write"]["seconds"]
+
+
+def test_specular_picture_of_an_rgb_ptm():
+    """An RGB-format PTM (one polynomial per channel) gets its specular picture too, as
+    ``reconstruct relight --mode specular`` renders it."""
+    from ptmcore.ptmfile import PTMFile
+    from reconstruct.report import figures
+
+    rng = np.random.default_rng(0)
+    coef = rng.uniform(-20, 20, (12, 16, 3, 6)).astype(np.float32)
+    coef[..., 5] += 120
+    ptm = PTMFile("PTM_FORMAT_RGB", "PTM_1.2", 16, 12, np.ones(6, np.float32), np.zeros(6, np.int32), coef, None)
+    image = figures.specular_from_ptm(ptm)
+    assert image.shape == (12, 16, 3) and image.dtype == np.uint8 and image.max() > 0

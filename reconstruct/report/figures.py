@@ -251,17 +251,14 @@ def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, lin
             for label, az, el in RELIGHT_LIGHTS]
 
 
-def specular_from_ptm(ptm: PTMFile, *, linear: bool = False) -> np.ndarray | None:
-    """RTIViewer's specular enhancement of an LRGB PTM under :data:`SPECULAR_LIGHT`, with
-    RTIViewer's default weights (:func:`ptmcore.relight.specular_enhancement`), encoded for
-    display as :func:`relit_from_ptm`; None for an RGB PTM (no luminance polynomial)."""
-    from ptmcore.relight import specular_enhancement
+def specular_from_ptm(ptm: PTMFile, *, linear: bool = False) -> np.ndarray:
+    """RTIViewer's specular enhancement of a PTM (LRGB or RGB) under :data:`SPECULAR_LIGHT`,
+    with RTIViewer's default weights, as ``reconstruct relight --mode specular`` renders it
+    (:func:`reconstruct.viewer.relighting.render`), encoded for display as :func:`relit_from_ptm`."""
+    from reconstruct.viewer.relighting import render
 
-    if ptm.rgb is None or ptm.coefficients.ndim != 3:
-        return None
     _, az, el = SPECULAR_LIGHT
-    light = light_direction(azimuth_deg=az, elevation_deg=el)
-    return for_display(specular_enhancement(ptm.coefficients, ptm.rgb, light), linear)
+    return for_display(render(ptm, light_direction(azimuth_deg=az, elevation_deg=el), "specular"), linear)
 
 
 def for_display(image: np.ndarray, linear: bool) -> np.ndarray:

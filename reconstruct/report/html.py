@@ -262,8 +262,6 @@ def _surface(report: dict, previews: figures.Previews, ptm, notes: list[str]) ->
     if ptm is not None:
         def specular() -> str:
             image = figures.specular_from_ptm(ptm[1], linear=figures.linear_ptm(report))
-            if image is None:
-                return _note("no specular enhancement: the PTM is in RGB format (it needs a luminance polynomial)")
             label, _, _ = figures.SPECULAR_LIGHT
             return _figure(figures.encode(image, "JPEG"), "image/jpeg",
                            f"specular enhancement (RTIViewer's, light {label}): surface shape without colour")
@@ -293,7 +291,7 @@ def _height(report: dict, previews: figures.Previews, notes: list[str]) -> str:
     def height_map() -> str:
         png = figures.height_figure(previews.height, previews.stride, unit, pixel_size, profile=row)
         bar = "scale bar in mm" if pixel_size else "scale bar in pixels (no pixel size given)"
-        return _figure(png, "image/png", f"height map in {'pixels' if unit == 'pixel' else unit}; {bar}; "
+        return _figure(png, "image/png", f"height map in {summary.unit_words(unit)}; {bar}; "
                                          "the dashed line is where the profile below is taken", "wide")
 
     def profile() -> str:
