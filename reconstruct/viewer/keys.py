@@ -26,6 +26,6 @@ KEYS = (
 )
 
 
-def help_text(width: int = 18) -> str:
+def help_text() -> str:
     """The keys as lines ``key  what it does``."""
-    return "\n".join(f"{key:<{width}}{text}" for key, text in KEYS)
+    return "\n".join(f"{key:<18}{text}" for key, text in KEYS)

@@ -83,6 +83,11 @@ def _actor2d(data, color, *, width: float = 1.0, opacity: float = 1.0):
     return actor
 
 
+#: The scale bar's label size (points) and the profile strip's share of the window's height.
+_SCALE_FONT = 14
+STRIP_FRACTION = 0.3
+
+
 def _text(font_size: int, *, justify_right: bool = False):
     from vtkmodules.vtkRenderingCore import vtkTextActor
 
@@ -199,16 +204,15 @@ class ScaleBar:
     renderer : vtkRenderer
     unit : str
         Label unit: ``"mm"``, ``"px"`` or another word.
-    font_size : int
     """
 
-    def __init__(self, renderer, unit: str, font_size: int = 14) -> None:
+    def __init__(self, renderer, unit: str) -> None:
         self.renderer = renderer
         self.unit = unit
         self.note = ""
         self.length: float | None = None
         self._bar = _actor2d(_polylines([np.zeros((2, 2))]), _WHITE, width=3.0)
-        self.label = _text(font_size, justify_right=True)
+        self.label = _text(_SCALE_FONT, justify_right=True)
         self.actors = [self._bar, self.label]
         for actor in self.actors:
             renderer.AddViewProp(actor)
@@ -240,16 +244,15 @@ class ImageStrip:
     ----------
     render_window : vtkRenderWindow
     main : vtkRenderer
-        The 3-D view, whose viewport shrinks while the strip is shown.
-    fraction : float
-        Share of the window's height the strip takes.
+        The 3-D view, whose viewport shrinks while the strip is shown (to
+        :data:`STRIP_FRACTION` of the window's height).
     """
 
-    def __init__(self, render_window, main, fraction: float = 0.3) -> None:
+    def __init__(self, render_window, main) -> None:
         from vtkmodules.vtkRenderingCore import vtkActor2D, vtkImageMapper, vtkRenderer
 
         self.main = main
-        self.fraction = float(fraction)
+        self.fraction = STRIP_FRACTION
         self.renderer = vtkRenderer()
         self.renderer.SetViewport(0.0, 0.0, 1.0, self.fraction)
         self.renderer.SetBackground(1.0, 1.0, 1.0)

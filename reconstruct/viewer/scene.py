@@ -41,8 +41,6 @@ from ptmcore.errors import InputError
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
     DEFAULT_GAIN,
-    DEFAULT_KD,
-    DEFAULT_KS,
     diffuse_gain,
     light_direction,
     relight,
@@ -278,8 +276,8 @@ def mode_colors(scene: PreviewScene, mode: str, light: np.ndarray | None = None,
     if mode == "relief":
         return relief_shading(scene.relief_normals(style.exaggeration), scene.convexity, light)
     if mode == "specular":
-        image = specular_enhancement(scene.coefficients, scene.rgb, light, kd=DEFAULT_KD, ks=DEFAULT_KS,
-                                     exponent=style.exponent, maximum=scene.maximum)
+        image = specular_enhancement(scene.coefficients, scene.rgb, light, exponent=style.exponent,
+                                     maximum=scene.maximum)
     else:
         image = relight(scene.gained(style.gain), scene.rgb, light)
     return for_display(image, scene.linear_ptm)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ptmcore.images import linear_to_srgb
+from reconstruct.report.figures import encode_srgb8
 from ptmcore.relight import light_direction
 
 __all__ = ["convexity", "exaggerated_normals", "relief_shading"]
@@ -56,11 +56,10 @@ def convexity(normals: np.ndarray) -> np.ndarray:
     """
     from scipy.ndimage import gaussian_filter
 
-    n = np.asarray(normals, dtype=np.float32)
-    nz = np.maximum(n[..., 2], np.float32(0.05))
-    p, q = -n[..., 0] / nz, -n[..., 1] / nz
-    laplacian = np.gradient(p, axis=1) - np.gradient(q, axis=0)
-    c = -gaussian_filter(laplacian, 1.0)
+    from reconstruct.surface.divergence import divergence_from_normals
+
+    # The DCT integrator's right-hand side Dᵀg is −∇²z (its slope limit keeps steep walls finite).
+    c = gaussian_filter(divergence_from_normals(normals, None)[0], 1.0)
     scale = float(np.percentile(np.abs(c), 95)) or 1.0
     return np.tanh(c / np.float32(scale)).astype(np.float32)
 
@@ -69,8 +68,6 @@ def relief_shading(
     normals: np.ndarray,
     convex: np.ndarray,
     light: np.ndarray,
-    *,
-    strength: float = RELIEF_STRENGTH,
 ) -> np.ndarray:
     """A grey rendering of the shape: Lambertian shading of the exaggerated normals with
     radiance scaling by the convexity.
@@ -85,8 +82,6 @@ def relief_shading(
         scale-free).
     light : array_like, shape (3,)
         Direction towards the light.
-    strength : float
-        Radiance scaling's weight, 0 to 1.
 
     Returns
     -------
@@ -95,6 +90,6 @@ def relief_shading(
     """
     l_vec = light_direction(light=light).astype(np.float32)
     lambert = np.maximum(np.asarray(normals, np.float32) @ l_vec, np.float32(0.0))
-    linear = RELIEF_ALBEDO * (RELIEF_AMBIENT + (1 - RELIEF_AMBIENT) * lambert) * (1 + np.float32(strength) * convex)
-    grey = np.round(linear_to_srgb(np.clip(linear, 0.0, 1.0)) * 255).astype(np.uint8)
+    linear = RELIEF_ALBEDO * (RELIEF_AMBIENT + (1 - RELIEF_AMBIENT) * lambert) * (1 + RELIEF_STRENGTH * convex)
+    grey = encode_srgb8(linear)
     return np.repeat(grey[..., None], 3, axis=2)
