@@ -359,3 +359,10 @@ def test_specular_picture_of_an_rgb_ptm():
     ptm = PTMFile("PTM_FORMAT_RGB", "PTM_1.2", 16, 12, np.ones(6, np.float32), np.zeros(6, np.int32), coef, None)
     image = figures.specular_from_ptm(ptm)
     assert image.shape == (12, 16, 3) and image.dtype == np.uint8 and image.max() > 0
+
+
+def test_comparison_json_times_its_reading_of_the_scan(scanned):
+    """The comparison's own reading of the scan is one of its stages (it used to be timed by a
+    throwaway timer)."""
+    _, out = scanned
+    assert list(json.loads((out / "comparison.json").read_text())["stages"])[:2] == ["read", "align"]

@@ -155,7 +155,7 @@ def run_compare(
         kept = staged.keep_existing(exclude=COMPARISON_FILES)
         names, report = compare_into(staged, rec, rec_path, scan_geometry, Path(scan), opt, initial=initial,
                                      also=[given] if given.is_dir() else [],
-                                     progress=progress)
+                                     stages=stages)
         files = staged.publish([*kept, *names])
     return CompareResult(staged.output, files, report)
 
@@ -166,16 +166,17 @@ COMPARISON_FILES = ("distances.ply", "histogram.png", "overlay.png", "comparison
 
 def compare_into(staged: StagedOutput, rec, rec_path: Path, scan_geometry, scan: Path, opt: CompareOptions, *,
                  initial: np.ndarray | None = None, also: list[Path] | None = None, page: dict | None = None,
-                 progress: ProgressFn | None = None) -> tuple[list[str], CompareReport]:
+                 stages: Stages | None = None) -> tuple[list[str], CompareReport]:
     """Compare a loaded scan with a loaded reconstruction and write the comparison's files
     into ``staged`` (``run --scan`` calls it before the run's files are published, so the
     reconstruction and its comparison appear together). ``also``: folders whose report.json
     the page shows beside the comparison; ``page``: the run's own page's arguments (its report,
     previews, thumbnails: :data:`reconstruct.pipeline.run.Then`), so nothing is read back;
-    ``progress`` as in :func:`run_compare`. Returns the files' names and the report."""
+    ``stages``: the comparison's stage timer and progress (:func:`run_compare`'s, with its
+    reading of the inputs), a fresh one by default. Returns the files' names and the report."""
     from reconstruct.compare import align, distances, within_tolerance
 
-    stages = Stages(_scan_progress(progress))
+    stages = stages or Stages()
     warnings: list[str] = []
     with stages("align", 3) as advance:
         alignment = align(rec, scan_geometry, scale=opt.scale, initial=initial, no_align=opt.no_align,
@@ -221,8 +222,8 @@ class ScanStep:
 
         self.scan = Path(scan)
         self.options = options or CompareOptions()
-        self.progress = progress
-        with Stages(_scan_progress(progress))("read"):
+        self.stages = Stages(_scan_progress(progress))  # its reading's time joins comparison.json's
+        with self.stages("read"):
             self.geometry = load_geometry(self.scan, units=self.options.scan_units)
         self.report: CompareReport | None = None
         self.error: InputError | None = None
@@ -233,7 +234,7 @@ class ScanStep:
         try:
             names, self.report = compare_into(staged, load_geometry(staged / "mesh.ply"), staged.output / "mesh.ply",
                                               self.geometry, self.scan, self.options, page=page,
-                                              progress=self.progress)
+                                              stages=self.stages)
         except InputError as exc:
             self.error = exc
             write_report_html(staged.staging, **page)
