@@ -28,9 +28,10 @@ import math
 import numpy as np
 
 from .fit import light_matrix
+from .images import LUMA_WEIGHTS
 from .normals import ptm_maximum
 
-__all__ = ["diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
+__all__ = ["as_lrgb", "diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
 
 #: RTIViewer's default diffuse gain (``DiffuseGain`` constructor; the slider spans 1–10).
 DEFAULT_GAIN = 2.0
@@ -347,3 +348,26 @@ def specular_enhancement(
         lobe = np.float32(255.0 * float(ks)) * n_dot_h ** np.float32(exponent)
         out[r0:r1] = _shade(rgb[r0:r1], lum, float(kd), lobe)
     return out
+
+
+def as_lrgb(ptm) -> tuple[np.ndarray, np.ndarray]:
+    """LRGB coefficients and colour of a PTM (:class:`ptmcore.ptmfile.PTMFile`); RGB-format
+    PTMs are converted.
+
+    The luminance polynomial of an RGB-format PTM is the weighted sum of its channels'
+    (luminance is linear in them); the colour is each channel's share of it at the
+    luminance maximum, where it is best determined.
+    """
+    if ptm.is_lrgb:
+        return ptm.coefficients, ptm.rgb
+    coef = np.einsum("hwck,c->hwk", ptm.coefficients, LUMA_WEIGHTS)
+    lu, lv, _ = ptm_maximum(coef)
+    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
+    channels = (ptm.coefficients * basis[..., None, :]).sum(axis=-1)
+    lum = (coef * basis).sum(axis=-1)[..., None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(lum > 0, channels / lum, 1.0)
+    # Channels brighter than the luminance (saturated colours) move into the coefficients.
+    k = np.maximum(share.max(axis=-1), 1.0)
+    rgb = np.clip(np.round(share / k[..., None] * 255), 0, 255).astype(np.uint8)
+    return (coef * k[..., None]).astype(np.float32), rgb

@@ -257,13 +257,14 @@ def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, lin
 
 
 def specular_from_ptm(ptm: PTMFile, *, linear: bool = False) -> np.ndarray:
-    """RTIViewer's specular enhancement of a PTM (LRGB or RGB) under :data:`SPECULAR_LIGHT`,
-    with RTIViewer's default weights, as ``reconstruct relight --mode specular`` renders it
-    (:func:`reconstruct.viewer.relighting.render`), encoded for display as :func:`relit_from_ptm`."""
-    from reconstruct.viewer.relighting import render
+    """RTIViewer's specular enhancement of a PTM (LRGB, or RGB converted by
+    :func:`ptmcore.relight.as_lrgb`) under :data:`SPECULAR_LIGHT`, with RTIViewer's default
+    weights, as ``reconstruct relight --mode specular`` renders it, encoded for display as
+    :func:`relit_from_ptm`."""
+    from ptmcore.relight import as_lrgb, specular_enhancement
 
     _, az, el = SPECULAR_LIGHT
-    return for_display(render(ptm, light_direction(azimuth_deg=az, elevation_deg=el), "specular"), linear)
+    return for_display(specular_enhancement(*as_lrgb(ptm), light_direction(azimuth_deg=az, elevation_deg=el)), linear)
 
 
 def for_display(image: np.ndarray, linear: bool) -> np.ndarray:

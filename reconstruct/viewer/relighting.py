@@ -16,14 +16,13 @@ import numpy as np
 
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
-from ptmcore.images import LUMA_WEIGHTS
-from ptmcore.normals import ptm_maximum
 from ptmcore.ptmfile import PTMFile, read_ptm
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
     DEFAULT_GAIN,
     DEFAULT_KD,
     DEFAULT_KS,
+    as_lrgb,
     diffuse_gain,
     relight,
     specular_enhancement,
@@ -67,28 +66,6 @@ def load_source(source: str | os.PathLike, basis: str = "ptm") -> PTMFile | RTIF
     elif not source.exists():
         raise InputError("not found", source)
     return read_rti_hsh(source) if source.suffix.lower() == ".rti" else read_ptm(source)
-
-
-def as_lrgb(ptm: PTMFile) -> tuple[np.ndarray, np.ndarray]:
-    """LRGB coefficients and colour of a PTM; RGB-format PTMs are converted.
-
-    The luminance polynomial of an RGB-format PTM is the weighted sum of its channels'
-    (luminance is linear in them); the colour is each channel's share of it at the
-    luminance maximum, where it is best determined.
-    """
-    if ptm.is_lrgb:
-        return ptm.coefficients, ptm.rgb
-    coef = np.einsum("hwck,c->hwk", ptm.coefficients, LUMA_WEIGHTS)
-    lu, lv, _ = ptm_maximum(coef)
-    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
-    channels = (ptm.coefficients * basis[..., None, :]).sum(axis=-1)
-    lum = (coef * basis).sum(axis=-1)[..., None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.where(lum > 0, channels / lum, 1.0)
-    # Channels brighter than the luminance (saturated colours) move into the coefficients.
-    k = np.maximum(share.max(axis=-1), 1.0)
-    rgb = np.clip(np.round(share / k[..., None] * 255), 0, 255).astype(np.uint8)
-    return (coef * k[..., None]).astype(np.float32), rgb
 
 
 def render(

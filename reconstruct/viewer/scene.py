@@ -389,7 +389,7 @@ def _lrgb(path: Path, max_texture: int) -> tuple[tuple[int, int], np.ndarray, np
     k the largest step that keeps at least the texture's resolution (the texture is then an
     area average of at most 2 × 2 samples per texel), so memory follows the texture, not the PTM."""
     from ptmcore.ptmfile import read_ptm
-    from reconstruct.viewer.relighting import as_lrgb
+    from ptmcore.relight import as_lrgb
 
     ptm = read_ptm(path, max_side=2 * max_texture)
     return (ptm.height, ptm.width), *as_lrgb(ptm)
