@@ -14,9 +14,16 @@ Reports the mean angular error against the ground truth, the largest difference 
 result, and the time of each (one thread, after a warm-up call). Target: within 0.01° of the
 NumPy steps' mean error.
 
-Then the kernel's speed at the pipeline's width: the 8-bit stack of each JPEG scene tiled to 6000
+Then the kernels' speed at the pipeline's width: the 8-bit stack of each JPEG scene tiled to 6000
 columns (the width of a 24-megapixel photograph), as seconds per 24 megapixels with one and two
-threads (medians of three).
+threads (medians of three), for the default normals, the robust PTM with its debiased normals,
+and the robust PTM's maxima (``ptmcore.normals.normals_from_ptm``, ``--normals ptm``).
+
+Last, the robust PTM (``ptmcore.robustptm.robust_ptm``, ``--normals ptm-debiased``) the same
+three ways: the NumPy steps (``compiled=False``), and the kernel that fits the PTM with each
+pixel's final robust weights, on the uint16 and the 8-bit stack: the debiased normals' mean
+error, their largest difference from the NumPy steps', the coefficients' largest difference
+(relative to the largest coefficient) and the time (one thread, after a warm-up call).
 
 Run: ``.venv/bin/python benchmarks/robust_kernel.py``; writes ``benchmarks/results/robust_kernel.json``.
 """
@@ -39,6 +46,8 @@ sys.path.insert(0, str(ROOT))
 
 import ptmcore  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
+from ptmcore.normals import normals_from_ptm  # noqa: E402
+from ptmcore.robustptm import robust_ptm  # noqa: E402
 from reconstruct.surface.accuracy import load_ground_truth, normal_accuracy  # noqa: E402
 
 #: Columns of a 24-megapixel photograph (6000×4000).
@@ -57,20 +66,26 @@ def timed(f):
     return out, time.perf_counter() - t0
 
 
-def seconds_per_24mp(stack: ptmcore.ImageStack, directions: np.ndarray, threads: int) -> float:
-    """The kernel's time on ``stack`` tiled to :data:`WIDE` columns, scaled to 24 megapixels."""
+def seconds_per_24mp(stack: ptmcore.ImageStack, directions: np.ndarray, threads: int,
+                     fit=ptmcore.robust_photometric_stereo) -> float:
+    """``fit``'s time on ``stack`` tiled to :data:`WIDE` columns, scaled to 24 megapixels."""
     _, h, w = stack.luminance.shape
     codes = np.ascontiguousarray(np.tile(stack.luminance, (1, 1, -(-WIDE // w)))[:, :, :WIDE])
     wide = ptmcore.ImageStack(codes, np.ones((h, WIDE, 3), np.float32), [], stack.bit_depth, stack.linearized,
                               stack.saturated, stack.table)
-    times = [timed(lambda: ptmcore.robust_photometric_stereo(wide, directions, threads=threads))[1]
-             for _ in range(3)]
+    times = [timed(lambda: fit(wide, directions, threads=threads))[1] for _ in range(3)]
     return statistics.median(times) * 24e6 / (h * WIDE)
+
+
+def ptm_normals(stack: ptmcore.ImageStack, directions: np.ndarray, threads: int) -> np.ndarray:
+    """``--normals ptm``: the robust PTM's maxima."""
+    return normals_from_ptm(robust_ptm(stack, directions, threads=threads).ptm.coefficients, threads=threads)
 
 
 def main() -> None:
     rows = []
     speed = []
+    ptm_rows = []
     for scene in ("tablet", "sphere"):
         for encoding in ("tiff16", "jpeg8"):
             with tempfile.TemporaryDirectory() as tmp:
@@ -92,25 +107,48 @@ def main() -> None:
                                  "mean_deg": normal_accuracy(normals, truth)["mean_deg"],
                                  "max_diff_from_numpy_deg": float(angle(normals, ref).max()),
                                  "seconds": seconds})
+                ref_ptm, t_ref = timed(lambda: robust_ptm(stack16, lights.directions, threads=1, compiled=False))
+                scale = float(np.abs(ref_ptm.ptm.coefficients).max())
+                for name, stack in (("numpy", stack16), ("kernel", stack16), ("kernel 8-bit", stack8)):
+                    fitted, seconds = ((ref_ptm, t_ref) if name == "numpy" else
+                                       timed(lambda stack=stack: robust_ptm(stack, lights.directions, threads=1)))
+                    ptm_rows.append({"scene": scene, "encoding": encoding, "method": name,
+                                     "stack": str(stack.luminance.dtype),
+                                     "mean_deg": normal_accuracy(fitted.normals, truth)["mean_deg"],
+                                     "max_diff_from_numpy_deg": float(angle(fitted.normals, ref_ptm.normals).max()),
+                                     "max_coefficient_diff": float(np.abs(fitted.ptm.coefficients
+                                                                          - ref_ptm.ptm.coefficients).max()) / scale,
+                                     "seconds": seconds})
                 if encoding == "jpeg8":
-                    speed.append({"scene": scene, "stack": str(stack8.luminance.dtype),
-                                  **{f"seconds_per_24mp_{t}_threads": seconds_per_24mp(stack8, lights.directions, t)
-                                     for t in (1, 2)}})
+                    for fit_name, fit in (("robust photometric stereo", ptmcore.robust_photometric_stereo),
+                                          ("robust PTM, debiased normals", robust_ptm),
+                                          ("robust PTM, maxima (--normals ptm)", ptm_normals)):
+                        speed.append({"scene": scene, "fit": fit_name, "stack": str(stack8.luminance.dtype),
+                                      **{f"seconds_per_24mp_{t}_threads": seconds_per_24mp(stack8, lights.directions,
+                                                                                           t, fit)
+                                         for t in (1, 2)}})
     print("| scene | encoding | method | stack | mean ° | max difference from NumPy ° | seconds (1 thread) |")
     print("| --- | --- | --- | --- | ---: | ---: | ---: |")
     for r in rows:
         print(f"| {r['scene']} | {r['encoding']} | {r['method']} | {r['stack']} | {r['mean_deg']:.4f} | "
               f"{r['max_diff_from_numpy_deg']:.5f} | {r['seconds']:.3f} |")
-    print(f"\n| scene | stack | seconds per 24 MP, {WIDE} wide, 1 thread | 2 threads |")
-    print("| --- | --- | ---: | ---: |")
+    print(f"\n| scene | fit | stack | seconds per 24 MP, {WIDE} wide, 1 thread | 2 threads |")
+    print("| --- | --- | --- | ---: | ---: |")
     for r in speed:
-        print(f"| {r['scene']} | {r['stack']} | {r['seconds_per_24mp_1_threads']:.2f} | "
+        print(f"| {r['scene']} | {r['fit']} | {r['stack']} | {r['seconds_per_24mp_1_threads']:.2f} | "
               f"{r['seconds_per_24mp_2_threads']:.2f} |")
+    print("\nRobust PTM (debiased normals):\n")
+    print("| scene | encoding | method | stack | mean ° | max difference from NumPy ° | max coefficient difference "
+          "(relative) | seconds (1 thread) |")
+    print("| --- | --- | --- | --- | ---: | ---: | ---: | ---: |")
+    for r in ptm_rows:
+        print(f"| {r['scene']} | {r['encoding']} | {r['method']} | {r['stack']} | {r['mean_deg']:.4f} | "
+              f"{r['max_diff_from_numpy_deg']:.5f} | {r['max_coefficient_diff']:.1e} | {r['seconds']:.3f} |")
     meta = {"date": time.strftime("%Y-%m-%d"), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
             "python": platform.python_version()}
     out = ROOT / "benchmarks" / "results" / "robust_kernel.json"
     out.parent.mkdir(exist_ok=True)
-    out.write_text(json.dumps({"meta": meta, "rows": rows, "speed": speed}, indent=2) + "\n")
+    out.write_text(json.dumps({"meta": meta, "rows": rows, "speed": speed, "robust_ptm": ptm_rows}, indent=2) + "\n")
     print(f"\n{meta['date']}, {meta['machine']}; written {out}")
 
 

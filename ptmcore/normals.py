@@ -1,10 +1,12 @@
 """Surface normals from a PTM's maximum and from Lambertian photometric stereo.
 
-Both are vectorised over pixels and work in bands of rows, so memory stays bounded.
+Both work in bands of rows, so memory stays bounded: the PTM maximum in a compiled kernel
+(:mod:`ptmcore.maximum`), photometric stereo vectorised over the pixels of a band.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -14,36 +16,10 @@ from .bands import band_rows, run_bands
 from .images import ImageStack
 from .lp import as_directions
 
-_CIRCLE_SAMPLES = 72
-_NEWTON_STEPS = 4
 
-
-def _circle_maximum(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Direction (lu, lv) on the unit circle that maximises each PTM polynomial.
-
-    ``a`` is (P, 6). On the circle, L(θ) = a0 c² + a1 s² + a2 c s + a3 c + a4 s + a5 has no
-    closed-form maximum (its stationary points solve a quartic), so it is sampled every 5° and
-    the best sample is refined by Newton's method on L'(θ).
-    """
-    a = a.astype(np.float64)
-    theta = np.linspace(0.0, 2 * np.pi, _CIRCLE_SAMPLES, endpoint=False)
-    c, s = np.cos(theta), np.sin(theta)
-    basis = np.stack([c * c, s * s, c * s, c, s, np.zeros_like(c)])  # a5 does not move the maximum
-    t = theta[np.argmax(a @ basis, axis=1)]
-    d_a = a[:, 1] - a[:, 0]
-    for _ in range(_NEWTON_STEPS):
-        c, s = np.cos(t), np.sin(t)
-        c2, s2 = np.cos(2 * t), np.sin(2 * t)
-        d1 = d_a * s2 + a[:, 2] * c2 - a[:, 3] * s + a[:, 4] * c
-        d2 = 2 * d_a * c2 - 2 * a[:, 2] * s2 - a[:, 3] * c - a[:, 4] * s
-        # Only step where the curvature says we are near a maximum; the sample is already
-        # within 2.5° of it.
-        ok = d2 < 0
-        t = np.where(ok, t - np.clip(d1 / np.where(ok, d2, -1.0), -0.05, 0.05), t)
-    return np.cos(t), np.sin(t)
-
-
-def ptm_maximum(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def ptm_maximum(
+    coefficients: np.ndarray, *, threads: int | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Light direction (lu0, lv0) of each PTM polynomial's maximum over the unit disk.
 
     Where the polynomial is strictly concave and its stationary point lies inside the disk,
@@ -53,11 +29,15 @@ def ptm_maximum(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
         lv0 = (a2·a3 − 2·a0·a4) / (4·a0·a1 − a2²)
 
     Elsewhere (not concave, or the stationary point outside the disk) the maximum over the
-    disk is on its boundary and is found there, rather than by clamping the stationary point.
+    disk is on its boundary and is found there, rather than by clamping the stationary point:
+    L(θ) is sampled every 5° on the unit circle and the best sample refined by Newton's method
+    on L'(θ). The arithmetic is float64 (compiled: :mod:`ptmcore.maximum`).
 
     Parameters
     ----------
     coefficients : ndarray, shape (..., 6)
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
 
     Returns
     -------
@@ -66,45 +46,39 @@ def ptm_maximum(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     interior : ndarray, shape (...), bool
         Where the maximum is the interior closed-form one.
     """
-    a = np.asarray(coefficients, dtype=np.float64).reshape(-1, 6)
-    a0, a1, a2, a3, a4 = (a[:, k] for k in range(5))
-    den = 4 * a0 * a1 - a2 * a2
-    concave = (a0 < 0) & (den > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        lu = np.where(concave, (a2 * a4 - 2 * a1 * a3) / den, 0.0)
-        lv = np.where(concave, (a2 * a3 - 2 * a0 * a4) / den, 0.0)
-    interior = concave & (lu * lu + lv * lv < 1.0)
-    boundary = ~interior
-    if boundary.any():
-        lu[boundary], lv[boundary] = _circle_maximum(a[boundary])
-    shape = np.shape(coefficients)[:-1]
-    return (
-        lu.reshape(shape).astype(np.float32),
-        lv.reshape(shape).astype(np.float32),
-        interior.reshape(shape),
-    )
+    from .maximum import maximum_bands  # numba's import costs a second; `import ptmcore` does not need it
+
+    a = np.asarray(coefficients)
+    shape = a.shape[:-1]
+    # Rows of pixels for the bands: (H, W, 6) as it is, a list of pixels as a column.
+    a = a.reshape((math.prod(a.shape[:-2]), a.shape[-2], 6) if a.ndim >= 3 else (-1, 1, 6))
+    lu = np.empty(a.shape[:2], dtype=np.float32)
+    lv = np.empty(a.shape[:2], dtype=np.float32)
+    interior = np.empty(a.shape[:2], dtype=bool)
+    maximum_bands(a, lu, lv, interior=interior, threads=threads)
+    return lu.reshape(shape), lv.reshape(shape), interior.reshape(shape)
 
 
-def normals_from_ptm(coefficients: np.ndarray) -> np.ndarray:
-    """Normals ``(lu0, lv0, √(1 − lu0² − lv0²))`` from each PTM's maximum.
+def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None) -> np.ndarray:
+    """Normals ``(lu0, lv0, √(1 − lu0² − lv0²))`` from each PTM's maximum (:func:`ptm_maximum`).
 
     Parameters
     ----------
     coefficients : ndarray, shape (H, W, 6)
+    threads : int, optional
+        Threads working on bands of rows (default: all CPUs).
 
     Returns
     -------
     ndarray, shape (H, W, 3), float32
         Unit normals.
     """
+    from .maximum import maximum_bands  # numba's import costs a second; `import ptmcore` does not need it
+
+    coefficients = np.asarray(coefficients)
     h, w = coefficients.shape[:2]
     out = np.empty((h, w, 3), dtype=np.float32)
-    step = band_rows(1, w, 6 * 8 * 4)
-    for r0 in range(0, h, step):
-        lu, lv, _ = ptm_maximum(coefficients[r0 : r0 + step])
-        out[r0 : r0 + step, :, 0] = lu
-        out[r0 : r0 + step, :, 1] = lv
-        out[r0 : r0 + step, :, 2] = np.sqrt(np.clip(1.0 - lu * lu - lv * lv, 0.0, 1.0))
+    maximum_bands(coefficients, out[..., 0], out[..., 1], out[..., 2], threads=threads)
     return out
 
 

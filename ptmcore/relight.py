@@ -41,7 +41,7 @@ DEFAULT_KD = 0.4
 DEFAULT_KS = 0.7
 DEFAULT_EXPONENT = 75.0
 
-# Pixels per band: float64 temporaries of a band stay around 100 MB in ptm_maximum.
+# Pixels per band: a band's float64 copy of the coefficients and its temporaries stay around 100 MB.
 _BAND_PIXELS = 1 << 21
 
 _VIEW = np.array([0.0, 0.0, 1.0])

@@ -43,7 +43,7 @@ from .lp import as_directions
 from .normals import PhotometricStereo, empty_result, store_normals
 from .pixelfit import Basis, blocked_matmul, orthonormal_basis, weighted_fit
 
-__all__ = ["METHODS", "robust_photometric_stereo"]
+__all__ = ["METHODS", "robust_photometric_stereo", "robust_rows"]
 
 #: Robust methods: Tukey-biweight IRLS, or trimming (weights 0 or 1) at the same bounds.
 METHODS = ("irls", "trimmed")
@@ -344,6 +344,37 @@ def _in_thirds(progress: Callable[[int], None]) -> Callable[[int], None]:
     return report
 
 
+def robust_rows(stack: ImageStack, dirs: np.ndarray, opt: RobustOptions, threads: int | None,
+                progress: Callable[[int], None] | None, *, out: PhotometricStereo | None = None,
+                prior: np.ndarray | None = None, lobe: np.ndarray = _NO_LOBE, ptm: tuple | None = None) -> None:
+    """One pass of the compiled kernel (:func:`ptmcore.robustkernel.robust_ps_rows`) over the
+    stack, in bands of rows in ``threads``: the normals into ``out``, and with ``ptm`` the robust
+    PTM's results (:func:`ptmcore.robustptm.robust_ptm` makes that tuple).
+
+    ``prior`` and ``lobe``: the normals at which the lobe's coefficients ``lobe`` are evaluated
+    (:mod:`ptmcore.lobe`); None and :data:`_NO_LOBE` without a lobe.
+    """
+    from .robustkernel import robust_ps_rows  # numba's import costs a second; the CLI's start does not need it
+
+    h, w = stack.shape
+    basis = orthonormal_basis(dirs)
+    cos_cone = 1.0 if opt.cos_cone is None else float(opt.cos_cone)
+    par = np.array([opt.dark_fraction, opt.min_shading, opt.cast_shadow_ratio, cos_cone, opt.reject_below,
+                    opt.reject_above, opt.noise_floor, opt.relative_floor, opt.consistency], dtype=np.float64)
+    codes, table = stack.luminance, stack.table
+    outer_t, u_t = np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T)
+    back, dirs32, halves = np.ascontiguousarray(basis.back), dirs.astype(np.float32), _half_vectors(dirs)
+    results = (None, None, None, None) if out is None else (out.normals, out.albedo, out.samples, out.valid)
+
+    def work(r0: int, r1: int) -> None:
+        robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs32, halves, par, opt.method == "irls",
+                       opt.cos_cone is not None, opt.iterations, *results, prior, lobe, ptm)
+        release_rows(codes, r0, r1)  # a stack on disk: done with these rows
+
+    # Bands only spread the rows over the threads: the kernel needs no work arrays.
+    run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads, progress=progress)
+
+
 def robust_photometric_stereo(
     stack: ImageStack,
     directions: np.ndarray,
@@ -417,27 +448,9 @@ def robust_photometric_stereo(
     h, w = stack.shape
     dirs = as_directions(directions, n)
     if compiled:
-        from .robustkernel import robust_ps_rows  # numba's import costs a second; the CLI's start does not need it
-
-        basis = orthonormal_basis(dirs)
-        halves = _half_vectors(dirs)
-        cos_cone = 1.0 if opt.cos_cone is None else float(opt.cos_cone)
-        par = np.array([dark_fraction, min_shading, cast_shadow_ratio, cos_cone, reject_below, reject_above,
-                        noise_floor, relative_floor, opt.consistency], dtype=np.float64)
-        codes, table = stack.luminance, stack.table
-        outer_t, u_t = np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T)
-        back, dirs32 = np.ascontiguousarray(basis.back), dirs.astype(np.float32)
-
         def run(out: PhotometricStereo, prior: np.ndarray | None, coefficients: np.ndarray,
                 report: Callable[[int], None] | None) -> None:
-            def work(r0: int, r1: int) -> None:
-                robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs32,
-                               halves, par, method == "irls", opt.cos_cone is not None, iterations,
-                               out.normals, out.albedo, out.samples, out.valid, prior, coefficients)
-                release_rows(codes, r0, r1)  # a stack on disk: done with these rows
-
-            # Bands only spread the rows over the threads: the kernel needs no work arrays.
-            run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads, progress=report)
+            robust_rows(stack, dirs, opt, threads, report, out=out, prior=prior, lobe=coefficients)
     else:
         lights = Lights.of(dirs)
 

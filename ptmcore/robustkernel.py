@@ -15,10 +15,18 @@ columns where the lights lie in a plane, so that each pixel's solve is straight-
 ``threads`` is respected and numba's own threading layer is not involved (several of its layers
 may not be entered from several threads at once).
 
+The same kernel makes the robust PTM (:func:`ptmcore.robustptm.robust_ptm`): with ``ptm``
+given, each chunk's final weights fit a PTM and its hemisphere PTM (:func:`_ptm_fit`) and give
+the debiased normals, instead of the Lambertian normals. The PTM's sums are 28 per pixel, too
+many to keep in registers, so they are added one sum at a time over the photographs (each a
+vectorised loop over the chunk's pixels, in the cache), and the 6×6 solves are the Cholesky
+factorisation of :func:`ptmcore.pixelfit.cholesky_solve`, vectorised over the pixels as it is.
+
 The arithmetic follows the NumPy steps: float32 where they use float32 (residuals, weights,
 thresholds, the least-squares sums), float64 for the normal equations; results agree within
 float32 rounding (``tests/test_robust_kernel.py``). The NumPy steps stay in
-:mod:`ptmcore.robust`: the robust PTM fit (:mod:`ptmcore.robustptm`) uses them.
+:mod:`ptmcore.robust` and :mod:`ptmcore.robustptm` as the kernel's reference (``compiled=False``),
+and for what the kernel does not do (a robust PTM with fixed normals or refining passes).
 
 Compiled code is cached on disk (numba's ``cache=True``, beside this module or in
 ``NUMBA_CACHE_DIR``), so only the first run after installation pays for compilation.
@@ -33,7 +41,7 @@ import numpy as np
 
 from .lobe import FACTOR_RANGE
 
-__all__ = ["robust_ps_rows"]
+__all__ = ["PTM_SINGULAR", "robust_ps_rows"]
 
 # Indices into the float64 parameter vector (numba compiles one function for every option
 # set instead of one per keyword combination).
@@ -56,6 +64,8 @@ _FAST = {"contract", "arcp", "nsz"}
 #: Division by zero gives inf or NaN instead of raising: the check for it on every division
 #: keeps a loop from vectorising (the kernel never divides by zero).
 _JIT = {"nogil": True, "cache": True, "fastmath": _FAST, "error_model": "numpy"}
+#: The test of a PTM's weighted fit; below it the plain fit stands in (as in ptmcore.robustptm).
+PTM_SINGULAR = 1e-4
 
 
 @numba.njit(inline="always", **_JIT)
@@ -215,9 +225,175 @@ def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
         out[j] = 0.0 if count == 0 else _MAD_TO_SIGMA * np.sort(buf[:count])[(count - 1) // 2]
 
 
+@numba.njit(inline="always", **_JIT)
+def _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4):  # pragma: no cover - compiled
+    """The debiased normal (float32 x, y, z) of a PTM ``a`` and its hemisphere PTM ``q``
+    (float64; the constant terms play no part): :func:`ptmcore.robustptm._debiased` for one
+    pixel."""
+    det = 4 * a0 * a1 - a2 * a2
+    concave = (a0 < 0) and (det > 0)
+    if not concave:
+        det = 1.0
+    lu = (a2 * a4 - 2 * a1 * a3) / det
+    lv = (a2 * a3 - 2 * a0 * a4) / det
+    qq = q0 * q0 + q1 * q1 + 0.5 * q2 * q2
+    rho_z = (a0 * q0 + a1 * q1 + 0.5 * a2 * q2) / (qq if qq > 0 else 1.0)
+    if concave:
+        g0, g1, g2 = -(2 * q0 * lu + q2 * lv + q3), -(2 * q1 * lv + q2 * lu + q4), 1.0
+    else:
+        g0, g1, g2 = a3 - rho_z * q3, a4 - rho_z * q4, rho_z
+    length = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    inv = length if length > 0 else 1.0
+    x, y, z = np.float32(g0 / inv), np.float32(g1 / inv), np.float32(g2 / inv)
+    if not (length > 0 and math.isfinite(length)) or not z > 0:
+        return np.float32(0.0), np.float32(0.0), np.float32(1.0)
+    return x, y, z
+
+
+@numba.njit(**_JIT)
+def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, total):  # pragma: no cover - compiled
+    """The PTM and hemisphere PTM of the chunk's pixels with weights ``w``, as
+    :func:`ptmcore.robustptm.robust_ptm` fits them (:func:`ptmcore.pixelfit.weighted_fit` with
+    the plain fits as prior and fallback), written with the debiased normals and the weights'
+    sums into ``ptm``'s result arrays at ``row``, columns ``c0:c0 + inside``.
+
+    Work arrays: ``sums`` (K, chunk), ``rhs`` (2r, chunk) and ``total`` (chunk,) float32;
+    ``gram`` and ``low`` (r(r+1)/2, chunk), ``sol`` (4r, chunk) and ``work`` (5, chunk) float64. Every loop over the
+    pixels is innermost, so that it vectorises, as :func:`ptmcore.pixelfit.cholesky_solve`'s
+    operations are vectors over the pixels.
+    """
+    outer_t, u_t, back, plain_z, gram_rows, extra_rows, coef, hemi, nout, used = ptm
+    n = u_t.shape[1]  # the photographs (v and w have padded rows past them)
+    r = u_t.shape[0]
+    k_sums = outer_t.shape[0]
+    lam, det, bound, acc, inv = work[0], work[1], work[2], work[3], work[4]
+    # Σ w φφᵀ (and Σ w φ lz), as weighted_fit's product outer.T @ weights; Σ w φ v, and the
+    # plain fit's Σ φ v: float32, photograph by photograph.
+    for e in range(k_sums):
+        for j in range(m):
+            sums[e, j] = 0.0
+    for e in range(2 * r):
+        for j in range(m):
+            rhs[e, j] = 0.0
+    for k in range(n):
+        for e in range(k_sums):
+            f = outer_t[e, k]
+            for j in range(m):
+                sums[e, j] += f * w[k, j]
+        for a in range(r):
+            f = u_t[a, k]
+            for j in range(m):
+                rhs[a, j] += f * (w[k, j] * v[k, j])
+                rhs[r + a, j] += f * v[k, j]
+    # cholesky_solve: G + λI = L Lᵀ, λ = 10⁻⁶ × the mean eigenvalue; L's column i is kept in
+    # the packed rows of (i, i..r-1) (packed as ptmcore.pixelfit.packed_index packs G).
+    for e in range(r * (r + 1) // 2):
+        for j in range(m):
+            gram[e, j] = np.float64(sums[gram_rows[e], j])
+    for j in range(m):
+        acc[j] = 0.0
+    for i in range(r):
+        e = _packed(i, i, r)
+        for j in range(m):
+            acc[j] += gram[e, j]
+    for j in range(m):
+        mean = max(acc[j] / r, 1e-30)
+        lam[j] = 1e-6 * mean
+        det[j] = 1.0
+        # det G > singular · mean^r, the NumPy steps' test on logarithms, without them.
+        bound[j] = PTM_SINGULAR * mean ** r
+    for col in range(r):
+        dc = _packed(col, col, r)
+        for j in range(m):
+            acc[j] = gram[dc, j] + lam[j]
+        for kk in range(col):
+            e = _packed(kk, col, r)
+            for j in range(m):
+                acc[j] = acc[j] - low[e, j] * low[e, j]
+        for j in range(m):
+            d = math.sqrt(max(acc[j], lam[j]))
+            low[dc, j] = d
+            det[j] *= d * d
+            inv[j] = 1.0 / d
+        for i in range(col + 1, r):
+            e = _packed(col, i, r)
+            for j in range(m):
+                acc[j] = gram[e, j]
+            for kk in range(col):
+                e1, e2 = _packed(kk, i, r), _packed(kk, col, r)
+                for j in range(m):
+                    acc[j] = acc[j] - low[e1, j] * low[e2, j]
+            for j in range(m):
+                low[e, j] = acc[j] * inv[j]
+    # Two right-hand sides, Σ w φ v and Σ w φ lz, each with its plain fit as the prior: the
+    # solutions into sol[0:r] and sol[r:2r], the priors into sol[2r:3r] and sol[3r:4r].
+    for q in range(2):
+        x, prior = q * r, 2 * r + q * r
+        for i in range(r):
+            if q == 0:
+                for j in range(m):
+                    sol[prior + i, j] = np.float64(rhs[r + i, j])
+                    acc[j] = np.float64(rhs[i, j]) + lam[j] * sol[prior + i, j]
+            else:
+                z = plain_z[i]
+                ez = extra_rows[i]
+                for j in range(m):
+                    sol[prior + i, j] = z
+                    acc[j] = np.float64(sums[ez, j]) + lam[j] * z
+            for kk in range(i):
+                e = _packed(kk, i, r)
+                for j in range(m):
+                    acc[j] = acc[j] - low[e, j] * sol[x + kk, j]
+            e = _packed(i, i, r)
+            for j in range(m):
+                sol[x + i, j] = acc[j] / low[e, j]
+        for i in range(r - 1, -1, -1):
+            for j in range(m):
+                acc[j] = sol[x + i, j]
+            for kk in range(i + 1, r):
+                e = _packed(i, kk, r)
+                for j in range(m):
+                    acc[j] = acc[j] - low[e, j] * sol[x + kk, j]
+            e = _packed(i, i, r)
+            for j in range(m):
+                sol[x + i, j] = acc[j] / low[e, j]
+    for j in range(m):
+        total[j] = 0.0
+    for k in range(n):
+        for j in range(m):
+            total[j] += w[k, j]
+    for j in range(inside):
+        # Where the weights leave too few samples, or samples too close together, the plain
+        # fit (a matrix product in the NumPy steps) stands in.
+        off = 0 if det[j] > bound[j] else 2 * r
+        a0 = a1 = a2 = a3 = a4 = a5 = 0.0
+        q0 = q1 = q2 = q3 = q4 = q5 = 0.0
+        for b in range(r):
+            c, cz = sol[off + b, j], sol[off + r + b, j]
+            a0 += back[0, b] * c
+            a1 += back[1, b] * c
+            a2 += back[2, b] * c
+            a3 += back[3, b] * c
+            a4 += back[4, b] * c
+            a5 += back[5, b] * c
+            q0 += back[0, b] * cz
+            q1 += back[1, b] * cz
+            q2 += back[2, b] * cz
+            q3 += back[3, b] * cz
+            q4 += back[4, b] * cz
+            q5 += back[5, b] * cz
+        col = c0 + j
+        coef[row, col, 0], coef[row, col, 1], coef[row, col, 2] = a0, a1, a2
+        coef[row, col, 3], coef[row, col, 4], coef[row, col, 5] = a3, a4, a5
+        hemi[row, col, 0], hemi[row, col, 1], hemi[row, col, 2] = q0, q1, q2
+        hemi[row, col, 3], hemi[row, col, 4], hemi[row, col, 5] = q3, q4, q5
+        nout[row, col, 0], nout[row, col, 1], nout[row, col, 2] = _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4)
+        used[row, col] = total[j]
+
+
 @numba.njit(**_JIT)
 def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, irls, cone, iterations,
-                   normals, albedo, samples, valid, prior, lobe):  # pragma: no cover - compiled
+                   normals, albedo, samples, valid, prior, lobe, ptm=None):  # pragma: no cover - compiled
     """Robust photometric stereo of rows ``r0:r1``, written into the result arrays.
 
     Parameters
@@ -244,14 +420,23 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
         Whether the specular-cone estimate is made.
     iterations : int
         Robust passes.
-    normals, albedo, samples, valid : ndarray
-        The result arrays (H, W, 3) float32, (H, W) float32, (H, W) uint16, (H, W) bool.
+    normals, albedo, samples, valid : ndarray or None
+        The result arrays (H, W, 3) float32, (H, W) float32, (H, W) uint16, (H, W) bool; None
+        (all four) when only the PTM is wanted.
     prior : ndarray, shape (H, W, 3), float32, or None
         Unit normals at which the lobe is evaluated (:mod:`ptmcore.lobe`): each sample is
         divided by ``f(n·h, n·l)`` before the fit. May be ``normals`` itself: a chunk's prior
         is read before its normals are written. None: no lobe (the branch is compiled out).
     lobe : ndarray, float64
         The lobe's coefficients, of the powers of (1 − n·h) from the 0th.
+    ptm : tuple or None
+        The robust PTM's basis and results, to fit a PTM with each pixel's final weights
+        (:func:`_ptm_fit`): ``outer_t`` (K, N) and ``u_t`` (r, N) float32 of the orthonormal
+        basis of the PTM's terms with ``lz`` as an extra column (``Basis.outer.T``,
+        ``Basis.u.T``), ``back`` (6, r) float64, ``plain_z`` (r,) float64 (the plain fit of
+        ``lz``), ``gram_rows`` (r(r+1)/2,) and ``extra_rows`` (r,) int64 (``Basis``' rows),
+        then the results: coefficients and hemisphere PTMs (H, W, 6), debiased normals
+        (H, W, 3) and the weights' sums (H, W), float32. None: no PTM (compiled out).
     """
     n_photos, _, width = codes.shape
     r = u_t.shape[0]
@@ -296,6 +481,15 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     total = np.empty(chunk, np.float32)
     pn = np.empty((3, chunk), np.float32)
     lo_f, hi_f = np.float32(FACTOR_RANGE[0]), np.float32(FACTOR_RANGE[1])
+    # The PTM's work arrays (empty without it).
+    rp = 0 if ptm is None else ptm[1].shape[0]
+    kp = 0 if ptm is None else ptm[0].shape[0]
+    p_sums = np.empty((kp, chunk), np.float32)
+    p_rhs = np.empty((2 * rp, chunk), np.float32)
+    p_gram = np.empty((rp * (rp + 1) // 2, chunk))
+    p_low = np.empty((rp * (rp + 1) // 2, chunk))
+    p_sol = np.empty((4 * rp, chunk))
+    p_work = np.empty((5, chunk))
     for row in range(r0, r1):
         for c0 in range(0, width, chunk):
             inside = min(chunk, width - c0)
@@ -425,30 +619,33 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                             c[a, j] = c2[a, j]
                     ok[j] = ok[j] | ok2[j]
                 _to_normal(c, m, back3, g32, unit, rho)
-            for j in range(inside):
-                col = c0 + j
-                # As ptmcore.normals.store_normals: (0, 0, 1) where undetermined; lights in one
-                # plane (r < 3) leave every normal undetermined.
-                gx = np.float64(unit[0, j]) * rho[j]
-                gy = np.float64(unit[1, j]) * rho[j]
-                gz = np.float64(unit[2, j]) * rho[j]
-                length = math.sqrt(gx * gx + gy * gy + gz * gz)
-                good = ok[j] and r == 3 and length > 0 and math.isfinite(length)
-                if good:
-                    normals[row, col, 0] = gx / length
-                    normals[row, col, 1] = gy / length
-                    normals[row, col, 2] = gz / length
-                    albedo[row, col] = length
-                else:
-                    normals[row, col, 0] = 0.0
-                    normals[row, col, 1] = 0.0
-                    normals[row, col, 2] = 1.0
-                    albedo[row, col] = 0.0
-                valid[row, col] = good
-            for j in range(m):
-                total[j] = 0.0
-            for k in range(n):
+            if normals is not None:
+                for j in range(inside):
+                    col = c0 + j
+                    # As ptmcore.normals.store_normals: (0, 0, 1) where undetermined; lights in one
+                    # plane (r < 3) leave every normal undetermined.
+                    gx = np.float64(unit[0, j]) * rho[j]
+                    gy = np.float64(unit[1, j]) * rho[j]
+                    gz = np.float64(unit[2, j]) * rho[j]
+                    length = math.sqrt(gx * gx + gy * gy + gz * gz)
+                    good = ok[j] and r == 3 and length > 0 and math.isfinite(length)
+                    if good:
+                        normals[row, col, 0] = gx / length
+                        normals[row, col, 1] = gy / length
+                        normals[row, col, 2] = gz / length
+                        albedo[row, col] = length
+                    else:
+                        normals[row, col, 0] = 0.0
+                        normals[row, col, 1] = 0.0
+                        normals[row, col, 2] = 1.0
+                        albedo[row, col] = 0.0
+                    valid[row, col] = good
                 for j in range(m):
-                    total[j] += w[k, j]
-            for j in range(inside):
-                samples[row, c0 + j] = np.uint16(round(total[j]))
+                    total[j] = 0.0
+                for k in range(n):
+                    for j in range(m):
+                        total[j] += w[k, j]
+                for j in range(inside):
+                    samples[row, c0 + j] = np.uint16(round(total[j]))
+            if ptm is not None:
+                _ptm_fit(ptm, v, w, m, inside, row, c0, p_sums, p_rhs, p_gram, p_low, p_sol, p_work, total)

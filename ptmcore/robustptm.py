@@ -26,7 +26,7 @@ from .fit import PTM, fit_matrix, light_matrix
 from .images import ImageStack
 from .lp import as_directions
 from .pixelfit import blocked_matmul, orthonormal_basis, weighted_fit
-from .robust import Lights, RobustOptions, band_height, reweight, robust_lambertian, unit_columns
+from .robust import Lights, RobustOptions, band_height, reweight, robust_lambertian, robust_rows, unit_columns
 
 __all__ = ["RobustPTM", "debiased_normals", "hemisphere_coefficients", "robust_fit_ptm", "robust_ptm"]
 
@@ -144,6 +144,7 @@ def robust_ptm(
     relative_floor: float = 0.01,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    compiled: bool = True,
 ) -> RobustPTM:
     """Fit a PTM at each pixel, leaving out its shadowed, clipped and specular samples.
 
@@ -176,6 +177,10 @@ def robust_ptm(
         Threads that work on bands of rows (default: all CPUs).
     progress : callable, optional
         Called with the number of rows done after each band.
+    compiled : bool
+        Run the compiled kernel (:func:`ptmcore.robustkernel.robust_ps_rows` with its PTM fit)
+        where it applies (no ``normals``, ``refine`` 0: the defaults); False runs the NumPy
+        steps of this module, the kernel's reference in its tests.
 
     Returns
     -------
@@ -190,7 +195,6 @@ def robust_ptm(
         raise ValueError(f"refine must be ≥ 0, got {refine}")
     if normals is not None and np.shape(normals) != (h, w, 3):
         raise ValueError(f"normals must have shape {(h, w, 3)}, got {np.shape(normals)}")
-    lights = Lights.of(dirs)
     # lz joins the sums as an extra column, so the same factorisation also fits the
     # hemisphere PTM that the debiased normals need.
     basis = orthonormal_basis(light_matrix(dirs), dirs[:, 2:3])
@@ -199,6 +203,13 @@ def robust_ptm(
     hemi = np.empty((h, w, 6), dtype=np.float32)
     nout = np.empty((h, w, 3), dtype=np.float32)
     used = np.empty((h, w), dtype=np.float32)
+    if compiled and normals is None and refine == 0:
+        ptm = (np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T), np.ascontiguousarray(basis.back),
+               np.ascontiguousarray(plain_z[:, 0]), basis.gram_rows.astype(np.int64),
+               basis.extra_rows[0].astype(np.int64), coef, hemi, nout, used)
+        robust_rows(stack, dirs, opt, threads, progress, ptm=ptm)
+        return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
+    lights = Lights.of(dirs)
 
     def work(r0: int, r1: int) -> None:
         values, saturated = stack.band(r0, r1)

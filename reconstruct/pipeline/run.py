@@ -311,13 +311,13 @@ def _evaluate(coefficients: np.ndarray, lu: np.ndarray, lv: np.ndarray) -> np.nd
     return (coefficients * basis).sum(axis=-1)
 
 
-def _ptm_normals_and_texture(ptm) -> tuple[np.ndarray, np.ndarray]:
+def _ptm_normals_and_texture(ptm, threads: int | None) -> tuple[np.ndarray, np.ndarray]:
     """A PTM's maxima as normals, and its colour under the light of its maximum (its albedo in
     the file's own encoding) as an 8-bit texture."""
     coef = ptm.coefficients
     # RGB format: one polynomial per channel, and luminance is linear in them.
     luminance = coef if coef.ndim == 3 else np.einsum("hwck,c->hwk", coef, LUMA_WEIGHTS)
-    normals = normals_from_ptm(luminance)
+    normals = normals_from_ptm(luminance, threads=threads)
     lu, lv = normals[..., 0], normals[..., 1]
     if ptm.rgb is not None:
         top = _evaluate(luminance, lu, lv)[..., None] * ptm.rgb / np.float32(255)
@@ -350,7 +350,7 @@ def run_ptm(
         h, w = ptm.coefficients.shape[:2]
         mask = read_mask(opt.mask, (h, w), "the PTM") if opt.mask is not None and opt.mask != "auto" else None
         with stages("normals", h):
-            normals, texture = _ptm_normals_and_texture(ptm)
+            normals, texture = _ptm_normals_and_texture(ptm, opt.threads)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
         web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size)
         height, mesh, names, end_write = _surface_and_files(normals, texture, mask, opt, staged, stages, writer)

@@ -109,7 +109,7 @@ def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: 
                          "use ps or ptm (or --light-positions none)")
     if opt.normals == "ptm":
         coefficients = fit_ptm_near(capture.stack, near.positions, threads=opt.threads, progress=advance).coefficients
-        normals = normals_from_ptm(coefficients)
+        normals = normals_from_ptm(coefficients, threads=opt.threads)
         return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads))
     ps = near_photometric_stereo(capture.stack, near.positions, threads=opt.threads, progress=advance)
     return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()))
@@ -151,12 +151,13 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     if opt.fit == "plain":
         coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
         if opt.normals == "ptm":
-            normals = normals_from_ptm(coefficients)
+            normals = normals_from_ptm(coefficients, threads=opt.threads)
         else:
             normals = debiased_normals(coefficients, hemisphere_coefficients(directions))
     else:
         fitted = robust_ptm(stack, directions, method=_robust_method(opt.fit), threads=opt.threads, progress=progress)
-        normals = normals_from_ptm(fitted.ptm.coefficients) if opt.normals == "ptm" else fitted.normals
+        normals = (normals_from_ptm(fitted.ptm.coefficients, threads=opt.threads) if opt.normals == "ptm"
+                   else fitted.normals)
     return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads))
 
 
