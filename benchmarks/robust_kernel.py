@@ -25,7 +25,8 @@ pixel's final robust weights, on the uint16 and the 8-bit stack: the debiased no
 error, their largest difference from the NumPy steps', the coefficients' largest difference
 (relative to the largest coefficient) and the time (one thread, after a warm-up call).
 
-Run: ``.venv/bin/python benchmarks/robust_kernel.py``; writes ``benchmarks/results/robust_kernel.json``.
+Run: ``OPENBLAS_NUM_THREADS=1 .venv/bin/python benchmarks/robust_kernel.py`` (one thread for the
+NumPy steps' matrix products too); writes ``benchmarks/results/robust_kernel.json``.
 """
 
 from __future__ import annotations

@@ -258,8 +258,19 @@ def maximum_bands(
 
     ``lu``, ``lv`` and ``nz`` (float32) and ``interior`` (bool) are (H, W) outputs, or views of
     them; ``nz`` and ``interior`` may be None. ``threads``: default, the number of CPUs.
+
+    Raises
+    ------
+    ValueError
+        If ``coefficients`` is not (H, W, 6) or an output is not (H, W): the kernel does not
+        check its indices.
     """
+    if coefficients.ndim != 3 or coefficients.shape[2] != 6:
+        raise ValueError(f"PTM coefficients must be (H, W, 6), not {coefficients.shape}")
     h, w = coefficients.shape[:2]
+    for out in (lu, lv, nz, interior):
+        if out is not None and out.shape != (h, w):
+            raise ValueError(f"an output of shape {out.shape} for coefficients of shape {coefficients.shape}")
 
     def work(r0: int, r1: int) -> None:
         maximum_rows(_kernel_input(coefficients[r0:r1]), _TABLES, lu[r0:r1], lv[r0:r1],

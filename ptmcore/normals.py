@@ -72,12 +72,16 @@ def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None) ->
     -------
     ndarray, shape (H, W, 3), float32
         Unit normals.
+
+    Raises
+    ------
+    ValueError
+        If ``coefficients`` is not (H, W, 6).
     """
     from .maximum import maximum_bands  # numba's import costs a second; `import ptmcore` does not need it
 
     coefficients = np.asarray(coefficients)
-    h, w = coefficients.shape[:2]
-    out = np.empty((h, w, 3), dtype=np.float32)
+    out = np.empty(coefficients.shape[:-1] + (3,), dtype=np.float32)  # maximum_bands checks the shape
     maximum_bands(coefficients, out[..., 0], out[..., 1], out[..., 2], threads=threads)
     return out
 

@@ -352,8 +352,11 @@ def robust_rows(stack: ImageStack, dirs: np.ndarray, opt: RobustOptions, threads
     PTM's results (:func:`ptmcore.robustptm.robust_ptm` makes that tuple).
 
     ``prior`` and ``lobe``: the normals at which the lobe's coefficients ``lobe`` are evaluated
-    (:mod:`ptmcore.lobe`); None and :data:`_NO_LOBE` without a lobe.
+    (:mod:`ptmcore.lobe`); None and :data:`_NO_LOBE` without a lobe. Not with ``ptm``: the PTM
+    is fitted to the photographs themselves.
     """
+    if ptm is not None and prior is not None:
+        raise ValueError("the robust PTM is not fitted with a reflectance lobe")
     from .robustkernel import robust_ps_rows  # numba's import costs a second; the CLI's start does not need it
 
     h, w = stack.shape
@@ -371,7 +374,7 @@ def robust_rows(stack: ImageStack, dirs: np.ndarray, opt: RobustOptions, threads
                        opt.cos_cone is not None, opt.iterations, *results, prior, lobe, ptm)
         release_rows(codes, r0, r1)  # a stack on disk: done with these rows
 
-    # Bands only spread the rows over the threads: the kernel needs no work arrays.
+    # Bands only spread the rows over the threads: the kernel makes its work arrays itself.
     run_bands(h, max(1, _KERNEL_PIXELS // w), work, threads=threads, progress=progress)
 
 
@@ -429,8 +432,8 @@ def robust_photometric_stereo(
         Called with the number of rows done after each band.
     compiled : bool
         Run the compiled kernel (:mod:`ptmcore.robustkernel`); False runs the NumPy steps of
-        this module instead, three times slower: the kernel's reference in its tests and
-        benchmark.
+        this module instead, several times slower (6.7–8.7× in BENCHMARKS.md): the kernel's
+        reference in its tests and benchmark.
     lobe : bool or Lobe
         Fit the normals with a reflectance lobe shared by the object (:mod:`ptmcore.lobe`):
         True estimates it (and uses it only where it explains the data), a :class:`Lobe` is

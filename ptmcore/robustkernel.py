@@ -24,7 +24,8 @@ factorisation of :func:`ptmcore.pixelfit.cholesky_solve`, vectorised over the pi
 
 The arithmetic follows the NumPy steps: float32 where they use float32 (residuals, weights,
 thresholds, the least-squares sums), float64 for the normal equations; results agree within
-float32 rounding (``tests/test_robust_kernel.py``). The NumPy steps stay in
+float32 rounding (``tests/test_robust_kernel.py``, ``tests/test_robust_ptm_kernel.py``), but
+where a sample's weight is on a threshold's edge and rounding tips it across. The NumPy steps stay in
 :mod:`ptmcore.robust` and :mod:`ptmcore.robustptm` as the kernel's reference (``compiled=False``),
 and for what the kernel does not do (a robust PTM with fixed normals or refining passes).
 
@@ -41,7 +42,7 @@ import numpy as np
 
 from .lobe import FACTOR_RANGE
 
-__all__ = ["PTM_SINGULAR", "robust_ps_rows"]
+__all__ = ["robust_ps_rows"]
 
 # Indices into the float64 parameter vector (numba compiles one function for every option
 # set instead of one per keyword combination).
@@ -64,8 +65,6 @@ _FAST = {"contract", "arcp", "nsz"}
 #: Division by zero gives inf or NaN instead of raising: the check for it on every division
 #: keeps a loop from vectorising (the kernel never divides by zero).
 _JIT = {"nogil": True, "cache": True, "fastmath": _FAST, "error_model": "numpy"}
-#: The test of a PTM's weighted fit; below it the plain fit stands in (as in ptmcore.robustptm).
-PTM_SINGULAR = 1e-4
 
 
 @numba.njit(inline="always", **_JIT)
@@ -243,8 +242,8 @@ def _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4):  # pragma: no cove
     else:
         g0, g1, g2 = a3 - rho_z * q3, a4 - rho_z * q4, rho_z
     length = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
-    inv = length if length > 0 else 1.0
-    x, y, z = np.float32(g0 / inv), np.float32(g1 / inv), np.float32(g2 / inv)
+    norm = length if length > 0 else 1.0
+    x, y, z = np.float32(g0 / norm), np.float32(g1 / norm), np.float32(g2 / norm)
     if not (length > 0 and math.isfinite(length)) or not z > 0:
         return np.float32(0.0), np.float32(0.0), np.float32(1.0)
     return x, y, z
@@ -262,7 +261,7 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
     pixels is innermost, so that it vectorises, as :func:`ptmcore.pixelfit.cholesky_solve`'s
     operations are vectors over the pixels.
     """
-    outer_t, u_t, back, plain_z, gram_rows, extra_rows, coef, hemi, nout, used = ptm
+    outer_t, u_t, back, plain_z, gram_rows, extra_rows, singular, coef, hemi, nout, used = ptm
     n = u_t.shape[1]  # the photographs (v and w have padded rows past them)
     r = u_t.shape[0]
     k_sums = outer_t.shape[0]
@@ -300,8 +299,9 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
         mean = max(acc[j] / r, 1e-30)
         lam[j] = 1e-6 * mean
         det[j] = 1.0
-        # det G > singular · mean^r, the NumPy steps' test on logarithms, without them.
-        bound[j] = PTM_SINGULAR * mean ** r
+        # det G > singular · mean^r, the NumPy steps' test on logarithms, without them: with
+        # orthonormal columns and weights ≤ 1 the pivots keep det within [λ^r, 1].
+        bound[j] = singular * mean ** r
     for col in range(r):
         dc = _packed(col, col, r)
         for j in range(m):
@@ -435,7 +435,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
         basis of the PTM's terms with ``lz`` as an extra column (``Basis.outer.T``,
         ``Basis.u.T``), ``back`` (6, r) float64, ``plain_z`` (r,) float64 (the plain fit of
         ``lz``), ``gram_rows`` (r(r+1)/2,) and ``extra_rows`` (r,) int64 (``Basis``' rows),
-        then the results: coefficients and hemisphere PTMs (H, W, 6), debiased normals
+        ``singular`` (below it the plain fit stands in), then the results: coefficients and hemisphere PTMs (H, W, 6), debiased normals
         (H, W, 3) and the weights' sums (H, W), float32. None: no PTM (compiled out).
     """
     n_photos, _, width = codes.shape

@@ -30,7 +30,7 @@ from .robust import Lights, RobustOptions, band_height, reweight, robust_lambert
 
 __all__ = ["RobustPTM", "debiased_normals", "hemisphere_coefficients", "robust_fit_ptm", "robust_ptm"]
 
-#: The test of a PTM's weighted fit; below it the plain fit stands in.
+#: The test of a PTM's weighted fit; below it the plain fit stands in (here and in the kernel).
 _PTM_SINGULAR = 1e-4
 _UP = np.array([[0.0], [0.0], [1.0]])
 
@@ -163,8 +163,8 @@ def robust_ptm(
     method : {"irls", "trimmed"}
     normals : ndarray, shape (H, W, 3), optional
         Fixed normals for the Lambertian weights (for example from
-        :func:`ptmcore.robust.robust_photometric_stereo`, which makes the second fit much
-        cheaper). Only ρ is fitted then.
+        :func:`ptmcore.robust.robust_photometric_stereo`). Only ρ is fitted then, by the NumPy
+        steps: slower than the default, which the kernel does.
     iterations : int
         Number of robust Lambertian passes.
     refine : int
@@ -206,7 +206,7 @@ def robust_ptm(
     if compiled and normals is None and refine == 0:
         ptm = (np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T), np.ascontiguousarray(basis.back),
                np.ascontiguousarray(plain_z[:, 0]), basis.gram_rows.astype(np.int64),
-               basis.extra_rows[0].astype(np.int64), coef, hemi, nout, used)
+               basis.extra_rows[0].astype(np.int64), _PTM_SINGULAR, coef, hemi, nout, used)
         robust_rows(stack, dirs, opt, threads, progress, ptm=ptm)
         return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
     lights = Lights.of(dirs)

@@ -339,3 +339,10 @@ def test_numba_is_imported_only_when_used():
     code = ("import sys, ptmcore, ptmcore.normals; print('numba' in sys.modules, 'ptmcore.maximum' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+@pytest.mark.parametrize("shape", [(4, 5, 3), (4, 5, 8), (20, 6), (6,)])
+def test_normals_from_ptm_refuses_other_shapes(shape):
+    # The kernel does not check its indices: a map of another shape must not reach it.
+    with pytest.raises(ValueError, match="must be \\(H, W, 6\\)"):
+        normals_from_ptm(np.zeros(shape, np.float32))

@@ -15,7 +15,7 @@ def _angle(a, b):
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), (a * b).sum(-1)))
 
 
-def _compare(new, ref, *, rel=1e-4, surface=True):
+def _compare(new, ref, *, rel=1e-4, angle=0.01, surface=True):
     """Float32 rounding only: the weights come from the kernel's robust steps (sums added in
     another order than BLAS adds them) and the PTM's sums are added photograph by photograph.
     The debiased normals divide by the polynomial's curvature, which can magnify that rounding
@@ -25,7 +25,7 @@ def _compare(new, ref, *, rel=1e-4, surface=True):
     np.testing.assert_allclose(new.ptm.coefficients, ref.ptm.coefficients, atol=rel * scale)
     np.testing.assert_allclose(new.hemisphere, ref.hemisphere, atol=rel * max(1.0, np.abs(ref.hemisphere).max()))
     angles = _angle(new.normals, ref.normals)
-    assert angles.max() < 0.01
+    assert angles.max() < angle
     if surface:
         assert np.percentile(angles, 99) < 1e-3
     np.testing.assert_allclose(new.samples, ref.samples, atol=0.05)
@@ -61,17 +61,26 @@ def test_kernel_with_photographs_and_columns_past_its_blocks():
 
 def test_kernel_falls_back_to_the_plain_fit_like_the_numpy_steps():
     # Black pixels and pixels lit by few lights: weights too few for six coefficients, where
-    # the plain fit stands in; and lights on a ring (a rank-deficient PTM basis).
+    # the plain fit stands in; lights on a ring (a rank-deficient PTM basis), fewer lights than
+    # coefficients, and lights in one plane (a rank-deficient Lambertian basis too).
     rng = np.random.default_rng(0)
-    for dirs in (dome(12, seed=3), _ring(16)):
+    # Random values with five lights, or lights in a plane, make ill-conditioned fits, where the
+    # float32 sums' rounding moves the solution by more: 10⁻³ of the largest coefficient, 0.05°.
+    for dirs, rel, angle in ((dome(12, seed=3), 1e-4, 0.01), (_ring(16), 1e-4, 0.01),
+                             (dome(5, seed=4), 1e-3, 0.05), (_arc(10), 1e-3, 0.05)):
         values = rng.random((len(dirs), 6, 9)) * 0.5
         values[:, 0] = 0.0
         values[3:, 1] = 0.0
         stack = stack_from_luminance(values)
         ref = robust_ptm(stack, dirs, compiled=False)
         new = robust_ptm(stack, dirs)
-        _compare(new, ref, surface=False)
+        _compare(new, ref, rel=rel, angle=angle, surface=False)
         assert np.isfinite(new.ptm.coefficients).all()
+
+
+def _arc(n):
+    el = np.radians(np.linspace(20.0, 160.0, n))
+    return np.stack([np.cos(el), np.zeros_like(el), np.sin(el)], axis=1)  # all in the plane y = 0
 
 
 def _ring(n):
@@ -80,10 +89,11 @@ def _ring(n):
     return np.stack([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), np.full(n, np.sin(el))], axis=1)
 
 
-def test_kernel_recovers_a_clean_lambertian_sphere_and_threads_agree():
+def test_kernel_recovers_a_clean_lambertian_sphere_and_threads_agree(monkeypatch):
     n_true, mask = sphere_normals(40, 40, 19.0)
     dirs = dome(40, seed=2)
     stack = stack_from_luminance(_lambertian(n_true, 0.6, dirs))
+    monkeypatch.setattr(robust, "_KERNEL_PIXELS", 40 * 6)  # bands of 6 rows: two threads share them
     one = robust_ptm(stack, dirs, threads=1)
     two = robust_ptm(stack, dirs, threads=2)
     np.testing.assert_array_equal(one.ptm.coefficients, two.ptm.coefficients)
@@ -99,3 +109,12 @@ def test_options_the_kernel_does_not_do_run_the_numpy_steps():
         a = robust_ptm(stack, dirs, **kwargs)
         b = robust_ptm(stack, dirs, compiled=False, **kwargs)
         np.testing.assert_array_equal(a.ptm.coefficients, b.ptm.coefficients)
+
+
+def test_the_robust_ptm_is_not_fitted_with_a_lobe():
+    values, _, _, dirs = _corrupted_sphere(seed=1)
+    stack = stack_from_luminance(values)
+    opt = robust.RobustOptions("irls", 3, 0.05, 0.05, 0.4, 30.0, 3.0, 2.0, 0.002, 0.01)
+    prior = np.zeros(stack.shape + (3,), np.float32)
+    with pytest.raises(ValueError, match="lobe"):
+        robust.robust_rows(stack, dirs, opt, 1, None, prior=prior, ptm=())
