@@ -32,6 +32,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -42,6 +43,9 @@ from .lobe import DEGREE, Lobe, estimate_lobe, lobe_factors
 from .lp import as_directions
 from .normals import PhotometricStereo, empty_result, store_normals
 from .pixelfit import Basis, blocked_matmul, orthonormal_basis, weighted_fit
+
+if TYPE_CHECKING:  # robustptm imports this module
+    from .robustptm import KernelPTM
 
 __all__ = ["METHODS", "robust_photometric_stereo", "robust_rows"]
 
@@ -346,10 +350,11 @@ def _in_thirds(progress: Callable[[int], None]) -> Callable[[int], None]:
 
 def robust_rows(stack: ImageStack, dirs: np.ndarray, opt: RobustOptions, threads: int | None,
                 progress: Callable[[int], None] | None, *, out: PhotometricStereo | None = None,
-                prior: np.ndarray | None = None, lobe: np.ndarray = _NO_LOBE, ptm: tuple | None = None) -> None:
+                prior: np.ndarray | None = None, lobe: np.ndarray = _NO_LOBE,
+                ptm: KernelPTM | None = None) -> None:
     """One pass of the compiled kernel (:func:`ptmcore.robustkernel.robust_ps_rows`) over the
-    stack, in bands of rows in ``threads``: the normals into ``out``, and with ``ptm`` the robust
-    PTM's results (:func:`ptmcore.robustptm.robust_ptm` makes that tuple).
+    stack, in bands of rows in ``threads``: the normals into ``out``, and with ``ptm``
+    (:class:`ptmcore.robustptm.KernelPTM`) the robust PTM's results.
 
     ``prior`` and ``lobe``: the normals at which the lobe's coefficients ``lobe`` are evaluated
     (:mod:`ptmcore.lobe`); None and :data:`_NO_LOBE` without a lobe. Not with ``ptm``: the PTM

@@ -249,19 +249,37 @@ def _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4):  # pragma: no cove
     return x, y, z
 
 
+@numba.njit(inline="always", **_JIT)
+def _less_products(acc, a, ra, b, rb, m):  # pragma: no cover - compiled
+    """``acc -= a[ra] · b[rb]`` over the chunk's ``m`` pixels: the step of the Cholesky
+    factorisation and of both substitutions of :func:`_ptm_fit`."""
+    for j in range(m):
+        acc[j] = acc[j] - a[ra, j] * b[rb, j]
+
+
+@numba.njit(inline="always", **_JIT)
+def _divided(out, row, acc, low, e, m):  # pragma: no cover - compiled
+    """``out[row] = acc / low[e]`` over the chunk's ``m`` pixels (a substitution's last step)."""
+    for j in range(m):
+        out[row, j] = acc[j] / low[e, j]
+
+
 @numba.njit(**_JIT)
 def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, total):  # pragma: no cover - compiled
     """The PTM and hemisphere PTM of the chunk's pixels with weights ``w``, as
     :func:`ptmcore.robustptm.robust_ptm` fits them (:func:`ptmcore.pixelfit.weighted_fit` with
     the plain fits as prior and fallback), written with the debiased normals and the weights'
-    sums into ``ptm``'s result arrays at ``row``, columns ``c0:c0 + inside``.
+    sums into ``ptm``'s result arrays (:class:`ptmcore.robustptm.KernelPTM`) at ``row``,
+    columns ``c0:c0 + inside``.
 
     Work arrays: ``sums`` (K, chunk), ``rhs`` (2r, chunk) and ``total`` (chunk,) float32;
     ``gram`` and ``low`` (r(r+1)/2, chunk), ``sol`` (4r, chunk) and ``work`` (5, chunk) float64. Every loop over the
     pixels is innermost, so that it vectorises, as :func:`ptmcore.pixelfit.cholesky_solve`'s
     operations are vectors over the pixels.
     """
-    outer_t, u_t, back, plain_z, gram_rows, extra_rows, singular, coef, hemi, nout, used = ptm
+    outer_t, u_t, back, plain_z = ptm.outer_t, ptm.u_t, ptm.back, ptm.plain_z
+    gram_rows, extra_rows, singular = ptm.gram_rows, ptm.extra_rows, ptm.singular
+    coef, hemi, nout, used = ptm.coefficients, ptm.hemisphere, ptm.normals, ptm.used
     n = u_t.shape[1]  # the photographs (v and w have padded rows past them)
     r = u_t.shape[0]
     k_sums = outer_t.shape[0]
@@ -308,8 +326,7 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
             acc[j] = gram[dc, j] + lam[j]
         for kk in range(col):
             e = _packed(kk, col, r)
-            for j in range(m):
-                acc[j] = acc[j] - low[e, j] * low[e, j]
+            _less_products(acc, low, e, low, e, m)
         for j in range(m):
             d = math.sqrt(max(acc[j], lam[j]))
             low[dc, j] = d
@@ -320,9 +337,7 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
             for j in range(m):
                 acc[j] = gram[e, j]
             for kk in range(col):
-                e1, e2 = _packed(kk, i, r), _packed(kk, col, r)
-                for j in range(m):
-                    acc[j] = acc[j] - low[e1, j] * low[e2, j]
+                _less_products(acc, low, _packed(kk, i, r), low, _packed(kk, col, r), m)
             for j in range(m):
                 low[e, j] = acc[j] * inv[j]
     # Two right-hand sides, Σ w φ v and Σ w φ lz, each with its plain fit as the prior: the
@@ -341,22 +356,14 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
                     sol[prior + i, j] = z
                     acc[j] = np.float64(sums[ez, j]) + lam[j] * z
             for kk in range(i):
-                e = _packed(kk, i, r)
-                for j in range(m):
-                    acc[j] = acc[j] - low[e, j] * sol[x + kk, j]
-            e = _packed(i, i, r)
-            for j in range(m):
-                sol[x + i, j] = acc[j] / low[e, j]
+                _less_products(acc, low, _packed(kk, i, r), sol, x + kk, m)
+            _divided(sol, x + i, acc, low, _packed(i, i, r), m)
         for i in range(r - 1, -1, -1):
             for j in range(m):
                 acc[j] = sol[x + i, j]
             for kk in range(i + 1, r):
-                e = _packed(i, kk, r)
-                for j in range(m):
-                    acc[j] = acc[j] - low[e, j] * sol[x + kk, j]
-            e = _packed(i, i, r)
-            for j in range(m):
-                sol[x + i, j] = acc[j] / low[e, j]
+                _less_products(acc, low, _packed(i, kk, r), sol, x + kk, m)
+            _divided(sol, x + i, acc, low, _packed(i, i, r), m)
     for j in range(m):
         total[j] = 0.0
     for k in range(n):
@@ -429,14 +436,9 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
         is read before its normals are written. None: no lobe (the branch is compiled out).
     lobe : ndarray, float64
         The lobe's coefficients, of the powers of (1 − n·h) from the 0th.
-    ptm : tuple or None
-        The robust PTM's basis and results, to fit a PTM with each pixel's final weights
-        (:func:`_ptm_fit`): ``outer_t`` (K, N) and ``u_t`` (r, N) float32 of the orthonormal
-        basis of the PTM's terms with ``lz`` as an extra column (``Basis.outer.T``,
-        ``Basis.u.T``), ``back`` (6, r) float64, ``plain_z`` (r,) float64 (the plain fit of
-        ``lz``), ``gram_rows`` (r(r+1)/2,) and ``extra_rows`` (r,) int64 (``Basis``' rows),
-        ``singular`` (below it the plain fit stands in), then the results: coefficients and hemisphere PTMs (H, W, 6), debiased normals
-        (H, W, 3) and the weights' sums (H, W), float32. None: no PTM (compiled out).
+    ptm : ptmcore.robustptm.KernelPTM or None
+        The robust PTM's basis and result arrays, to fit a PTM with each pixel's final weights
+        (:func:`_ptm_fit`). None: no PTM (compiled out).
     """
     n_photos, _, width = codes.shape
     r = u_t.shape[0]
@@ -482,8 +484,8 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     pn = np.empty((3, chunk), np.float32)
     lo_f, hi_f = np.float32(FACTOR_RANGE[0]), np.float32(FACTOR_RANGE[1])
     # The PTM's work arrays (empty without it).
-    rp = 0 if ptm is None else ptm[1].shape[0]
-    kp = 0 if ptm is None else ptm[0].shape[0]
+    rp = 0 if ptm is None else ptm.u_t.shape[0]
+    kp = 0 if ptm is None else ptm.outer_t.shape[0]
     p_sums = np.empty((kp, chunk), np.float32)
     p_rhs = np.empty((2 * rp, chunk), np.float32)
     p_gram = np.empty((rp * (rp + 1) // 2, chunk))

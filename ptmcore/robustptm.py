@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -28,7 +29,7 @@ from .lp import as_directions
 from .pixelfit import blocked_matmul, orthonormal_basis, weighted_fit
 from .robust import Lights, RobustOptions, band_height, reweight, robust_lambertian, robust_rows, unit_columns
 
-__all__ = ["RobustPTM", "debiased_normals", "hemisphere_coefficients", "robust_fit_ptm", "robust_ptm"]
+__all__ = ["KernelPTM", "RobustPTM", "debiased_normals", "hemisphere_coefficients", "robust_fit_ptm", "robust_ptm"]
 
 #: The test of a PTM's weighted fit; below it the plain fit stands in (here and in the kernel).
 _PTM_SINGULAR = 1e-4
@@ -102,6 +103,28 @@ def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray) -> np.nda
         part = slice(p0, p0 + step)
         out[part] = _debiased(a[part].T.astype(np.float64), q[part].T.astype(np.float64)).T
     return out.reshape(*shape, 3)
+
+
+class KernelPTM(NamedTuple):
+    """The robust PTM's basis and result arrays as the compiled kernel takes them
+    (``ptm`` of :func:`ptmcore.robustkernel.robust_ps_rows`; a named tuple, which numba
+    compiles field by field).
+
+    The basis is the PTM's terms orthonormalised with ``lz`` as an extra column
+    (:func:`ptmcore.pixelfit.orthonormal_basis`), r columns at the N lights.
+    """
+
+    outer_t: np.ndarray  #: (K, N) float32, ``Basis.outer.T``
+    u_t: np.ndarray  #: (r, N) float32, ``Basis.u.T``
+    back: np.ndarray  #: (6, r) float64, solution in ``u`` → PTM coefficients
+    plain_z: np.ndarray  #: (r,) float64, the plain fit of ``lz``
+    gram_rows: np.ndarray  #: (r(r+1)/2,) int64, the rows of the sums that make the normal matrix
+    extra_rows: np.ndarray  #: (r,) int64, the rows of Σ w φ lz
+    singular: float  #: below it (det G / mean eigenvalue^r) the plain fit stands in
+    coefficients: np.ndarray  #: out: (H, W, 6) float32
+    hemisphere: np.ndarray  #: out: (H, W, 6) float32
+    normals: np.ndarray  #: out: (H, W, 3) float32, debiased
+    used: np.ndarray  #: out: (H, W) float32, the weights' sums
 
 
 @dataclass
@@ -204,9 +227,10 @@ def robust_ptm(
     nout = np.empty((h, w, 3), dtype=np.float32)
     used = np.empty((h, w), dtype=np.float32)
     if compiled and normals is None and refine == 0:
-        ptm = (np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T), np.ascontiguousarray(basis.back),
-               np.ascontiguousarray(plain_z[:, 0]), basis.gram_rows.astype(np.int64),
-               basis.extra_rows[0].astype(np.int64), _PTM_SINGULAR, coef, hemi, nout, used)
+        ptm = KernelPTM(np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T),
+                        np.ascontiguousarray(basis.back), np.ascontiguousarray(plain_z[:, 0]),
+                        basis.gram_rows.astype(np.int64), basis.extra_rows[0].astype(np.int64), _PTM_SINGULAR,
+                        coef, hemi, nout, used)
         robust_rows(stack, dirs, opt, threads, progress, ptm=ptm)
         return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
     lights = Lights.of(dirs)
