@@ -235,6 +235,36 @@ def _parse_vector(text: str) -> list[float]:
     return values
 
 
+def _parse_size(text: str, smallest: int) -> tuple[int, int]:
+    """The value of ``--size``, ``WxH`` in pixels.
+
+    Parameters
+    ----------
+    text : str
+        The option as given, e.g. ``"480x360"`` (``X`` also accepted).
+    smallest : int
+        The least width and height the command accepts.
+
+    Returns
+    -------
+    tuple of int
+        ``(width, height)``.
+
+    Raises
+    ------
+    InputError
+        When ``text`` is not two whole numbers joined by an ``x``, or either is below
+        ``smallest``.
+    """
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+        if width < smallest or height < smallest:
+            raise ValueError
+    except ValueError:
+        raise InputError(f"--size must be WxH with both at least {smallest}, got {text!r}") from None
+    return width, height
+
+
 #: The rendering parameters of each relighting mode; one given for another mode would do nothing.
 _MODE_PARAMETERS = {"specular": ("kd", "ks", "exponent"), "diffuse-gain": ("gain",)}
 
@@ -378,12 +408,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from data_synthetic import write_capture
     from reconstruct.pipeline import RunOptions, run_capture
 
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-        if w < 16 or h < 16:
-            raise ValueError
-    except ValueError:
-        raise InputError(f"--size must be WxH with both at least 16, got {args.size!r}") from None
+    w, h = _parse_size(args.size, 16)
     capture_dir = args.output / "capture"
     print(f"Rendering a synthetic clay tablet ({w}×{h}, {args.lights} lights, {args.encoding}) in {capture_dir}/ ...")
     info = write_capture(capture_dir, scene="tablet", shape=(h, w), n_lights=args.lights, encoding=args.encoding, seed=args.seed)
@@ -409,12 +434,7 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     )
     from reconstruct.viewer.scene import load_scene
 
-    try:
-        width, height = (int(v) for v in args.size.lower().split("x"))
-        if width < 64 or height < 64:
-            raise ValueError
-    except ValueError:
-        raise InputError(f"--size must be WxH with both at least 64, got {args.size!r}") from None
+    width, height = _parse_size(args.size, 64)
     # The angles are checked where they are used (a ValueError, made an InputError below).
     azimuth = DEFAULT_AZIMUTH if args.azimuth is None else args.azimuth
     elevation = DEFAULT_ELEVATION if args.elevation is None else args.elevation

@@ -24,6 +24,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -31,6 +32,9 @@ from .bands import run_bands
 from .errors import InputError
 from .fit import fit_matrix
 from .lp import as_directions
+
+if TYPE_CHECKING:  # reduce imports this module
+    from .reduce import Reduced
 
 __all__ = ["ENCODINGS", "HP_LUMA_WEIGHTS", "EncodedFit", "EncodedFits", "finish_lrgb", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
 
@@ -192,11 +196,45 @@ def finish_lrgb(sums: np.ndarray, aux: np.ndarray, threads: int | None = None) -
     return sums, rgb
 
 
-def _fit_setup(images: Sequence | np.ndarray) -> None:
+def _reduce_encoded(
+    images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
+    directions: np.ndarray,
+    ptm_format: str,
+    *,
+    solver: str,
+    encoding: str,
+    linearize: bool,
+    threads: int | None,
+    progress: Callable[[int], None] | None,
+) -> Reduced:
+    """Stream the photographs into the sums of one encoded PTM fit, with no stack.
+
+    Parameters
+    ----------
+    images, directions, solver, encoding, linearize, threads, progress
+        As :func:`fit_ptm_encoded`.
+    ptm_format : {"lrgb", "rgb"}
+        The PTM whose sums are made (:class:`EncodedFit`).
+
+    Returns
+    -------
+    Reduced
+        The reduction, holding that PTM's sums.
+
+    Raises
+    ------
+    InputError
+        If no photograph is given, one cannot be read, or sizes differ.
+    """
+    from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
+
     # Fewer than six photographs leave the six coefficients underdetermined; the
     # pseudoinverse then gives the minimum-norm fit, and the caller warns about it.
     if len(images) < 1:
         raise InputError("no photographs given")
+    fit = EncodedFit(directions, ptm_format, solver, encoding=encoding)
+    fit.matrices(len(images))  # bad directions fail before any photograph is decoded
+    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads, progress=progress)
 
 
 def fit_ptm_encoded(
@@ -253,12 +291,8 @@ def fit_ptm_encoded(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
-    from .reduce import reduce_photographs  # numba's import costs a second; `import ptmcore` does not need it
-
-    _fit_setup(images)
-    fit = EncodedFit(directions, "lrgb", solver, encoding=encoding)
-    fit.matrices(len(images))  # bad directions fail before any photograph is decoded
-    done = reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads, progress=progress)
+    done = _reduce_encoded(images, directions, "lrgb", solver=solver, encoding=encoding, linearize=linearize,
+                           threads=threads, progress=progress)
     return finish_lrgb(done.ptm_sums, done.ptm_aux, threads=threads)
 
 
@@ -280,30 +314,18 @@ def fit_ptm_rgb_encoded(
 
     Parameters
     ----------
-    images : sequence of path or ndarray, or ndarray (N, H, W[, 3])
-        The photographs.
-    directions : ndarray, shape (N, 3)
-        Unit light directions, one per photograph.
-    solver : {"pinv", "lstsq", "rohde"}
-        The {1}-inverse of the light matrix (:func:`ptmcore.fit.fit_matrix`).
-    encoding : {"stored", "srgb", "linear"}
-        The values fitted (:class:`EncodedFit`); "stored" is PTMfitter's.
-    linearize : bool
-        8-bit photographs are sRGB (else linear), for ``encoding`` other than "stored".
-    threads : int, optional
-        Decoding threads (default: all CPUs).
-    progress : callable, optional
-        Called with 1 after each photograph.
+    images, directions, solver, encoding, linearize, threads, progress
+        As :func:`fit_ptm_encoded`.
 
     Returns
     -------
     ndarray, shape (H, W, 3, 6), float32
         Per-channel coefficients in 0..255 units, row 0 at the top.
-    """
-    from .reduce import reduce_photographs
 
-    _fit_setup(images)
-    fit = EncodedFit(directions, "rgb", solver, encoding=encoding)
-    fit.matrices(len(images))
-    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads,
-                              progress=progress).channel_sums
+    Raises
+    ------
+    InputError
+        As :func:`fit_ptm_encoded`.
+    """
+    return _reduce_encoded(images, directions, "rgb", solver=solver, encoding=encoding, linearize=linearize,
+                           threads=threads, progress=progress).channel_sums

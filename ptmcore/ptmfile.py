@@ -66,6 +66,7 @@ __all__ = [
     "FORMAT_LRGB",
     "FORMAT_RGB",
     "PTMFile",
+    "check_coefficient_values",
     "quantization_parameters",
     "quantize",
     "read_ptm",
@@ -357,15 +358,38 @@ def _scale_bias(lo: float, hi: float) -> tuple[float, int]:
     return scale, bias
 
 
-def _check_coefficients(coefficients: np.ndarray) -> np.ndarray:
-    c = np.asarray(coefficients)
-    if not ((c.ndim == 3 and c.shape[2] == 6) or (c.ndim == 4 and c.shape[2:] == (3, 6))):
-        raise ValueError(f"coefficients must be (H, W, 6) or (H, W, 3, 6), not {c.shape}")
+def check_coefficient_values(c: np.ndarray) -> np.ndarray:
+    """Refuse per-pixel coefficients, already of their format's shape, that cannot be written.
+
+    Shared with :mod:`ptmcore.rtifile` so that both writers refuse alike.
+
+    Parameters
+    ----------
+    c : ndarray, shape (H, W, ...)
+        The coefficients, rows and columns first.
+
+    Returns
+    -------
+    ndarray
+        ``c`` itself.
+
+    Raises
+    ------
+    ValueError
+        If ``c`` has no pixels, or its values are not numbers.
+    """
     if c.shape[0] < 1 or c.shape[1] < 1:
         raise ValueError(f"coefficients of shape {c.shape} hold no pixels")
     if c.dtype.kind not in "fiu":
         raise ValueError(f"coefficients must be numbers, not {c.dtype}")
     return c
+
+
+def _check_coefficients(coefficients: np.ndarray) -> np.ndarray:
+    c = np.asarray(coefficients)
+    if not ((c.ndim == 3 and c.shape[2] == 6) or (c.ndim == 4 and c.shape[2:] == (3, 6))):
+        raise ValueError(f"coefficients must be (H, W, 6) or (H, W, 3, 6), not {c.shape}")
+    return check_coefficient_values(c)
 
 
 def quantization_parameters(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

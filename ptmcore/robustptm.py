@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -275,20 +275,9 @@ def robust_ptm(
     return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
 
 
-def robust_fit_ptm(
-    stack: ImageStack,
-    directions: np.ndarray,
-    *,
-    method: str = "irls",
-    normals: np.ndarray | None = None,
-    iterations: int = 3,
-    threads: int | None = None,
-    progress: Callable[[int], None] | None = None,
-    **options: float | int | None,
-) -> PTM:
+def robust_fit_ptm(stack: ImageStack, directions: np.ndarray, **options: Any) -> PTM:
     """Only the PTM of :func:`robust_ptm`, for use with :func:`ptmcore.normals.normals_from_ptm`.
 
-    ``options`` are the other keywords of :func:`robust_ptm` (``refine`` and the thresholds).
+    ``options`` are the keywords of :func:`robust_ptm`, with its defaults.
     """
-    return robust_ptm(stack, directions, method=method, normals=normals, iterations=iterations,
-                      threads=threads, progress=progress, **options).ptm
+    return robust_ptm(stack, directions, **options).ptm

@@ -51,6 +51,7 @@ from .atomic import atomic_write
 from .errors import InputError, read_input_file
 from .hsh import ORDERS, hsh_basis
 from .ptmencoded import EncodedFit
+from .ptmfile import check_coefficient_values
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -136,11 +137,7 @@ def _check_coefficients(coefficients: np.ndarray, order: int) -> np.ndarray:
     k = order * order
     if c.ndim != 4 or c.shape[2:] != (3, k):
         raise ValueError(f"coefficients must have shape (H, W, 3, {k}) for order {order}, not {c.shape}")
-    if c.shape[0] < 1 or c.shape[1] < 1:
-        raise ValueError(f"coefficients of shape {c.shape} hold no pixels")
-    if c.dtype.kind not in "fiu":
-        raise ValueError(f"coefficients must be numbers, not {c.dtype}")
-    return c
+    return check_coefficient_values(c)
 
 
 def quantization_parameters(coefficients: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -124,7 +124,6 @@ def run_in_groups(
             if progress is not None:
                 for _ in prepared:
                     progress(1)
-            del prepared
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)

@@ -259,6 +259,13 @@ def test_demo_command(tmp_path, capsys):
     assert "accuracy: normals" in stdout and "MeshLab" in stdout
 
 
+@pytest.mark.parametrize("size", ["15x120", "160x15", "160", "160x120x3", "ax120", "x"])
+def test_demo_refuses_a_bad_size_before_rendering(tmp_path, capsys, size):
+    code, _, err = _run(["demo", "-o", tmp_path / "demo", "--size", size], capsys)
+    _assert_one_line_error(code, err, f"--size must be WxH with both at least 16, got {size!r}")
+    assert not (tmp_path / "demo").exists()
+
+
 def test_runs_on_hp_ptmfitter_fixture(shared_fixture, tmp_path, capsys):
     # Real photographs and the .lp file that HP's PTMfitter was given.
     out = tmp_path / "out"

@@ -7,6 +7,7 @@ from PIL import Image
 from helpers import mutate
 from ptmcore.errors import InputError
 from ptmcore.hsh import hsh_basis
+from ptmcore.ptmfile import write_ptm
 from ptmcore.rtifile import RTIFile, fit_rti_hsh, read_rti_hsh, render_float, write_rti_hsh
 
 H, W = 24, 32
@@ -193,6 +194,19 @@ def test_writer_rejects_bad_arrays(tmp_path):
         write_rti_hsh(tmp_path / "a.rti", bad, order=2)
     with pytest.raises(InputError):
         write_rti_hsh(tmp_path / "missing" / "a.rti", np.zeros((2, 2, 3, 4)), order=2)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("h, w, dtype, message", [
+    (0, 2, np.float32, "hold no pixels"),
+    (2, 0, np.float32, "hold no pixels"),
+    (2, 2, bool, "must be numbers"),
+])
+def test_rti_and_ptm_writers_refuse_unwritable_coefficients_alike(tmp_path, h, w, dtype, message):
+    with pytest.raises(ValueError, match=message):
+        write_rti_hsh(tmp_path / "a.rti", np.zeros((h, w, 3, 4), dtype), order=2)
+    with pytest.raises(ValueError, match=message):
+        write_ptm(tmp_path / "a.ptm", np.zeros((h, w, 3, 6), dtype))
     assert not list(tmp_path.iterdir())
 
 

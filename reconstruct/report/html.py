@@ -32,6 +32,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
 from urllib.parse import quote
 
 import numpy as np
@@ -586,18 +587,20 @@ def write_report_html(
     *,
     report: dict | None = None,
     comparison: dict | None = None,
-    photographs: Sequence[tuple[str | os.PathLike, np.ndarray]] | None = None,
-    title: str | None = None,
-    also: Sequence[str | os.PathLike] = (),
-    previews: figures.Previews | None = None,
-    thumbnails: Mapping[int, np.ndarray] | None = None,
     written_after: Sequence[str] = (),
-    wait_for: Callable[[str], None] | None = None,
+    **page: Any,
 ) -> Path:
     """Write ``report.html`` into ``folder`` (atomically); see :func:`report_html`.
 
     The documents given (``report``, ``comparison``) are listed among the files as
     ``report.json`` and ``comparison.json``: the pipeline writes them right after the page.
+
+    Parameters
+    ----------
+    folder, report, comparison, written_after
+        As :func:`report_html`.
+    **page
+        The other keyword arguments of :func:`report_html`, passed on as they are.
 
     Returns
     -------
@@ -606,9 +609,7 @@ def write_report_html(
     """
     after = [*written_after, "report.html", *(["report.json"] if report is not None else []),
              *(["comparison.json"] if comparison is not None else [])]
-    text = report_html(folder, report=report, comparison=comparison, photographs=photographs, title=title,
-                       also=also, previews=previews, thumbnails=thumbnails, written_after=after,
-                       wait_for=wait_for)
+    text = report_html(folder, report=report, comparison=comparison, written_after=after, **page)
     path = Path(folder) / "report.html"
     with atomic_write(path, "w") as f:
         f.write(text)
