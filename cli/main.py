@@ -291,6 +291,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         holds_linear_light,
         load_source,
         render,
+        renders,
         sweep_lights,
         write_gif,
         write_image,
@@ -322,8 +323,8 @@ def _cmd_relight(args: argparse.Namespace) -> int:
             elevation = 30.0 if args.elevation is None else args.elevation
             if not 0 < elevation <= 90:
                 raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
-            frames = [for_display(render(ptm, lt, args.mode, **params), linear)
-                      for lt in sweep_lights(args.sweep, elevation)]
+            frames = [for_display(image, linear)
+                      for image in renders(ptm, sweep_lights(args.sweep, elevation), args.mode, **params)]
             write_gif(args.output, frames)
     except ValueError as exc:
         raise InputError(str(exc)) from None

@@ -104,6 +104,43 @@ def test_relight_modes_lights_and_sweep(tmp_path, capsys, jpeg_result):
         assert gif.n_frames == 6
 
 
+@pytest.mark.parametrize("layout", ["lrgb", "rgb"])
+def test_a_sweep_renders_as_single_lights_do(tmp_path, layout):
+    # renders() does the light-independent work once; each frame must be the image of
+    # ptmcore.relight's functions called for that light alone (maxima found per band inside).
+    from ptmcore.ptmfile import write_ptm
+    from ptmcore.relight import as_lrgb, diffuse_gain, relight, specular_enhancement
+    from reconstruct.viewer.relighting import MODES, render, renders, sweep_lights
+
+    def alone(ptm, light, mode, **p):
+        if mode == "default" and not ptm.is_lrgb:
+            return ptm.render(light)
+        coef, rgb = as_lrgb(ptm)
+        if mode == "specular":
+            return specular_enhancement(coef, rgb, light, **p)
+        return relight(diffuse_gain(coef, **p) if mode == "diffuse-gain" else coef, rgb, light)
+
+    rng = np.random.default_rng(3)
+    # Concave polynomials with their maxima inside the disk, and a few arbitrary ones.
+    base = np.array([-60.0, -50.0, 5.0, 20.0, -10.0, 150.0])
+    if layout == "lrgb":
+        coef = base + rng.normal(scale=15.0, size=(23, 31, 6))
+        write_ptm(tmp_path / "t.ptm", coef, rng.integers(0, 256, (23, 31, 3), dtype=np.uint8))
+    else:
+        write_ptm(tmp_path / "t.ptm", base + rng.normal(scale=15.0, size=(23, 31, 3, 6)))
+    ptm = read_ptm(tmp_path / "t.ptm")
+    lights = sweep_lights(5, 25.0)
+    for mode in MODES:
+        params = {"diffuse-gain": {"gain": 2.5}, "specular": {"kd": 0.5, "ks": 0.8, "exponent": 40.0}}.get(mode, {})
+        frames = list(renders(ptm, lights, mode, **params))
+        assert len(frames) == len(lights)
+        for light, frame in zip(lights, frames):
+            expected = alone(ptm, light, mode, **params)
+            np.testing.assert_array_equal(frame, expected)
+            np.testing.assert_array_equal(render(ptm, light, mode, **params), expected)
+        assert any(np.any(frames[0] != f) for f in frames[1:])  # the light moves
+
+
 @pytest.mark.parametrize(
     "args, needle",
     [

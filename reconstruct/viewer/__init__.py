@@ -11,7 +11,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
     __name__,
     submod_attrs={
         "preview": ["PreviewWindow", "build_plotter", "has_display", "render_screenshot"],
-        "relighting": ["load_source", "render", "sweep_lights", "write_gif", "write_image"],
+        "relighting": ["load_source", "render", "renders", "sweep_lights", "write_gif", "write_image"],
         "scene": ["PreviewScene", "Style", "load_scene", "mode_colors", "profile", "relit_texture"],
         "shading": ["relief_shading"],
         "measurements": ["profile_figure", "write_distance_csv", "write_profile_csv"],

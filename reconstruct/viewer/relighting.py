@@ -10,12 +10,14 @@ from __future__ import annotations
 import io
 import json
 import os
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
 
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
+from ptmcore.normals import normals_from_ptm
 from ptmcore.ptmfile import PTMFile, read_ptm
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
@@ -96,20 +98,55 @@ def render(
     -------
     ndarray, shape (H, W, 3), uint8
     """
+    return next(renders(ptm, [light], mode, kd=kd, ks=ks, exponent=exponent, gain=gain))
+
+
+def renders(
+    ptm: PTMFile | RTIFile,
+    lights: Iterable[np.ndarray],
+    mode: str = "default",
+    *,
+    kd: float = DEFAULT_KD,
+    ks: float = DEFAULT_KS,
+    exponent: float = DEFAULT_EXPONENT,
+    gain: float = DEFAULT_GAIN,
+) -> Iterator[np.ndarray]:
+    """Render a PTM under each of several lights (a sweep's frames), as :func:`render` does.
+
+    What does not depend on the light is done once, when this is called: an RGB-format PTM's
+    conversion to LRGB, the diffuse gain's coefficients, the polynomials' maxima for the
+    specular lobe. Each image is then made as it is asked for. A 12-frame diffuse-gain sweep of
+    a 6-megapixel PTM took twice as long when each frame redid it.
+
+    Parameters
+    ----------
+    ptm : PTMFile or RTIFile
+    lights : iterable of ndarray, shape (3,)
+        Unit vectors towards the lights.
+    mode, kd, ks, exponent, gain
+        As :func:`render`.
+
+    Returns
+    -------
+    iterator of ndarray, shape (H, W, 3), uint8
+        One image per light, in order.
+    """
     if isinstance(ptm, RTIFile):
         if mode != "default":
             raise InputError(f"the {mode} mode needs a PTM; an HSH file renders in the default mode only")
-        return ptm.render(light)
+        return (ptm.render(light) for light in lights)
     if mode == "default" and not ptm.is_lrgb:
-        return ptm.render(light)
+        return (ptm.render(light) for light in lights)
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
     coef, rgb = as_lrgb(ptm)
-    if mode == "default":
-        return relight(coef, rgb, light)
     if mode == "specular":
-        return specular_enhancement(coef, rgb, light, kd=kd, ks=ks, exponent=exponent)
+        maximum = normals_from_ptm(coef)
+        return (specular_enhancement(coef, rgb, light, kd=kd, ks=ks, exponent=exponent, maximum=maximum)
+                for light in lights)
     if mode == "diffuse-gain":
-        return relight(diffuse_gain(coef, gain), rgb, light)
-    raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+        coef = diffuse_gain(coef, gain)
+    return (relight(coef, rgb, light) for light in lights)
 
 
 def sweep_lights(count: int, elevation_deg: float = 30.0) -> np.ndarray:
