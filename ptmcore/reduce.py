@@ -411,7 +411,8 @@ class _Tables:
             ramp = np.repeat(np.arange(65536, dtype=np.uint16).reshape(1, -1, 1), 3, axis=2)
             out = [cv2.transform(ramp, np.diag(wt * np.float32(_LUM_SCALE / 65535.0)))[0].T for wt in self.weights]
             return np.ascontiguousarray(np.stack(out))
-        return np.zeros((1, 3, 1), np.uint16)
+        # Float samples are scaled, not looked up (wscale): a placeholder per set of gains.
+        return np.zeros((len(self.weights), 3, 1), np.uint16)
 
 
 class _Buffers:

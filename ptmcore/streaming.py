@@ -36,6 +36,10 @@ def _as_image(img: np.ndarray, where: str) -> np.ndarray:
         raise ValueError(f"{where}: expected an (H, W) or (H, W, 3) image, not {a.shape}")
     if a.dtype not in (np.uint8, np.uint16) and a.dtype.kind != "f":
         raise ValueError(f"{where}: unsupported sample type {a.dtype}")
+    # As read_image refuses them in files: the kernels' clipping does not tell NaN from a
+    # sample, and a NaN luminance code would index out of the 8-bit stack's table.
+    if a.dtype.kind == "f" and not np.isfinite(a).all():
+        raise ValueError(f"{where}: contains NaN or infinite values")
     return a
 
 

@@ -463,3 +463,28 @@ def test_image_stack_checks_its_table():
     with pytest.raises(ValueError, match="table"):
         ImageStack(lum, np.ones((2, 2, 3), np.float32), [], 16, False, np.zeros(3, np.int64),
                    np.zeros(256, np.float32))
+
+
+@pytest.mark.parametrize("storage", ["uint16", "auto"])
+def test_photograph_arrays_with_nan_or_inf_are_refused(storage):
+    # Files with them are refused by read_image; arrays reached the kernel, where a NaN's
+    # luminance code indexed out of the 8-bit table (a crash with an 8-bit first photograph).
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 256, (4, 300, 3), dtype=np.uint8) for _ in range(3)]
+    for bad in (np.nan, np.inf, -np.inf):
+        f = rng.uniform(0, 1, (4, 300, 3)).astype(np.float32)
+        f[1, 5, 0] = bad
+        with pytest.raises(ValueError, match="image 3: contains NaN or infinite values"):
+            reduce_module.reduce_photographs([*images, f], storage=storage, threads=1)
+
+
+def test_float_photographs_take_channel_gains():
+    # The float samples' placeholder tables are one per set of gains, as the integer ones.
+    rng = np.random.default_rng(2)
+    images = [rng.uniform(0, 1, (5, 40, 3)).astype(np.float32) for _ in range(3)]
+    gains = np.array([[1, 1, 1], [0.5, 0.5, 0.5], [1, 0.25, 1]], np.float32)
+    gained = reduce_module.reduce_photographs(images, channel_gains=gains, threads=1)
+    scaled = reduce_module.reduce_photographs([im * g for im, g in zip(images, gains)], threads=1)
+    # The same light, rounded in another order: codes within one step.
+    assert np.abs(gained.luminance.astype(int) - scaled.luminance).max() <= 1
+    np.testing.assert_allclose(gained.chroma, scaled.chroma, rtol=1e-3, atol=1e-3)
