@@ -20,6 +20,45 @@ from .images import ImageStack
 from .lp import as_directions
 
 
+def ptm_terms(lu: np.ndarray, lv: np.ndarray, axis: int = -1) -> np.ndarray:
+    """The six terms ``lu², lv², lu·lv, lu, lv, 1`` of the PTM at lights ``(lu, lv)``, stacked
+    along a new ``axis``, in the arrays' own type.
+
+    Parameters
+    ----------
+    lu, lv : ndarray
+        The lights' projections, of one shape.
+    axis : int
+        Where the six terms go in the result.
+
+    Returns
+    -------
+    ndarray
+        ``lu``'s shape with an axis of 6 inserted at ``axis``.
+    """
+    return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=axis)
+
+
+def evaluate_at(coefficients: np.ndarray, lu: np.ndarray, lv: np.ndarray) -> np.ndarray:
+    """Each pixel's polynomial at its own light ``(lu[p], lv[p])``.
+
+    Parameters
+    ----------
+    coefficients : ndarray, shape (..., 6) or (..., 3, 6)
+        A PTM's luminance coefficients, or an RGB-format PTM's per channel.
+    lu, lv : ndarray, shape (...)
+        Each pixel's light.
+
+    Returns
+    -------
+    ndarray, shape (...) or (..., 3)
+    """
+    terms = ptm_terms(lu, lv)
+    if coefficients.ndim == terms.ndim + 1:  # RGB format: the same light for the three channels
+        terms = terms[..., None, :]
+    return (coefficients * terms).sum(axis=-1)
+
+
 def light_matrix(directions: np.ndarray) -> np.ndarray:
     """The N×6 PTM light matrix ``[lu², lv², lu·lv, lu, lv, 1]``.
 
@@ -33,8 +72,7 @@ def light_matrix(directions: np.ndarray) -> np.ndarray:
     ndarray, shape (N, 6), float64
     """
     d = np.asarray(directions, dtype=np.float64)
-    lu, lv = d[:, 0], d[:, 1]
-    return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=1)
+    return ptm_terms(d[:, 0], d[:, 1], axis=1)
 
 
 def fit_matrix(directions: np.ndarray, method: str = "pinv", **options) -> np.ndarray:

@@ -35,7 +35,7 @@ import numpy as np
 from .atomic import atomic_write
 from .bands import band_rows, run_bands
 from .errors import InputError, read_input_text
-from .fit import PTM
+from .fit import PTM, ptm_terms
 from .images import ImageStack
 from .normals import (
     PhotometricStereo,
@@ -429,7 +429,7 @@ def fit_ptm_near(
         lu, lv = dirs[..., 0].reshape(n, -1), dirs[..., 1].reshape(n, -1)
         y = (values / falloff).reshape(n, -1)
         del dirs, falloff, values
-        basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)  # (N, P, 6)
+        basis = ptm_terms(lu, lv)  # (N, P, 6)
         a = np.einsum("npi,npj->pij", basis, basis, dtype=np.float64)
         b = np.einsum("npi,np->pi", basis, y, dtype=np.float64)
         a += ridge * np.trace(a, axis1=1, axis2=2)[:, None, None]

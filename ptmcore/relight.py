@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from .fit import light_matrix
+from .fit import evaluate_at, light_matrix
 from .images import LUMA_WEIGHTS
 from .normals import ptm_maximum
 
@@ -362,9 +362,8 @@ def as_lrgb(ptm) -> tuple[np.ndarray, np.ndarray]:
         return ptm.coefficients, ptm.rgb
     coef = np.einsum("hwck,c->hwk", ptm.coefficients, LUMA_WEIGHTS)
     lu, lv, _ = ptm_maximum(coef)
-    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
-    channels = (ptm.coefficients * basis[..., None, :]).sum(axis=-1)
-    lum = (coef * basis).sum(axis=-1)[..., None]
+    channels = evaluate_at(ptm.coefficients, lu, lv)
+    lum = evaluate_at(coef, lu, lv)[..., None]
     with np.errstate(divide="ignore", invalid="ignore"):
         share = np.where(lum > 0, channels / lum, 1.0)
     # Channels brighter than the luminance (saturated colours) move into the coefficients.

@@ -269,10 +269,10 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
     """The PTM and hemisphere PTM of the chunk's pixels with weights ``w``, as
     :func:`ptmcore.robustptm.robust_ptm` fits them (:func:`ptmcore.pixelfit.weighted_fit` with
     the plain fits as prior and fallback), written with the debiased normals and the weights'
-    sums into ``ptm``'s result arrays (:class:`ptmcore.robustptm.KernelPTM`) at ``row``,
-    columns ``c0:c0 + inside``.
+    sums ``total`` (chunk,) into ``ptm``'s result arrays (:class:`ptmcore.robustptm.KernelPTM`)
+    at ``row``, columns ``c0:c0 + inside``.
 
-    Work arrays: ``sums`` (K, chunk), ``rhs`` (2r, chunk) and ``total`` (chunk,) float32;
+    Work arrays: ``sums`` (K, chunk) and ``rhs`` (2r, chunk) float32;
     ``gram`` and ``low`` (r(r+1)/2, chunk), ``sol`` (4r, chunk) and ``work`` (5, chunk) float64. Every loop over the
     pixels is innermost, so that it vectorises, as :func:`ptmcore.pixelfit.cholesky_solve`'s
     operations are vectors over the pixels.
@@ -364,11 +364,6 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
             for kk in range(i + 1, r):
                 _less_products(acc, low, _packed(i, kk, r), sol, x + kk, m)
             _divided(sol, x + i, acc, low, _packed(i, i, r), m)
-    for j in range(m):
-        total[j] = 0.0
-    for k in range(n):
-        for j in range(m):
-            total[j] += w[k, j]
     for j in range(inside):
         # Where the weights leave too few samples, or samples too close together, the plain
         # fit (a matrix product in the NumPy steps) stands in.
@@ -621,6 +616,12 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                             c[a, j] = c2[a, j]
                     ok[j] = ok[j] | ok2[j]
                 _to_normal(c, m, back3, g32, unit, rho)
+            # The weights' sums: the samples used, in both results.
+            for j in range(m):
+                total[j] = 0.0
+            for k in range(n):
+                for j in range(m):
+                    total[j] += w[k, j]
             if normals is not None:
                 for j in range(inside):
                     col = c0 + j
@@ -642,11 +643,6 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                         normals[row, col, 2] = 1.0
                         albedo[row, col] = 0.0
                     valid[row, col] = good
-                for j in range(m):
-                    total[j] = 0.0
-                for k in range(n):
-                    for j in range(m):
-                        total[j] += w[k, j]
                 for j in range(inside):
                     samples[row, c0 + j] = np.uint16(round(total[j]))
             if ptm is not None:

@@ -1,6 +1,6 @@
 import numpy as np
 
-from ptmcore.fit import PTM, fit_matrix, fit_ptm, light_matrix
+from ptmcore.fit import PTM, evaluate_at, fit_matrix, fit_ptm, light_matrix
 
 from helpers import dome, stack_from_luminance
 
@@ -39,3 +39,16 @@ def test_relight_multiplies_chroma():
     chroma = np.array([1.2, 0.9, 0.8], np.float32) * np.ones((2, 2, 3), np.float32)
     rgb = PTM(coef, chroma).relight(np.array([0.0, 0.0, 1.0]))
     np.testing.assert_allclose(rgb[0, 0], [0.6, 0.45, 0.4])
+
+
+def test_evaluate_at_each_pixels_light_is_the_light_matrix_row():
+    rng = np.random.default_rng(5)
+    coef = rng.normal(size=(4, 5, 6))
+    rgb_coef = rng.normal(size=(4, 5, 3, 6))
+    d = rng.normal(size=(4, 5, 3))
+    d[..., 2] = np.abs(d[..., 2]) + 0.5
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    rows = light_matrix(d.reshape(-1, 3)).reshape(4, 5, 6)
+    lu, lv = d[..., 0], d[..., 1]
+    np.testing.assert_allclose(evaluate_at(coef, lu, lv), (coef * rows).sum(-1), rtol=1e-12)
+    np.testing.assert_allclose(evaluate_at(rgb_coef, lu, lv), (rgb_coef * rows[..., None, :]).sum(-1), rtol=1e-12)

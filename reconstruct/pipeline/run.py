@@ -41,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.diskstack import is_disk_array
+from ptmcore.fit import evaluate_at
 from ptmcore.images import LUMA_WEIGHTS
 from ptmcore.lp import write_lp
 from ptmcore.nearlight import write_light_positions
@@ -303,14 +304,6 @@ def run_capture(
     return RunResult(staged.output, files, report)
 
 
-def _evaluate(coefficients: np.ndarray, lu: np.ndarray, lv: np.ndarray) -> np.ndarray:
-    """Each pixel's polynomial ``(..., 6)`` at its own light ``(lu, lv)``."""
-    basis = np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=-1)
-    if coefficients.ndim == basis.ndim + 1:  # RGB format: (H, W, 3, 6)
-        basis = basis[..., None, :]
-    return (coefficients * basis).sum(axis=-1)
-
-
 def _ptm_normals_and_texture(ptm, threads: int | None) -> tuple[np.ndarray, np.ndarray]:
     """A PTM's maxima as normals, and its colour under the light of its maximum (its albedo in
     the file's own encoding) as an 8-bit texture."""
@@ -320,9 +313,9 @@ def _ptm_normals_and_texture(ptm, threads: int | None) -> tuple[np.ndarray, np.n
     normals = normals_from_ptm(luminance, threads=threads)
     lu, lv = normals[..., 0], normals[..., 1]
     if ptm.rgb is not None:
-        top = _evaluate(luminance, lu, lv)[..., None] * ptm.rgb / np.float32(255)
+        top = evaluate_at(luminance, lu, lv)[..., None] * ptm.rgb / np.float32(255)
     else:
-        top = _evaluate(coef, lu, lv)
+        top = evaluate_at(coef, lu, lv)
     return normals, np.clip(np.round(top), 0, 255).astype(np.uint8)
 
 
