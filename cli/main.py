@@ -18,6 +18,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ptmcore.errors import InputError
+from ptmcore.images import allow_large_images
 from reconstruct.cli.parser import build_parser
 from reconstruct.report.summary import unit_words
 
@@ -471,6 +472,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return EXIT_BAD_INPUT
+    allow_large_images()
     previous = _stop_on_sigterm()
     try:
         commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,

@@ -82,6 +82,29 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
 MAX_PIXELS = 1 << 30
 
 
+def allow_large_images() -> None:
+    """Let Pillow open any image up to :data:`MAX_PIXELS`, this program's own limit.
+
+    Pillow warns above 89 megapixels and refuses above 179 (its ``Image.MAX_IMAGE_PIXELS``,
+    a guard for servers decoding untrusted uploads). A 150-megapixel camera's photographs are
+    ordinary here: without this, reading their EXIF or a contact-sheet thumbnail prints a
+    "decompression bomb" warning, and a larger BMP or WebP photograph is refused. Every reader
+    of this program checks the header against :data:`MAX_PIXELS` before it allocates.
+
+    Pillow's limit is process-wide, so this is called by the programs that own their process
+    (the ``reconstruct`` command and a batch's workers), not on import: a notebook that
+    imports ptmcore keeps Pillow's default unless it calls this.
+    """
+    import warnings
+
+    from PIL import Image
+
+    # Pillow refuses above twice its limit and warns above the limit itself: refuse where this
+    # program does, and without the warning in between.
+    Image.MAX_IMAGE_PIXELS = MAX_PIXELS // 2
+    warnings.filterwarnings("ignore", category=Image.DecompressionBombWarning)
+
+
 def _check_pixels(width: int, height: int, path: Path) -> None:
     if width * height > MAX_PIXELS:
         raise InputError(f"the image claims {width} × {height} pixels, more than the {MAX_PIXELS:,} this program "
@@ -117,8 +140,10 @@ def _decode_pillow(path: Path) -> np.ndarray:
                 im = im.convert("RGB")
             return np.asarray(im)
     except Image.DecompressionBombError:
-        raise InputError("the image claims more pixels than Pillow reads (a corrupt header, or a "
-                         "decompression bomb)", path) from None
+        lift = ("; ptmcore.images.allow_large_images() raises Pillow's limit to this program's"
+                if (Image.MAX_IMAGE_PIXELS or 0) * 2 < MAX_PIXELS else "")
+        raise InputError(f"the image claims more pixels than Pillow reads (a corrupt header, or a "
+                         f"decompression bomb{lift})", path) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot decode image ({exc})", path) from None
 

@@ -119,6 +119,24 @@ def test_corrupt_image(capture, tmp_path, capsys):
     _assert_one_line_error(code, err, "img 04.tif")
 
 
+def test_a_photograph_larger_than_pillows_guard_is_read_as_any_other(capture, tmp_path, capsys, monkeypatch):
+    """The command lifts Pillow's 179-megapixel refusal (ptmcore.images.allow_large_images):
+    a BMP photograph claiming 195 megapixels gets as far as its missing pixels."""
+    import struct
+
+    from PIL import Image
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored after the test
+    info = struct.pack("<IiiHHIIiiII", 40, 15000, 13000, 1, 24, 0, 0, 2835, 2835, 0, 0)
+    (capture / "img 04.tif").unlink()
+    (capture / "img 04.bmp").write_bytes(b"BM" + struct.pack("<IHHI", 70, 0, 0, 54) + info + bytes(16))
+    lp = capture / "lights.lp"
+    lp.write_text(lp.read_text().replace("img 04.tif", "img 04.bmp"))
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 04.bmp")
+    assert "truncated" in err and "Pillow" not in err
+
+
 def test_differing_sizes(capture, tmp_path, capsys):
     tifffile.imwrite(capture / "img 05.tif", np.zeros((41, 48, 3), np.uint16))
     code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)

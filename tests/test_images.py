@@ -134,3 +134,46 @@ def test_a_header_claiming_too_many_pixels_is_refused_before_decoding(tmp_path):
                     + chunk(b"IDAT", zlib.compress(b"\0" * 100)) + chunk(b"IEND", b""))
     with pytest.raises(InputError, match="claims 40000 × 40000 pixels"):
         read_image(png)
+
+
+def _bmp_header(path, width: int, height: int) -> None:
+    """A 24-bit BMP that claims ``width × height`` pixels and holds 16 bytes of them."""
+    import struct
+
+    info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
+    path.write_bytes(b"BM" + struct.pack("<IHHI", 54 + 16, 0, 0, 54) + info + b"\0" * 16)
+
+
+def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path, monkeypatch):
+    """Pillow's own guard (a warning above 89 megapixels, a refusal above 179) stood before
+    MAX_PIXELS for the formats read through it: a 150-megapixel camera's photographs printed
+    "decompression bomb" warnings. allow_large_images moves Pillow's limit to this program's."""
+    import warnings
+
+    from ptmcore.images import MAX_PIXELS, allow_large_images
+
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored after the test
+    large, larger = tmp_path / "large.bmp", tmp_path / "larger.bmp"
+    _bmp_header(large, 10000, 10000)
+    _bmp_header(larger, 15000, 13000)
+    with pytest.raises(InputError, match="more pixels than Pillow reads.*allow_large_images"):
+        read_image(larger)
+    with warnings.catch_warnings(record=True) as seen:
+        warnings.simplefilter("always")
+        allow_large_images()
+        for path in (large, larger):
+            # Past the header now: the pixels are missing.
+            with pytest.raises(InputError, match=f"{path.name}: cannot decode image .*truncated"):
+                read_image(path)
+        # Between half this program's limit and the limit, Pillow would still warn on opening
+        # (opened only: decoding would take 2.4 GB).
+        huge = tmp_path / "huge.bmp"
+        _bmp_header(huge, 25000, 24000)
+        with Image.open(huge) as im:
+            assert im.size == (25000, 24000)
+    assert not [w for w in seen if issubclass(w.category, Image.DecompressionBombWarning)]
+    assert Image.MAX_IMAGE_PIXELS * 2 == MAX_PIXELS
+    # Beyond this program's limit Pillow still refuses, before allocating.
+    _bmp_header(larger, 40000, 40000)
+    with pytest.raises(InputError, match=r"more pixels than Pillow reads \(a corrupt header, or a decompression bomb\)$"):
+        read_image(larger)

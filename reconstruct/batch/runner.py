@@ -152,13 +152,16 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     (:func:`reconstruct.pipeline.staging.staged_output`), so a batch killed at any moment leaves
     each object's folder whole (old or new); the batch's lock says no one else is writing there.
     """
+    from ptmcore.images import allow_large_images
     from reconstruct.batch.gallery import write_thumbnails
     from reconstruct.pipeline.profiling import StageTimer
     from reconstruct.report.rendering import import_plotting
 
     # A worker runs objects in several threads, each drawing with matplotlib (pages, plots,
-    # thumbnails): it is imported once, whole, before any of them draws.
+    # thumbnails): it is imported once, whole, before any of them draws. Its process is the
+    # batch's, as the command's is the command's: Pillow may read what this program reads.
     import_plotting()
+    allow_large_images()
     out = Path(out)
     folder = out / item.name
     print_ = fingerprint(item)

@@ -177,7 +177,7 @@ def intrinsics_from_exif(path) -> Intrinsics | None:
             exif = img.getexif()
     except FileNotFoundError:
         raise InputError("photograph not found", path) from None
-    except (OSError, UnidentifiedImageError) as exc:
+    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
         raise InputError(f"cannot read the photograph's EXIF: {exc}", path) from None
     sub = exif.get_ifd(_EXIF_IFD)
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0
