@@ -273,6 +273,8 @@ _MODE_PARAMETERS = {"specular": ("kd", "ks", "exponent"), "diffuse-gain": ("gain
 def _relight_params(args: argparse.Namespace) -> dict[str, float]:
     """The rendering parameters given, each checked to belong to ``--mode`` (render() holds
     the defaults of the others)."""
+    from ptmcore.relight import check_parameters
+
     params = {}
     for mode, names in _MODE_PARAMETERS.items():
         for name in names:
@@ -282,6 +284,10 @@ def _relight_params(args: argparse.Namespace) -> dict[str, float]:
             if args.mode != mode:
                 raise InputError(f"--{name} needs --mode {mode}: it does nothing in mode {args.mode}")
             params[name] = value
+    try:  # before the source is read
+        check_parameters(**params)
+    except ValueError as exc:
+        raise InputError(f"--{exc}") from None
     return params
 
 

@@ -31,7 +31,7 @@ from .fit import evaluate_at, light_matrix
 from .images import LUMA_WEIGHTS
 from .normals import ptm_maximum
 
-__all__ = ["as_lrgb", "diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
+__all__ = ["as_lrgb", "check_parameters", "diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
 
 #: RTIViewer's default diffuse gain (``DiffuseGain`` constructor; the slider spans 1–10).
 DEFAULT_GAIN = 2.0
@@ -204,6 +204,25 @@ def display_srgb(image: np.ndarray) -> np.ndarray:
     return table[np.asarray(image, dtype=np.uint8)]
 
 
+def check_parameters(*, kd: float | None = None, ks: float | None = None, exponent: float | None = None,
+                     gain: float | None = None) -> None:
+    """Check the parameters of :func:`specular_enhancement` and :func:`diffuse_gain` given.
+
+    They check their own; a caller about to do long work before calling them (read a large
+    PTM, find its maxima) checks first, so a typo is refused at once.
+
+    Raises
+    ------
+    ValueError
+        For the first one that is not a finite number ≥ 0 (``gain``: > 0).
+    """
+    for name, value in (("kd", kd), ("ks", ks), ("exponent", exponent)):
+        if value is not None and not (math.isfinite(float(value)) and float(value) >= 0.0):
+            raise ValueError(f"{name} must be a non-negative number, not {value}")
+    if gain is not None and not (math.isfinite(float(gain)) and float(gain) > 0.0):
+        raise ValueError(f"gain must be a positive number, not {gain}")
+
+
 def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN, *,
                  maximum: np.ndarray | None = None) -> np.ndarray:
     """Coefficients with the diffuse gain of Malzbender et al. (2001) applied.
@@ -249,9 +268,8 @@ def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN, *,
     ValueError
         If the gain is not a positive finite number.
     """
+    check_parameters(gain=gain)
     g = float(gain)
-    if not (math.isfinite(g) and g > 0.0):
-        raise ValueError(f"diffuse gain must be a positive number, not {gain}")
     coef = _check_ptm(coefficients)
     dtype = np.result_type(coef.dtype, np.float32)
     h, w = coef.shape[:2]
@@ -325,9 +343,7 @@ def specular_enhancement(
     ValueError
         If a parameter is negative or not finite.
     """
-    for name, value in (("kd", kd), ("ks", ks), ("exponent", exponent)):
-        if not (math.isfinite(float(value)) and float(value) >= 0.0):
-            raise ValueError(f"{name} must be a non-negative number, not {value}")
+    check_parameters(kd=kd, ks=ks, exponent=exponent)
     rgb = np.asarray(rgb)
     coef = _check_ptm(coefficients, rgb)
     l_vec = light_direction(light=light)

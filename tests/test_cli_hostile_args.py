@@ -97,6 +97,13 @@ BAD = [
      ["--kd needs --mode specular"]),
     (["relight", "{res}", "--light", "0,0,1", "--exponent", "20", "-o", "{out}"], ["--exponent needs --mode specular"]),
     (["relight", "{res}", "--sweep", "4", "--light", "0,0,1", "-o", "{out}"], ["--sweep", "--light"]),
+    # rendering parameters are checked before the source is read (an .lp is no source)
+    (["relight", "{lp}", "--light", "0,0,1", "--mode", "specular", "--kd", "-1", "-o", "{out}"],
+     ["--kd must be a non-negative number, not -1"]),
+    (["relight", "{lp}", "--sweep", "4", "--mode", "specular", "--exponent", "nan", "-o", "{out}"],
+     ["--exponent must be a non-negative number, not nan"]),
+    (["relight", "{lp}", "--light", "0,0,1", "--mode", "diffuse-gain", "--gain", "0", "-o", "{out}"],
+     ["--gain must be a positive number, not 0"]),
     (["relight", "{res}", "--sweep", "4", "--azimuth", "-30", "-o", "{out}"], ["--sweep", "--azimuth"]),
     # negative numbers reach the option's own check, which names it
     (["relight", "{res}", "--light", "-0.7,0,0.71,1", "-o", "{out}"], ["--light must be three numbers"]),

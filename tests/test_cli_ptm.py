@@ -142,6 +142,10 @@ def test_a_sweep_renders_as_single_lights_do(tmp_path, layout):
             np.testing.assert_array_equal(frame, expected)
             np.testing.assert_array_equal(render(ptm, light, mode, **params), expected)
         assert any(np.any(frames[0] != f) for f in frames[1:])  # the light moves
+    # A bad parameter is refused when the sweep is asked for, before its long work.
+    for mode, bad in (("specular", {"ks": -0.5}), ("specular", {"exponent": np.inf}), ("diffuse-gain", {"gain": 0})):
+        with pytest.raises(ValueError, match=f"{next(iter(bad))} must be a"):
+            renders(ptm, lights, mode, **bad)
 
 
 @pytest.mark.parametrize(

@@ -25,6 +25,7 @@ from ptmcore.relight import (
     DEFAULT_KD,
     DEFAULT_KS,
     as_lrgb,
+    check_parameters,
     diffuse_gain,
     relight,
     specular_enhancement,
@@ -140,6 +141,9 @@ def renders(
         return (ptm.render(light) for light in lights)
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    # Before the long work (the conversion to LRGB, the maxima), not in the first frame.
+    check_parameters(**({"kd": kd, "ks": ks, "exponent": exponent} if mode == "specular" else
+                        {"gain": gain} if mode == "diffuse-gain" else {}))
     coef, rgb = as_lrgb(ptm)
     if mode == "specular":
         # float32, as specular_enhancement finds them itself.
