@@ -144,7 +144,7 @@ def _bmp_header(path, width: int, height: int) -> None:
     path.write_bytes(b"BM" + struct.pack("<IHHI", 54 + 16, 0, 0, 54) + info + b"\0" * 16)
 
 
-def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path, monkeypatch):
+def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path):
     """Pillow's own guard (a warning above 89 megapixels, a refusal above 179) stood before
     MAX_PIXELS for the formats read through it: a 150-megapixel camera's photographs printed
     "decompression bomb" warnings. allow_large_images moves Pillow's limit to this program's."""
@@ -152,7 +152,6 @@ def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path, monkeypatch
 
     from ptmcore.images import MAX_PIXELS, allow_large_images
 
-    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", Image.MAX_IMAGE_PIXELS)  # restored after the test
     large, larger = tmp_path / "large.bmp", tmp_path / "larger.bmp"
     _bmp_header(large, 10000, 10000)
     _bmp_header(larger, 15000, 13000)
