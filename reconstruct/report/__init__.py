@@ -1,6 +1,7 @@
 """What a run shows a person: the raster outputs (normal maps, albedo, height), the figures and
-charts, the summary in words and the self-contained ``report.html``, the OpenLIME web-viewer export, and the off-screen 3D
-renders they use (pyvista, imported only when a render is made).
+charts, the summary in words and the self-contained ``report.html``, the OpenLIME web-viewer export, the
+mesh picture drawn in software (raster) and the off-screen pyvista renders of a comparison (rendering;
+pyvista is imported only when one is made).
 """
 
 import lazy_loader

@@ -483,7 +483,10 @@ def mesh_render(
     *,
     exaggeration: float = 1.0,
 ) -> np.ndarray:
-    """An off-screen rendering of a mesh with its colours, seen obliquely from the front.
+    """A rendering of a mesh with its colours, seen obliquely from the front.
+
+    Drawn in software (:func:`reconstruct.report.raster.render_mesh`: no OpenGL context, and
+    no pyvista import for an array mesh); a mesh file is read with pyvista.
 
     Parameters
     ----------
@@ -498,43 +501,40 @@ def mesh_render(
     Returns
     -------
     ndarray, shape (size[1], size[0], 3), uint8
-        Coloured by the mesh's vertex colours when it has them, else clay grey.
+        Coloured by the mesh's vertex colours when it has them, else clay.
 
     Raises
     ------
     RuntimeError
-        If off-screen rendering is not available (no pyvista, no EGL or OSMesa context) or
-        the mesh cannot be read; the caller shows a note instead.
+        If the mesh cannot be read (or pyvista, to read a file, is missing) or has nothing
+        to draw; the caller shows a note instead.
     """
+    from reconstruct.report.raster import render_mesh
+
+    if isinstance(mesh, tuple):
+        vertices, faces, colours = mesh
+    else:
+        vertices, faces, colours = _read_mesh(mesh)
+    vertices = np.array(vertices, np.float64)
+    vertices[:, 2] *= exaggeration
+    try:
+        # From the front (−y) and a little to the right, 40° above the object plane.
+        return render_mesh(vertices, faces, colours, size, view=(0.35, -0.75, 0.85), zoom=1.2)
+    except ValueError as exc:
+        raise RuntimeError(f"cannot render the mesh ({exc})") from exc
+
+
+def _read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Vertices, triangles and vertex colours (or None) of a mesh file, read by pyvista."""
     try:
         import pyvista as pv
     except ImportError as exc:
-        raise RuntimeError(f"off-screen rendering needs pyvista ({exc})") from exc
-
+        raise RuntimeError(f"reading a mesh file needs pyvista ({exc})") from exc
     try:
         with rendering.VTK_LOCK:
-            if isinstance(mesh, tuple):
-                vertices, faces, colours = mesh
-                surface = pv.PolyData.from_regular_faces(np.asarray(vertices, np.float32), faces)
-            else:
-                surface = pv.read(str(mesh))
-                colours = surface.point_data.get("RGB")
+            surface = pv.read(str(path)).triangulate()
+            colours = surface.point_data.get("RGB")
+            return (np.asarray(surface.points), np.asarray(surface.regular_faces),
+                    None if colours is None else np.asarray(colours, np.uint8)[:, :3])
     except Exception as exc:  # pyvista's readers raise assorted types
         raise RuntimeError(f"cannot read the mesh ({exc})") from exc
-    surface.points[:, 2] *= np.float32(exaggeration)
-
-    def draw(plotter) -> None:
-        plotter.set_background("white")
-        if colours is not None:
-            plotter.add_mesh(surface, scalars=np.asarray(colours, np.uint8)[:, :3], rgb=True, smooth_shading=True,
-                             specular=0.1, diffuse=0.85, ambient=0.2)
-        else:
-            plotter.add_mesh(surface, color=(0.78, 0.72, 0.64), smooth_shading=True, specular=0.15)
-        center = np.asarray(surface.center)
-        # Oblique: from the front (−y) and a little to the right, 40° above the object plane.
-        view = np.array([0.35, -0.75, 0.85])
-        plotter.camera_position = [tuple(center + view), tuple(center), (0.0, 0.0, 1.0)]
-        plotter.reset_camera()
-        plotter.camera.zoom(1.2)
-
-    return rendering.render_image(draw, size)

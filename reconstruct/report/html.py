@@ -11,15 +11,16 @@ The page is built from an output folder (``report.json``, ``comparison.json`` an
 and maps beside them) plus, for the contact sheet and the lights, the photographs and their
 light directions. Every picture is embedded as a ``data:`` URI (JPEG for photographic
 pictures) and the style is inline, so the file opens anywhere (a USB stick, no network); the
-only links are to the output files beside it. A picture that cannot be made (no off-screen
-rendering, no matplotlib, an unreadable photograph) becomes a note in its place and a warning:
+only links are to the output files beside it. A picture that cannot be made (an unreadable
+mesh, no matplotlib, an unreadable photograph) becomes a note in its place and a warning:
 the page is always written.
 
 The maps are subsampled once, first (:func:`reconstruct.report.figures.previews`, to about a
 thousand pixels), and every picture is made from the subsamples; a caller that holds the maps
 (the pipeline) passes them, and the photographs' thumbnails, so that nothing large is read
-again. The mesh is rendered in a second thread while the other pictures are made: most of its
-time is the start of an OpenGL context, in VTK's C++ code, which leaves the GIL to them.
+again. The mesh is drawn in a second thread while the other pictures are made: in software
+(:mod:`reconstruct.report.raster`, compiled code that leaves the GIL to them), with no OpenGL
+context to start.
 """
 
 from __future__ import annotations
@@ -534,7 +535,8 @@ def report_html(
         mesh_notes: list[str] = []
         # The mesh is rendered in its own thread while the other pictures are made (see the
         # module's docstring); its notes join the others in the order of the sections. Both
-        # threads use matplotlib: it is imported first, once.
+        # threads may use matplotlib (pyvista, reading a mesh file, imports it): it is
+        # imported first, once.
         rendering.import_plotting()
         with ThreadPoolExecutor(max_workers=1) as render:
             mesh_section = render.submit(_mesh, files, report, previews, extent, mesh_notes)
