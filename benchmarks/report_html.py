@@ -12,8 +12,9 @@ read through memory maps, albedo.png decoded whole for the albedo picture and th
 the photographs decoded for the contact sheet and read for the lights' plot), and ``arrays``, as a
 pipeline that holds the maps and the decoded photographs can call it: ``previews`` of the maps
 and ``thumbnails`` from the stack (``figures.stack_thumbnail``), both made inside the timing.
-Each is also timed with the imports of matplotlib and pyvista and the first OpenGL context
-inside the timing (``seconds_cold``), as the first page of a process costs.
+Each is also timed with the import of matplotlib and the loading of the compiled mesh
+rasteriser (:mod:`reconstruct.report.raster`) inside the timing (``seconds_cold``), as the first
+page of a process costs.
 
 Run: ``.venv/bin/python benchmarks/report_html.py [--size 6000x4000]``
 Prints the numbers and writes ``benchmarks/results/report_html.json``.
@@ -49,7 +50,9 @@ from reconstruct.pipeline.profiling import StageTimer, current_rss_mb
 from reconstruct.report import figures, html as report_html
 import numpy as np
 if not {cold!r}:
-    import matplotlib.figure, pyvista  # the imports' memory is not the report's
+    import matplotlib.figure  # the imports' memory is not the report's
+    from reconstruct.report import raster
+    raster.render_mesh(np.eye(3), [[0, 1, 2]], size=(8, 8))  # its compiled code loaded
 photos = [(p, np.array(d)) for p, d in json.loads({photos!r})]
 folder = Path({folder!r})
 if {mode!r} == "arrays":  # what the pipeline holds when it writes the page
