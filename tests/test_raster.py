@@ -61,6 +61,13 @@ def test_the_nearer_surface_hides_the_farther_whatever_the_order(order):
     assert (image[..., 2] > 100).any()  # the far square still shows around the near one
 
 
+def test_straight_from_above_the_picture_keeps_y_up():
+    vertices, faces = _square()
+    colours = np.array([[250, 0, 0], [250, 0, 0], [0, 0, 250], [0, 0, 250]], np.uint8)  # blue at y = +1
+    image = render_mesh(vertices, faces, colours, (60, 60), view=(0.0, 0.0, 1.0)).astype(int)
+    assert image[15, 30, 2] > image[15, 30, 0] and image[45, 30, 0] > image[45, 30, 2]
+
+
 def test_a_surface_seen_from_behind_is_lit_as_from_the_front():
     vertices, faces = _square()
     front = render_mesh(vertices, faces, None, (60, 40), view=(0.0, -0.01, 1.0))

@@ -69,6 +69,8 @@ def _look_at(vertices: np.ndarray, view: np.ndarray, zoom: float, aspect: float)
     eye = center + back * radius / math.sin(half)
     forward = -back
     right = np.cross(forward, (0.0, 0.0, 1.0))
+    if np.linalg.norm(right) < 1e-9:  # looking straight down: the picture's up is +y
+        right = np.array([1.0, 0.0, 0.0])
     right /= np.linalg.norm(right)
     up = np.cross(right, forward)
     return eye, forward, right, up, math.tan(math.radians(VIEW_ANGLE) / 2) / zoom
