@@ -90,6 +90,10 @@ def test_missing_vertices_leave_their_triangles_out_and_bad_meshes_are_refused()
         render_mesh(np.zeros((3, 3)), [[0, 1, 3]])
     with pytest.raises(ValueError, match=r"\(V, 3\)"):
         render_mesh(np.zeros((3, 2)), [[0, 1, 2]])
+    with pytest.raises(ValueError, match="view"):
+        render_mesh(vertices, mesh.faces, view=(0, 0, 0))
+    with pytest.raises(ValueError, match="zoom"):
+        render_mesh(vertices, mesh.faces, zoom=0)
 
 
 def test_the_view_matches_vtks_camera():

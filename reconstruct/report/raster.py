@@ -173,7 +173,8 @@ def render_mesh(
     Raises
     ------
     ValueError
-        For a mesh with no triangle with finite vertices, or indices out of range.
+        For a mesh with no triangle with finite vertices, indices out of range, a zero view
+        direction or a zoom that is not positive.
     """
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
@@ -181,13 +182,18 @@ def render_mesh(
         raise ValueError(f"vertices must be (V, 3), not {v.shape}")
     if len(f) and (f.min() < 0 or f.max() >= len(v)):
         raise ValueError("faces refer to vertices that do not exist")
+    direction = np.asarray(view, np.float64)
+    if direction.shape != (3,) or not np.isfinite(direction).all() or not direction.any():
+        raise ValueError(f"view must be a non-zero direction (x, y, z), not {view}")
+    if not (math.isfinite(zoom) and zoom > 0):
+        raise ValueError(f"zoom must be a positive number, not {zoom}")
     finite = np.isfinite(v).all(axis=1)
     f = f[finite[f].all(axis=1)]
     if not len(f):
         raise ValueError("the mesh has no triangle to draw")
     used = v[np.unique(f)]
     width, height = int(size[0]), int(size[1])
-    eye, forward, right, up, tan_half = _look_at(used, np.asarray(view, np.float64), zoom, width / height)
+    eye, forward, right, up, tan_half = _look_at(used, direction, zoom, width / height)
 
     rgb = np.broadcast_to(np.asarray(CLAY if colours is None else colours, np.float64)[..., :3], v.shape)
     normals = vertex_normals(np.where(finite[:, None], v, 0.0), f)
