@@ -13,6 +13,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "html": ["contact_sheet_picks", "report_html", "write_report_html"],
         "outputs": ["albedo_texture", "albedo_to_srgb8", "normals_to_rgb16", "write_height_tiff", "write_json", "write_normals_png",
                     "write_npy"],
+        "raster": ["render_mesh"],
         "rendering": ["plotter", "render_image"],
         "web": ["export_openlime", "lrgb_planes"],
     },
