@@ -368,6 +368,9 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
         # Where the weights leave too few samples, or samples too close together, the plain
         # fit (a matrix product in the NumPy steps) stands in.
         off = 0 if det[j] > bound[j] else 2 * r
+        # Back to the PTM's coefficients (sol[off:off + r]) and the hemisphere PTM's (the r rows
+        # after), written out: twelve accumulators in registers. A loop over the six through a
+        # work array gave the same bits 4–6 % slower (robust_ptm, 400×600 pixels, one thread).
         a0 = a1 = a2 = a3 = a4 = a5 = 0.0
         q0 = q1 = q2 = q3 = q4 = q5 = 0.0
         for b in range(r):
