@@ -37,6 +37,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Unit vertex normals: the area-weighted mean of the normals of the faces around each
     vertex (zero for a vertex in no face).
 
+    trimesh's ``Trimesh.vertex_normals`` is the same; importing trimesh for it would cost half a
+    second of a run's last stage, which this module exists to save.
+
     Parameters
     ----------
     vertices : ndarray, shape (V, 3)
@@ -196,8 +199,8 @@ def render_mesh(
     eye, forward, right, up, tan_half = _look_at(used, direction, zoom, width / height)
 
     rgb = np.broadcast_to(np.asarray(CLAY if colours is None else colours, np.float64)[..., :3], v.shape)
-    normals = vertex_normals(np.where(finite[:, None], v, 0.0), f)
-    shaded = _shade(np.where(finite[:, None], v, 0.0), normals, rgb, eye, forward, right, up, ambient=ambient,
+    placed = np.where(finite[:, None], v, 0.0)  # a NaN vertex is in no triangle drawn
+    shaded = _shade(placed, vertex_normals(placed, f), rgb, eye, forward, right, up, ambient=ambient,
                     diffuse=diffuse, specular=specular, power=power)
 
     # Drawn at twice the size, then each 2 × 2 block averaged: edges without staircases.
@@ -207,8 +210,8 @@ def render_mesh(
     depth = d @ forward
     scale = (big_h / 2) / tan_half
     with np.errstate(divide="ignore", invalid="ignore"):
-        x = (big_w / 2 + scale * (d @ right) / depth).astype(np.float64)
-        y = (big_h / 2 - scale * (d @ up) / depth).astype(np.float64)
+        x = big_w / 2 + scale * (d @ right) / depth
+        y = big_h / 2 - scale * (d @ up) / depth
     image = np.empty((big_h, big_w, 3), np.float32)
     image[:] = np.asarray(background, np.float32)
     zbuf = np.full((big_h, big_w), np.inf, np.float64)
