@@ -132,7 +132,15 @@ def renders(
     -------
     iterator of ndarray, shape (H, W, 3), uint8
         One image per light, in order.
+
+    Raises
+    ------
+    ValueError
+        For an unknown mode, or a parameter out of its range
+        (:func:`ptmcore.relight.check_parameters`), before any work.
     """
+    # Before the long work (the conversion to LRGB, the maxima), not in the first frame.
+    check_parameters(kd=kd, ks=ks, exponent=exponent, gain=gain)
     if isinstance(ptm, RTIFile):
         if mode != "default":
             raise InputError(f"the {mode} mode needs a PTM; an HSH file renders in the default mode only")
@@ -141,9 +149,6 @@ def renders(
         return (ptm.render(light) for light in lights)
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
-    # Before the long work (the conversion to LRGB, the maxima), not in the first frame.
-    check_parameters(**({"kd": kd, "ks": ks, "exponent": exponent} if mode == "specular" else
-                        {"gain": gain} if mode == "diffuse-gain" else {}))
     coef, rgb = as_lrgb(ptm)
     if mode == "specular":
         # float32, as specular_enhancement finds them itself.
