@@ -27,6 +27,7 @@ from .diskstack import release_rows
 from .errors import InputError, read_input_text
 from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack, linear_to_srgb
 from .lp import as_directions
+from .pixelfit import SINGULAR
 
 #: Samples with ``n·l`` below this are left out: dim, and the most sensitive to the normal's
 #: error and to ambient light. (0.25 was tried: better under a broad gloss and 48 lights down
@@ -319,7 +320,7 @@ def _normal_matrices(outer: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray
     det = np.linalg.det(m)
     count = m6[:, 0] + m6[:, 1] + m6[:, 2]
     # Coplanar lit lights leave the normal along their plane's normal undetermined.
-    ok = det > 1e-6 * np.maximum(count / 3.0, 1e-12) ** 3
+    ok = det > SINGULAR * np.maximum(count / 3.0, 1e-12) ** 3
     m[~ok] = np.eye(3)
     return m, ok
 

@@ -44,6 +44,7 @@ from .normals import (
     shadow_refined_solve,
     store_normals,
 )
+from .pixelfit import SINGULAR
 
 #: Header of a light-position file.
 POSITION_HEADER = ("name", "x", "y", "z")
@@ -257,7 +258,7 @@ def _solve_normal_equations(l: np.ndarray, values: np.ndarray, weights: np.ndarr
     det = np.linalg.det(m)
     # As in ptmcore.normals: relative to the cube of the mean eigenvalue, a small determinant
     # means the used lights are (nearly) coplanar at this pixel.
-    well_posed = det > 1e-6 * np.maximum((np.trace(m, axis1=1, axis2=2) / 3.0) ** 3, 1e-30)
+    well_posed = det > SINGULAR * np.maximum((np.trace(m, axis1=1, axis2=2) / 3.0) ** 3, 1e-30)
     m[~well_posed] = np.eye(3)
     g = np.linalg.solve(m, b[..., None])[..., 0].T  # (3, P)
     g[:, ~well_posed] = 0.0

@@ -15,6 +15,7 @@ import numpy as np
 from .bands import band_rows, run_bands
 from .images import ImageStack
 from .lp import as_directions
+from .pixelfit import SINGULAR
 
 
 def ptm_maximum(
@@ -133,7 +134,7 @@ def _weighted_normal_solve(
     count = m0 + m1 + m2
     # Relative to the cube of the mean eigenvalue, a small determinant means the used lights
     # are (nearly) coplanar: the normal along their plane's normal is undetermined.
-    well_posed = det > 1e-6 * np.maximum((count / 3.0) ** 3, 1e-30)
+    well_posed = det > SINGULAR * np.maximum((count / 3.0) ** 3, 1e-30)
     safe = np.where(well_posed, det, 1.0)
     g = np.stack(
         [

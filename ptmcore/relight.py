@@ -31,7 +31,8 @@ from .fit import evaluate_at, light_matrix
 from .images import LUMA_WEIGHTS
 from .normals import ptm_maximum
 
-__all__ = ["as_lrgb", "check_parameters", "diffuse_gain", "display_srgb", "light_direction", "relight", "specular_enhancement"]
+__all__ = ["as_lrgb", "check_parameters", "diffuse_gain", "display_srgb", "light_angles", "light_direction", "relight",
+           "specular_enhancement"]
 
 #: RTIViewer's default diffuse gain (``DiffuseGain`` constructor; the slider spans 1–10).
 DEFAULT_GAIN = 2.0
@@ -112,6 +113,27 @@ def light_direction(
     a, e = math.radians(az), math.radians(el)
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
+
+
+def light_angles(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Azimuth and elevation of light directions, the angles of :func:`light_direction`.
+
+    Parameters
+    ----------
+    directions : array_like, shape (N, 3) or (3,)
+        Unit vectors towards the lights (x right, y up, z towards the camera).
+
+    Returns
+    -------
+    azimuth_deg : ndarray, shape (N,) or ()
+        Counter-clockwise from +x, in [0, 360): 0° is light from the right, 90° from the top.
+    elevation_deg : ndarray, shape (N,) or ()
+        Above the object plane, −90° to 90° (negative below the horizon).
+    """
+    d = np.asarray(directions, dtype=np.float64)
+    azimuth = np.degrees(np.arctan2(d[..., 1], d[..., 0])) % 360.0
+    elevation = np.degrees(np.arcsin(np.clip(d[..., 2], -1.0, 1.0)))
+    return azimuth, elevation
 
 def _check_ptm(coefficients: np.ndarray, rgb: np.ndarray | None = None) -> np.ndarray:
     """Validate the shapes of an LRGB PTM; return the coefficients as an array."""

@@ -41,6 +41,7 @@ import numba
 import numpy as np
 
 from .lobe import FACTOR_RANGE
+from .pixelfit import SINGULAR
 
 __all__ = ["robust_ps_rows"]
 
@@ -527,7 +528,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                 for j in range(m):
                     w[k, j] = np.float32(1.0) if (v[k, j] > vmax[j]) & usable[k, j] else np.float32(0.0)
             _sums(w, v, basis, m, sums)
-            _solve(sums, zero, r, 1e-6, m, c, ok)
+            _solve(sums, zero, r, SINGULAR, m, c, ok)
             _to_normal(c, m, back3, g32, unit, rho)
             if cone:
                 # Step 2: without the lights whose half vector is near the first normal.
@@ -612,7 +613,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                             keep = (res[k, j] <= hi[j]) & (res[k, j] >= lo[j]) & cand[k, j]
                             w[k, j] = np.float32(1.0) if keep else np.float32(0.0)
                 _sums(w, v, basis, m, sums)
-                _solve(sums, c, r, 1e-6, m, c2, ok2)
+                _solve(sums, c, r, SINGULAR, m, c2, ok2)
                 for j in range(m):
                     if ok2[j]:
                         for a in range(3):

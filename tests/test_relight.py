@@ -6,7 +6,7 @@ import pytest
 
 from ptmcore.fit import fit_ptm, light_matrix
 from ptmcore.normals import normals_from_ptm, ptm_maximum
-from ptmcore.relight import diffuse_gain, light_direction, relight, specular_enhancement
+from ptmcore.relight import diffuse_gain, light_angles, light_direction, relight, specular_enhancement
 
 from helpers import dome, stack_from_luminance
 
@@ -66,6 +66,20 @@ def test_light_direction_from_vectors():
     np.testing.assert_allclose(light_direction(light=(0.0, -1.0)), (0.0, -1.0, 0.0))
     np.testing.assert_allclose(light_direction(light=np.array([0.0, 0.0, 5.0])), (0, 0, 1))
 
+
+
+def test_light_angles_invert_light_direction():
+    azimuths = np.array([0.0, 45.0, 90.0, 135.0, 200.0, 270.0, 359.0])
+    elevations = np.array([0.0, 10.0, 30.0, 45.0, 60.0, 89.0, 5.0])
+    dirs = np.stack([light_direction(azimuth_deg=a, elevation_deg=e) for a, e in zip(azimuths, elevations)])
+    az, el = light_angles(dirs)
+    assert az.shape == el.shape == (7,)
+    np.testing.assert_allclose(az, azimuths, atol=1e-9)
+    np.testing.assert_allclose(el, elevations, atol=1e-9)
+    # One direction, and the conventions: from the top is 90°, from below the image −90° → 270°.
+    assert light_angles((0.0, 1.0, 0.0))[0] == pytest.approx(90.0)
+    assert light_angles((0.0, -S, -S))[0] == pytest.approx(270.0)
+    assert light_angles((0.0, -S, -S))[1] == pytest.approx(-45.0)
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ptmcore.atomic import atomic_write
+from ptmcore.relight import light_angles
 from ptmcore.solvers import LP_PRECISION, RankInfo, analyse_lights, duplicate_groups
 
 __all__ = ["LightReport", "check_lights", "plot_positions", "polar_plot_png", "report_text", "short_labels",
@@ -107,13 +108,6 @@ def _unit(directions: np.ndarray) -> np.ndarray:
     return d / norm
 
 
-def _angles(unit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Elevation and azimuth in degrees, azimuth in [0, 360)."""
-    elev = np.degrees(np.arcsin(np.clip(unit[:, 2], -1.0, 1.0)))
-    azim = np.degrees(np.arctan2(unit[:, 1], unit[:, 0])) % 360.0
-    return elev, azim
-
-
 @functools.lru_cache(maxsize=1)
 def _hemisphere_lattice() -> np.ndarray:
     # Fibonacci lattice with z uniform in (0, 1): on a sphere, equal steps in z enclose equal
@@ -170,7 +164,7 @@ def check_lights(
     unit = _unit(directions)
     n = len(unit)
     info = analyse_lights(unit, precision=precision)
-    elev, azim = _angles(unit)
+    azim, elev = light_angles(unit)
     # Binning to 0.001° keeps a lamp at 30° in the 30–45° bin: sin 30° is not exact in binary,
     # and an .lp file's six decimals can make it read 29.99999°.
     counts, _ = np.histogram(np.round(elev, 3), bins=ELEVATION_EDGES)
@@ -279,7 +273,7 @@ def plot_positions(directions: np.ndarray, size: int) -> np.ndarray:
     ndarray, shape (N, 2)
         x (towards the right) and y (downwards) in pixels.
     """
-    elev, azim = _angles(_unit(directions))
+    azim, elev = light_angles(_unit(directions))
     rho = size * (0.5 - PLOT_MARGIN) * (90.0 - elev) / 90.0
     phi = np.radians(azim)
     return np.stack([size / 2 + rho * np.cos(phi), size / 2 - rho * np.sin(phi)], axis=1)
@@ -378,7 +372,7 @@ def _polar_figure(directions: np.ndarray, names: Sequence[str] | None, title: st
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    elev, azim = _angles(_unit(directions))
+    azim, elev = light_angles(_unit(directions))
     if names is not None and len(names) != len(elev):
         raise ValueError(f"{len(names)} names for {len(elev)} lights")
     labels = short_labels(names) if names is not None else [str(k + 1) for k in range(len(elev))]

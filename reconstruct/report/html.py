@@ -39,6 +39,7 @@ from urllib.parse import quote
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.relight import light_angles
 
 from reconstruct.report import figures, plots, rendering, summary
 
@@ -196,9 +197,7 @@ def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]],
     items = []
     for k in picks:
         path, light = photographs[k]
-        light = np.asarray(light, dtype=np.float64)
-        az = np.degrees(np.arctan2(light[1], light[0])) % 360
-        el = np.degrees(np.arcsin(np.clip(light[2], -1, 1)))
+        az, el = light_angles(light)
         items.append(_figure(figures.encode(thumbs[k], "JPEG"), "image/jpeg",
                              f"{Path(path).name} — light az {az:.0f}°, el {el:.0f}°"))
     shown = f"{len(picks)} of {n} photographs" if len(picks) < n else f"all {n} photographs"
