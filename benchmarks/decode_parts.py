@@ -24,6 +24,8 @@ import sys
 import time
 from pathlib import Path
 
+from procinfo import measured_run
+
 ROOT = Path(__file__).resolve().parents[1]
 
 _CHILD = r"""
@@ -52,12 +54,8 @@ MODES = {
 
 
 def one(mode: str, capture: Path) -> dict:
-    proc = subprocess.Popen([sys.executable, "-c", _CHILD, mode, str(capture)], stdout=subprocess.PIPE, cwd=ROOT,
-                            env={**os.environ, "PYTHONPATH": str(ROOT)})
-    out = proc.stdout.read()
-    _, status, usage = os.wait4(proc.pid, 0)
-    if status != 0:
-        raise SystemExit(f"the {mode} pass failed with status {status}")
+    _, out, usage = measured_run([sys.executable, "-c", _CHILD, mode, str(capture)], stdout=subprocess.PIPE, cwd=ROOT,
+                                 env={**os.environ, "PYTHONPATH": str(ROOT)})
     return {"seconds": float(out), "user_s": usage.ru_utime, "system_s": usage.ru_stime}
 
 

@@ -1,8 +1,13 @@
-"""Machine and memory figures shared by the benchmark scripts (Linux ``/proc``)."""
+"""Machine, memory and process figures shared by the benchmark scripts (Linux ``/proc``,
+``wait4``)."""
 
 from __future__ import annotations
 
+import os
 import platform
+import resource
+import subprocess
+import time
 from pathlib import Path
 
 
@@ -23,3 +28,19 @@ def status_mb(field: str) -> float:
         if line.startswith(field + ":"):
             return int(line.split()[1]) / 1024  # kB
     return float("nan")
+
+
+def measured_run(cmd: list[str], **popen) -> tuple[float, bytes | None, resource.struct_rusage]:
+    """Run a command; its wall seconds, its standard output (with ``stdout=PIPE``) and its
+    resource usage from ``wait4``: CPU times and peak RSS measured from outside the process.
+
+    Raises SystemExit when the command fails.
+    """
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, **popen)
+    out = proc.stdout.read() if proc.stdout is not None else None
+    _, status, usage = os.wait4(proc.pid, 0)
+    seconds = time.perf_counter() - t0
+    if status != 0:
+        raise SystemExit(f"{' '.join(map(str, cmd[:3]))} … failed with status {status}")
+    return seconds, out, usage

@@ -41,6 +41,7 @@ from data_synthetic.render import render  # noqa: E402
 from data_synthetic.surfaces import SCENES  # noqa: E402
 from ptmcore.images import read_image  # noqa: E402
 from ptmcore.lp import write_lp  # noqa: E402
+from procinfo import measured_run  # noqa: E402
 
 PIXEL_SIZE = 0.02
 
@@ -77,12 +78,7 @@ def full_run(capture: Path, out: Path, threads: int, numba_cache: Path) -> dict:
     # numba's compiled kernels are cached here: an empty folder is the first run after
     # installation (compilation included), a filled one every later run.
     env = {**os.environ, "NUMBA_CACHE_DIR": str(numba_cache)}
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=env)
-    _, status, usage = os.wait4(proc.pid, 0)
-    seconds = time.perf_counter() - t0
-    if status != 0:
-        raise SystemExit(f"reconstruct run failed with status {status}")
+    seconds, _, usage = measured_run(cmd, stdout=subprocess.DEVNULL, env=env)
     report = json.loads((out / "report.json").read_text())
     # The whole run's peak from outside (wait4); the per-stage peaks in report.json are the
     # resident memory the run sampled while each stage ran.
