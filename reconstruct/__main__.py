@@ -1,5 +1,5 @@
 """``python -m reconstruct``: the ``reconstruct`` command."""
 
-from reconstruct.cli.main import console
+from reconstruct.cli.console import console
 
 console()

@@ -84,6 +84,32 @@ def test_sigterm_stops_cleanly(capture, tmp_path, delay):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
 
 
+
+@pytest.mark.parametrize(("delay", "again"), [(0.2, None), (0.3, None), (0.5, None), (0.8, None),
+                                              (0.5, 0.0), (0.7, 0.02), (0.9, 0.05), (1.1, 0.01)])
+def test_ctrl_c_once_or_twice_stops_cleanly(capture, tmp_path, delay, again):
+    # Ctrl-C at any moment from the command's imports to the report (in the interpreter's own
+    # start, its first hundredths of a second, Python prints a traceback), and a second one soon
+    # after, while the first one's clean-up runs.
+    out = tmp_path / "out"
+    assert _run(capture, out).wait() == 0
+    old = _state(out)
+    proc = _run(capture, out, "--hsh")
+    time.sleep(delay)
+    proc.send_signal(signal.SIGINT)
+    if again is not None:
+        time.sleep(again)
+        proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    if proc.returncode == 0:
+        pytest.skip("the run finished before Ctrl-C")
+    # Before Python's own handler exists the signal's default action ends the process.
+    assert proc.returncode in (130, -signal.SIGINT), err
+    assert "Traceback" not in err
+    assert err in ("", "reconstruct: interrupted\n"), err
+    assert _state(out) in (old, (old[0] | {"coefficients.rti"}, True))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
+
 def test_two_runs_on_one_folder(capture, tmp_path):
     out = tmp_path / "out"
     first = _run(capture, out)

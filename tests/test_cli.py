@@ -103,6 +103,49 @@ def test_console_script_exit_status(capture, tmp_path):
     assert "capture folder not found" in r.stderr
 
 
+
+@pytest.fixture
+def python_ctrl_c():
+    """The command's Ctrl-C handling is set up only over Python's own handler."""
+    import signal
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("Ctrl-C is not Python's default handler in this process")
+    return signal
+
+
+def test_a_second_ctrl_c_ends_the_command_at_once(python_ctrl_c):
+    from reconstruct.cli import main as cli_main
+
+    signal = python_ctrl_c
+    hook = sys.unraisablehook
+    with cli_main._signal_handlers():
+        assert signal.getsignal(signal.SIGINT) is cli_main._interrupt
+        with pytest.raises(KeyboardInterrupt):
+            cli_main._interrupt(signal.SIGINT, None)  # the first: unwinds
+        assert signal.getsignal(signal.SIGINT) is cli_main._terminate  # the second: at once
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert sys.unraisablehook is hook
+
+
+def test_ctrl_c_lost_in_a_finaliser_is_delivered_again(python_ctrl_c, capsys):
+    # Python does not raise an exception from a finaliser: it prints it ("Exception ignored")
+    # and goes on, so a Ctrl-C that lands in a weakref callback or __del__ would be lost.
+    import time
+
+    from reconstruct.cli import main as cli_main
+
+    class Finalised:
+        def __del__(self):
+            raise KeyboardInterrupt
+
+    with cli_main._signal_handlers():
+        with pytest.raises(KeyboardInterrupt):
+            Finalised()
+            for _ in range(100):  # the interrupt, delivered again, lands here
+                time.sleep(0.01)
+    assert "Exception ignored" not in capsys.readouterr().err
+
 # --- bad input -------------------------------------------------------------------------------
 
 def test_missing_image(capture, tmp_path, capsys):
