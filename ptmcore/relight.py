@@ -114,7 +114,6 @@ def light_direction(
     return np.array([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
 
 
-
 def light_angles(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Azimuth and elevation of light directions, the angles of :func:`light_direction`.
 
@@ -134,6 +133,7 @@ def light_angles(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     azimuth = np.degrees(np.arctan2(d[..., 1], d[..., 0])) % 360.0
     elevation = np.degrees(np.arcsin(np.clip(d[..., 2], -1.0, 1.0)))
     return azimuth, elevation
+
 
 def _check_ptm(coefficients: np.ndarray, rgb: np.ndarray | None = None) -> np.ndarray:
     """Validate the shapes of an LRGB PTM; return the coefficients as an array."""
