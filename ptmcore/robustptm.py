@@ -23,7 +23,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .bands import run_bands
-from .fit import PTM, fit_matrix, light_matrix
+from .fit import PTM, evaluate_at, fit_matrix, light_matrix
 from .images import ImageStack
 from .lp import as_directions
 from .pixelfit import blocked_matmul, orthonormal_basis, weighted_fit
@@ -261,7 +261,7 @@ def robust_ptm(
             res = np.subtract(v, pred, out=pred)
             # The polynomial's value at the normal stands in for ρ in the scale's floor.
             lu, lv = unit[0].astype(np.float64), unit[1].astype(np.float64)
-            rho = np.abs(a[0] * lu * lu + a[1] * lv * lv + a[2] * lu * lv + a[3] * lu + a[4] * lv + a[5])
+            rho = np.abs(evaluate_at(a.T, lu, lv))
             weights = reweight(opt, res, candidates, weights, False, basis.rank, rho)
             (c, cz), _ = weighted_fit(basis, v, weights, [c, cz])
         a = blocked_matmul(basis.back, c)
