@@ -518,8 +518,7 @@ def mesh_render(
     vertices = np.array(vertices, np.float64)
     vertices[:, 2] *= exaggeration
     try:
-        # From the front (−y) and a little to the right, 40° above the object plane.
-        return render_mesh(vertices, faces, colours, size, view=(0.35, -0.75, 0.85), zoom=1.2)
+        return render_mesh(vertices, faces, colours, size)  # its view: obliquely from the front
     except ValueError as exc:
         raise RuntimeError(f"cannot render the mesh ({exc})") from exc
 

@@ -162,6 +162,8 @@ def render_mesh(
     view : (float, float, float)
         Direction from the mesh's centre towards the eye; the camera stands back until the
         mesh's bounding sphere fills the view, then zooms by ``zoom``. z is up on the screen.
+        The default, the report's: from the front (−y) and a little to the right, about 46°
+        above the object plane.
     zoom : float
         Magnification after fitting the bounding sphere (VTK's ``camera.zoom``).
     ambient, diffuse, specular, power : float

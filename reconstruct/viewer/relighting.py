@@ -141,14 +141,14 @@ def renders(
     """
     # Before the long work (the conversion to LRGB, the maxima), not in the first frame.
     check_parameters(kd=kd, ks=ks, exponent=exponent, gain=gain)
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
     if isinstance(ptm, RTIFile):
         if mode != "default":
             raise InputError(f"the {mode} mode needs a PTM; an HSH file renders in the default mode only")
         return (ptm.render(light) for light in lights)
     if mode == "default" and not ptm.is_lrgb:
         return (ptm.render(light) for light in lights)
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
     coef, rgb = as_lrgb(ptm)
     if mode == "specular":
         # float32, as specular_enhancement finds them itself.
