@@ -80,3 +80,11 @@ def run_cli(argv, capsys):
     code = main([str(a) for a in argv])
     out = capsys.readouterr()
     return code, out.out, out.err
+
+
+def bmp_header(path, width: int, height: int) -> None:
+    """A 24-bit BMP that claims ``width × height`` pixels and holds 16 bytes of them."""
+    import struct
+
+    info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
+    path.write_bytes(b"BM" + struct.pack("<IHHI", 54 + 16, 0, 0, 54) + info + b"\0" * 16)

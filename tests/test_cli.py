@@ -13,7 +13,7 @@ import tifffile
 from reconstruct.cli.main import main
 from ptmcore.lp import write_lp
 
-from helpers import dome, sphere_normals, run_cli as _run
+from helpers import bmp_header, dome, sphere_normals, run_cli as _run
 
 
 def _make_capture(folder: Path, n: int = 12, h: int = 40, w: int = 48, ext: str = "tif") -> Path:
@@ -165,11 +165,8 @@ def test_corrupt_image(capture, tmp_path, capsys):
 def test_a_photograph_larger_than_pillows_guard_is_read_as_any_other(capture, tmp_path, capsys):
     """The command lifts Pillow's 179-megapixel refusal (ptmcore.images.allow_large_images):
     a BMP photograph claiming 195 megapixels gets as far as its missing pixels."""
-    import struct
-
-    info = struct.pack("<IiiHHIIiiII", 40, 15000, 13000, 1, 24, 0, 0, 2835, 2835, 0, 0)
     (capture / "img 04.tif").unlink()
-    (capture / "img 04.bmp").write_bytes(b"BM" + struct.pack("<IHHI", 70, 0, 0, 54) + info + bytes(16))
+    bmp_header(capture / "img 04.bmp", 15000, 13000)
     lp = capture / "lights.lp"
     lp.write_text(lp.read_text().replace("img 04.tif", "img 04.bmp"))
     code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)

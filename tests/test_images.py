@@ -7,6 +7,8 @@ from PIL import Image
 from ptmcore.errors import InputError
 from ptmcore.images import SATURATED, linear_to_srgb, load_stack, read_image, srgb_to_linear
 
+from helpers import bmp_header
+
 
 def _rgb16(h=6, w=7, seed=0):
     return (np.random.default_rng(seed).random((h, w, 3)) * 60000).astype(np.uint16)
@@ -136,14 +138,6 @@ def test_a_header_claiming_too_many_pixels_is_refused_before_decoding(tmp_path):
         read_image(png)
 
 
-def _bmp_header(path, width: int, height: int) -> None:
-    """A 24-bit BMP that claims ``width × height`` pixels and holds 16 bytes of them."""
-    import struct
-
-    info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
-    path.write_bytes(b"BM" + struct.pack("<IHHI", 54 + 16, 0, 0, 54) + info + b"\0" * 16)
-
-
 def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path):
     """Pillow's own guard (a warning above 89 megapixels, a refusal above 179) stood before
     MAX_PIXELS for the formats read through it: a 150-megapixel camera's photographs printed
@@ -153,8 +147,8 @@ def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path):
     from ptmcore.images import MAX_PIXELS, allow_large_images
 
     large, larger = tmp_path / "large.bmp", tmp_path / "larger.bmp"
-    _bmp_header(large, 10000, 10000)
-    _bmp_header(larger, 15000, 13000)
+    bmp_header(large, 10000, 10000)
+    bmp_header(larger, 15000, 13000)
     with pytest.raises(InputError, match="more pixels than Pillow reads.*allow_large_images"):
         read_image(larger)
     with warnings.catch_warnings(record=True) as seen:
@@ -167,12 +161,12 @@ def test_pillow_reads_what_this_program_reads_once_allowed(tmp_path):
         # Between half this program's limit and the limit, Pillow would still warn on opening
         # (opened only: decoding would take 2.4 GB).
         huge = tmp_path / "huge.bmp"
-        _bmp_header(huge, 25000, 24000)
+        bmp_header(huge, 25000, 24000)
         with Image.open(huge) as im:
             assert im.size == (25000, 24000)
     assert not [w for w in seen if issubclass(w.category, Image.DecompressionBombWarning)]
     assert Image.MAX_IMAGE_PIXELS * 2 == MAX_PIXELS
     # Beyond this program's limit Pillow still refuses, before allocating.
-    _bmp_header(larger, 40000, 40000)
+    bmp_header(larger, 40000, 40000)
     with pytest.raises(InputError, match=r"more pixels than Pillow reads \(a corrupt header, or a decompression bomb\)$"):
         read_image(larger)
