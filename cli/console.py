@@ -16,6 +16,12 @@ import sys
 EXIT_INTERRUPTED = 130
 
 
+def interrupted() -> int:
+    """Say that Ctrl-C stopped the command; its exit status."""
+    print("reconstruct: interrupted", file=sys.stderr, flush=True)
+    return EXIT_INTERRUPTED
+
+
 def console() -> None:
     """Run :func:`reconstruct.cli.main.main`, then exit at once with its status.
 
@@ -30,8 +36,7 @@ def console() -> None:
 
         code = main()
     except KeyboardInterrupt:  # before main() handles it itself: nothing is staged yet
-        print("reconstruct: interrupted", file=sys.stderr)
-        code = EXIT_INTERRUPTED
+        code = interrupted()
     sys.stdout.flush()
     sys.stderr.flush()
     os._exit(code)

@@ -19,7 +19,7 @@ from pathlib import Path
 
 from ptmcore.errors import InputError
 from ptmcore.images import allow_large_images
-from reconstruct.cli.console import EXIT_INTERRUPTED
+from reconstruct.cli.console import interrupted
 from reconstruct.cli.parser import build_parser
 from reconstruct.report.summary import unit_words
 
@@ -490,8 +490,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"reconstruct: error: {exc}", file=sys.stderr)
             return EXIT_BAD_INPUT
         except KeyboardInterrupt:
-            print("reconstruct: interrupted", file=sys.stderr)
-            return EXIT_INTERRUPTED
+            return interrupted()
         except BrokenPipeError:
             # Output piped into a command that stopped reading (`| head`): not an error.
             sys.stderr.close()
@@ -508,8 +507,7 @@ def _terminate(signum: int, frame) -> None:
 
     abandon_runs()
     if signum == signal.SIGINT:
-        print("reconstruct: interrupted", file=sys.stderr, flush=True)
-        os._exit(EXIT_INTERRUPTED)
+        os._exit(interrupted())
     print("reconstruct: stopped (SIGTERM); output folders keep their earlier results", file=sys.stderr, flush=True)
     os._exit(EXIT_TERMINATED)
 
