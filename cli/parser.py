@@ -438,12 +438,14 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    "%g to %g (default 200)" % BOUNDS["flatten_cutoff"])
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
     p.add_argument("--threads", type=_positive_int,
-                   help="threads for decoding, the per-pixel fits and writing files (default: all CPUs)")
+                   help="threads for decoding, the per-pixel fits, the integration and writing files (default: every CPU "
+                        "this process may use: its affinity and its container's CPU quota)")
     p.add_argument("--memory-limit", type=_positive_float, metavar="MB",
                    help="memory the run may use: the photographs' stack stays in memory when the run fits "
                         "in it, else it goes to a temporary file beside the output folder. Default: a stack of "
                         f"{STACK_FILE_MB} MB or more always goes to the file (measured as fast), a smaller one when "
-                        "the run would not fit in the memory available")
+                        "the run would not fit in the memory available (in a Slurm job or a container: what its "
+                        "memory cgroup has left)")
     p.add_argument("--ground-truth", type=_path, metavar="DIR", help="folder with normals.npy (and mask.png, height.npy) to report accuracy")
     p.add_argument("--light-positions", default=default(RunOptions, "light_positions"), metavar="FILE|auto|none",
                    help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "

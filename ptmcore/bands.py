@@ -7,9 +7,10 @@ releases the GIL in that work, so bands run in threads without copying the stack
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+
+from .resources import cpu_count
 
 #: Default memory for one band of the stack as float32.
 BAND_BYTES = 32 << 20
@@ -44,7 +45,7 @@ def run_bands(
         Called with the number of rows of each finished band.
     """
     bands = [(r0, min(height, r0 + rows)) for r0 in range(0, height, rows)]
-    workers = min(len(bands), threads or os.cpu_count() or 1)
+    workers = min(len(bands), threads or cpu_count())
 
     def one(band: tuple[int, int]) -> int:
         work(*band)

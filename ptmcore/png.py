@@ -21,6 +21,7 @@ from typing import BinaryIO
 import numpy as np
 
 from .atomic import atomic_write
+from .resources import cpu_count
 
 __all__ = ["encode_png", "write_png"]
 
@@ -29,7 +30,7 @@ __all__ = ["encode_png", "write_png"]
 _PNG_BAND_BYTES = 4 << 20
 # Threads for PNG encoding (zlib and NumPy leave the GIL), and bands compressed ahead of the
 # one being written.
-_PNG_WORKERS = min(4, os.cpu_count() or 1)
+_PNG_WORKERS = min(4, cpu_count())
 _PNG_AHEAD = 2 * _PNG_WORKERS
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ADLER_BASE = 65521

@@ -35,13 +35,14 @@ for compilation.
 
 from __future__ import annotations
 
-import os
 from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numba
 import numpy as np
+
+from .resources import cpu_count
 
 __all__ = ["coefficient_range", "encode_ptm", "lrgb_plane_codes"]
 
@@ -178,7 +179,7 @@ def _bands(height: int, rows: int) -> list[tuple[int, int]]:
 
 
 def _workers(threads: int | None, tasks: int) -> int:
-    return max(1, min(tasks, threads or os.cpu_count() or 1))
+    return max(1, min(tasks, threads or cpu_count()))
 
 
 def _per_coefficient(block: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ptmcore.errors import InputError
+from ptmcore.resources import available_memory_mb, cpu_count
 from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
 from reconstruct.batch.runner import choose_workers, run_object
 from reconstruct.batch.sources import discover, read_manifest
@@ -75,12 +76,6 @@ def collect_items(sources: list[str | os.PathLike], options: RunOptions, manifes
     return items
 
 
-def _available_mb() -> float:
-    import psutil
-
-    return psutil.virtual_memory().available / 2**20
-
-
 def _wait_for_a_worker(client, timeout: float = 60.0) -> None:
     """An existing cluster may still be starting its workers (a Slurm job in the queue)."""
     try:
@@ -113,8 +108,8 @@ def _client(client, scheduler: str | None, items: list[BatchItem], workers: int 
             _wait_for_a_worker(remote)
             yield remote, 1
         return
-    cores = os.cpu_count() or 1
-    n = workers or choose_workers(items, cores, _available_mb())
+    cores = cpu_count()
+    n = workers or choose_workers(items, cores, available_memory_mb())
     threads = max(1, cores // n)
     # Worker processes isolate crashes and memory; the nanny restarts a worker the operating
     # system killed. One Dask thread each: an object's own threads do the parallel work.

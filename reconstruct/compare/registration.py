@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from ptmcore.errors import InputError
+from ptmcore.resources import cpu_count
 from reconstruct.compare.geometry import Geometry, estimate_normals, point_cloud, vertex_normals
 
 # open3d is imported on use, so that importing the package does not need it.
@@ -170,7 +171,7 @@ def _similarity_icp(source: np.ndarray, target: np.ndarray, target_normals: np.n
     transform = init.copy()
     for _ in range(iterations):
         moved = source @ transform[:3, :3].T + transform[:3, 3]
-        dist, idx = tree.query(moved, distance_upper_bound=max_distance, workers=-1)
+        dist, idx = tree.query(moved, distance_upper_bound=max_distance, workers=cpu_count())
         ok = np.isfinite(dist)
         if np.count_nonzero(ok) < 7:
             break
@@ -213,7 +214,7 @@ class _Judge:
                          [0.5 * self.voxel]).transformation
         moved = np.asarray(self.sample.points) @ transform[:3, :3].T + transform[:3, 3]
         dist, idx = self.tree.query(moved, distance_upper_bound=1.5 * self.voxel,
-                                    workers=-1)
+                                    workers=cpu_count())
         ok = np.isfinite(dist)
         if not np.any(ok):
             return transform, (0.0, float("inf"))
@@ -233,7 +234,7 @@ def _overlap(points: np.ndarray, transform: np.ndarray, target: _Cloud,
     spacing to every distance)."""
     ref, normals = np.asarray(target.points), np.asarray(target.normals)
     moved = points @ transform[:3, :3].T + transform[:3, 3]
-    dist, idx = cKDTree(ref).query(moved, distance_upper_bound=distance, workers=-1)
+    dist, idx = cKDTree(ref).query(moved, distance_upper_bound=distance, workers=cpu_count())
     ok = np.isfinite(dist)
     if not np.any(ok):
         return 0.0, float("inf")

@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ptmcore.errors import InputError
+from ptmcore.resources import cpu_count
 from reconstruct.compare.registration import Alignment
 from reconstruct.compare.geometry import Geometry, estimate_normals
 from reconstruct.mesh.topology import boundary_edges, edge_keys
@@ -118,13 +119,13 @@ def _cloud_distances(points_ref: np.ndarray, normals_ref: np.ndarray,
     """Point-to-plane distance to the nearest reference point, and whether it is beyond the
     edge of the reference (its tangential offset is larger than the point spacing)."""
     tree = cKDTree(points_ref)
-    _, idx = tree.query(points, workers=-1)
+    _, idx = tree.query(points, workers=cpu_count())
     offset = points - points_ref[idx]
     n = normals_ref[idx]
     signed = np.einsum("ij,ij->i", offset, n)
     tangential = np.linalg.norm(offset - signed[:, None] * n, axis=1)
     spacing_sample = points_ref[:: max(1, len(points_ref) // 20000)]
-    spacing = np.median(tree.query(spacing_sample, k=2, workers=-1)[0][:, 1])
+    spacing = np.median(tree.query(spacing_sample, k=2, workers=cpu_count())[0][:, 1])
     return signed, tangential > 2.0 * spacing
 
 

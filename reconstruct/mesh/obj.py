@@ -22,6 +22,7 @@ from PIL import Image
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.png import encode_png
+from ptmcore.resources import cpu_count
 from reconstruct.mesh import objtext
 from reconstruct.mesh.grid import GridMesh, _as_rgb
 from reconstruct.mesh.ply import _check_comment
@@ -33,7 +34,7 @@ _TEXT_CHUNK = 100_000
 # Threads for OBJ export (the text kernels and zlib release the GIL; beyond a few threads,
 # writing the file is the limit), and chunks of text formatted ahead of the one being
 # written, which bounds the memory they hold.
-_WORKERS = min(4, os.cpu_count() or 1)
+_WORKERS = min(4, cpu_count())
 _AHEAD = 2 * _WORKERS
 
 

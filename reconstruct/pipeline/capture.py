@@ -27,6 +27,7 @@ from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
 from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
+from ptmcore.resources import available_memory_mb
 from ptmcore.solvers import RankInfo, analyse_lights
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
@@ -361,9 +362,7 @@ def plan_stack(paths: Sequence[Path], opt: RunOptions) -> StackPlan | None:
     if opt.memory_limit is not None:
         limit = opt.memory_limit
     else:
-        import psutil
-
-        limit = psutil.virtual_memory().available / 2**20
+        limit = available_memory_mb()
     short = stack + rest > limit
     return StackPlan(stack, rest, short, short or (opt.memory_limit is None and stack >= STACK_FILE_MB))
 

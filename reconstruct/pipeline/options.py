@@ -250,15 +250,16 @@ class RunOptions:
         its albedo and normals (:func:`reconstruct.surface.foreground_mask`); height and mesh
         are restricted to it.
     threads : int or None
-        Threads decoding the photographs, running the per-pixel fits and writing the files
-        (default: all CPUs).
+        Threads decoding the photographs, running the per-pixel fits, integrating and writing
+        the files (default: every CPU the process may use, :func:`ptmcore.resources.cpu_count`).
     memory_limit : float or None
         Megabytes the run may hold in memory: the stack stays in memory when the whole run fits
         in it, else it is a memory-mapped file in the staging folder whose pages leave the
         process band by band (:mod:`ptmcore.diskstack`). Default (None): a stack of
         ``STACK_FILE_MB`` (256 MB) or more always goes to the file, a smaller one when the run
-        would not fit in the memory available
-        (:func:`reconstruct.pipeline.capture.plan_stack`).
+        would not fit in the memory available (:func:`ptmcore.resources.available_memory_mb`:
+        a cluster job's or container's cgroup included;
+        :func:`reconstruct.pipeline.capture.plan_stack`).
     ground_truth : Path or None
         Folder with ``normals.npy`` (and ``mask.png``, ``height.npy``) to measure accuracy;
         default: ``CAPTURE/ground_truth`` when it exists.

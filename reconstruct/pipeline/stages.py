@@ -42,6 +42,7 @@ from ptmcore import (
     robust_ptm,
     write_ptm,
 )
+from ptmcore.resources import cpu_count
 from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from reconstruct.calibration.camera import parse_intrinsics
 from reconstruct.mesh.grid import GridMesh, grid_mesh
@@ -348,12 +349,14 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     to the object's median).
     """
     method, why = _integrator(options.integrator, mask)
+    workers = options.threads or cpu_count()  # scipy.fft's -1 would be every CPU of the machine
     if options.intrinsics is not None:  # RunOptions refuses fc with intrinsics
         camera = parse_intrinsics(options.intrinsics)
-        height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance)
+        height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance,
+                                       workers=workers)
         unit = "mm" if options.distance else "relative depth"
     else:
-        height = integrate(normals, method, mask=mask, pixel_size=options.pixel_size or 1.0)
+        height = integrate(normals, method, mask=mask, pixel_size=options.pixel_size or 1.0, workers=workers)
         unit = "mm" if options.pixel_size else "pixel"
     if options.flatten is not None:
         extra = {"cutoff_px": options.flatten_cutoff} if options.flatten == "highpass" else {}

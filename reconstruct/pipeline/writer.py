@@ -15,10 +15,11 @@ removed.
 
 from __future__ import annotations
 
-import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+
+from ptmcore.resources import cpu_count
 
 __all__ = ["FileWriter"]
 
@@ -41,7 +42,7 @@ class FileWriter:
     """
 
     def __init__(self, threads: int | None = None) -> None:
-        self._pool = ThreadPoolExecutor(max_workers=max(1, threads or os.cpu_count() or 1),
+        self._pool = ThreadPoolExecutor(max_workers=max(1, threads or cpu_count()),
                                         thread_name_prefix="reconstruct-write")
         self._jobs: list[tuple[tuple[str, ...], Future]] = []
         self._lock = threading.Lock()

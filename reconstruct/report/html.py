@@ -40,6 +40,7 @@ import numpy as np
 
 from ptmcore.atomic import atomic_write
 from ptmcore.relight import light_angles
+from ptmcore.resources import cpu_count
 
 from reconstruct.report import figures, plots, rendering, summary
 
@@ -192,7 +193,7 @@ def _contact_sheet(photographs: Sequence[tuple[Path, np.ndarray]],
     if missing:
         # Entropy decoding dominates even at an eighth of the size (0.15 s for a 24-megapixel
         # JPEG), and Pillow leaves the GIL while it decodes: the photographs go in parallel.
-        with ThreadPoolExecutor(max_workers=min(len(missing), os.cpu_count() or 1, 4)) as pool:
+        with ThreadPoolExecutor(max_workers=min(len(missing), cpu_count(), 4)) as pool:
             thumbs.update(zip(missing, pool.map(lambda k: figures.photograph_thumbnail(photographs[k][0]), missing)))
     items = []
     for k in picks:

@@ -13,12 +13,12 @@ arithmetic in the same order, so the heights are the same to the last bit (teste
 from __future__ import annotations
 
 import math
-import os
 
 import numba
 import numpy as np
 
 from ptmcore.bands import run_bands
+from ptmcore.resources import cpu_count
 from reconstruct.surface.fourier import checked_normals
 
 __all__ = ["divergence_from_normals", "divide_by_eigenvalues"]
@@ -111,7 +111,7 @@ def _threads(workers: int | None) -> int:
     """scipy.fft's ``workers`` as a thread count: −1 (or any negative) all CPUs, None one."""
     if workers is None:
         return 1
-    return (os.cpu_count() or 1) if workers < 0 else max(1, workers)
+    return cpu_count() if workers < 0 else max(1, workers)
 
 
 def divergence_from_normals(
