@@ -1,7 +1,8 @@
 """Speed of the scan comparison: a 1-million-point scan against a 2-million-triangle mesh.
 
 The synthetic tablet's true height on a 1000×1000 grid (about 2 million triangles) is the
-reconstruction; a synthetic laser scan of 1 million points (0.02 mm noise, moved by a random
+reconstruction, written and read back as a run's textured ``mesh.ply`` (``reconstruct compare
+OUT scan`` reads it so); a synthetic laser scan of 1 million points (0.02 mm noise, moved by a random
 rigid transform) is aligned to it and its distances measured, as ``reconstruct compare`` does.
 Reports the time and the process's peak memory of each stage, and the alignment error against
 the known transform. Target: the comparison in ≤ 20 s.
@@ -14,6 +15,7 @@ from __future__ import annotations
 import os
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,18 +25,24 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from data_synthetic.scan import sample_scan  # noqa: E402
 from data_synthetic.surfaces import SCENES  # noqa: E402
-from reconstruct.compare import Geometry, align, distances  # noqa: E402
+from reconstruct.compare import Geometry, align, distances, load_geometry  # noqa: E402
 from reconstruct.mesh.grid import grid_mesh  # noqa: E402
+from reconstruct.mesh.ply import write_ply  # noqa: E402
 from reconstruct.pipeline.profiling import StageTimer  # noqa: E402
 
 
 def main() -> None:
     surface = SCENES["tablet"]((1000, 1000), pixel_size=0.08, seed=0)
-    mesh = grid_mesh(surface.height, pixel_size=surface.pixel_size)
-    rec = Geometry(mesh.vertices.astype(np.float64), mesh.faces)
+    texture = np.full((*surface.height.shape, 3), 128, np.uint8)
+    mesh = grid_mesh(surface.height, texture=texture, pixel_size=surface.pixel_size,
+                     normals=surface.normals.astype(np.float32))
     points, transform = sample_scan(surface, 1_000_000, seed=1)
     scan = Geometry(points.astype(np.float64))
     timer = StageTimer()
+    with tempfile.TemporaryDirectory() as folder:
+        write_ply(Path(folder) / "mesh.ply", mesh, texture_file="mesh_texture.png")
+        with timer.stage("read"):
+            rec = load_geometry(Path(folder) / "mesh.ply")
     with timer.stage("align"):
         alignment = align(rec, scan)
     with timer.stage("distances"):

@@ -192,6 +192,23 @@ def test_mesh_and_cloud_formats(tmp_path: Path) -> None:
     assert not geometry.is_mesh and len(geometry.points) == 8
 
 
+def test_textured_ply_keeps_its_vertices(tmp_path: Path) -> None:
+    # Two triangles sharing an edge whose vertices have other texture coordinates in each face
+    # (a seam, as MeshLab writes per-face texcoords): the geometry is 4 vertices, not 6.
+    header = ("ply\nformat ascii 1.0\ncomment TextureFile t.png\nelement vertex 4\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "element face 2\nproperty list uchar int vertex_indices\n"
+              "property list uchar float texcoord\nend_header\n")
+    body = ("0 0 0\n1 0 0\n1 1 0\n0 1 1\n"
+            "3 0 1 2 6 0 0 0.5 0 0.5 0.5\n"
+            "3 0 2 3 6 0.6 0 0.9 0.5 0.6 1\n")
+    path = tmp_path / "seam.ply"
+    path.write_text(header + body)
+    geometry = load_geometry(path)
+    assert geometry.is_mesh and len(geometry.points) == 4
+    np.testing.assert_array_equal(np.sort(geometry.faces, axis=1), [[0, 1, 2], [0, 2, 3]])
+
+
 # ------------------------------------------------------------------------------- bad input
 
 

@@ -201,8 +201,12 @@ def _read_open3d_cloud(path: Path) -> tuple[np.ndarray, None, np.ndarray | None]
 def _read_trimesh(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     import trimesh
 
+    # Only the geometry is compared: trimesh would split a textured PLY's vertices where their
+    # texture coordinates differ (4 of the 5 s it took to read a 24-megapixel run's mesh.ply),
+    # and decode the texture image.
+    options = {"fix_texture": False, "skip_materials": True} if path.suffix.lower() == ".ply" else {}
     try:
-        loaded = trimesh.load(str(path), process=False)
+        loaded = trimesh.load(str(path), process=False, **options)
     except Exception as exc:  # trimesh raises many kinds for a malformed file
         raise InputError(f"not a readable mesh or point cloud ({exc})", path) from None
     if isinstance(loaded, trimesh.Scene):
