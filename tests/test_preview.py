@@ -188,6 +188,27 @@ def test_profile_on_a_mesh_file_matches_the_height_map(folder, scene):
     assert np.abs(found[both] - expected[both]).mean() < 2e-3
 
 
+def test_a_mesh_file_keeps_its_own_normals_and_texture(tmp_path):
+    # A run's mesh.ply carries the measured normals, which the triangles cannot give (here a
+    # flat grid whose normals lean 37° to the right); its per-vertex texture is sampled as is.
+    from reconstruct.mesh.grid import grid_mesh
+    from reconstruct.mesh.ply import write_ply
+    from ptmcore.png import write_png
+
+    h, w = 6, 8
+    texture = np.zeros((h, w, 3), np.uint8)
+    texture[..., 0] = np.arange(w) * 30
+    normals = np.broadcast_to(np.float32([0.6, 0.0, 0.8]), (h, w, 3))
+    mesh = grid_mesh(np.zeros((h, w), np.float32), texture=texture, pixel_size=0.1, normals=normals)
+    write_ply(tmp_path / "mesh.ply", mesh, texture_file="mesh_texture.png")
+    write_png(tmp_path / "mesh_texture.png", texture)
+    scene = load_scene(tmp_path / "mesh.ply")
+    assert len(scene.vertices) == h * w
+    np.testing.assert_allclose(scene.normals, np.broadcast_to([0.6, 0.0, 0.8], (h * w, 3)), atol=1e-5)
+    columns = np.round(scene.vertices[:, 0] / 0.1).astype(int)
+    np.testing.assert_allclose(scene.albedo[:, 0], columns * 30, atol=2)
+
+
 def test_distance_between_points():
     assert distance((0, 0, 0), (3, 4, 12)) == pytest.approx(13.0)
 
