@@ -40,8 +40,8 @@ sys.path.insert(0, str(ROOT))
 from procinfo import cpu_model, measured_run  # noqa: E402
 from speed import PIXEL_SIZE, make_capture  # noqa: E402
 
-#: The README's figures for a run's peak beyond its stack (``reconstruct.pipeline.capture``).
-from reconstruct.pipeline.capture import _BASE_MB, _BYTES_PER_PIXEL  # noqa: E402
+from reconstruct.pipeline import RunOptions  # noqa: E402
+from reconstruct.pipeline.capture import plan_stack  # noqa: E402
 
 
 class MemoryCgroup:
@@ -51,23 +51,21 @@ class MemoryCgroup:
     def __init__(self, limit_mb: int) -> None:
         self.path: Path | None = None
         self.why_not = ""
-        name = f"ptm-bench-{os.getpid()}"
-        unified = Path("/sys/fs/cgroup")
-        if (unified / "cgroup.controllers").exists():
-            candidates = [(unified / name, "memory.max", "memory.peak")]
+        root = Path("/sys/fs/cgroup")
+        if (root / "cgroup.controllers").exists():  # v2
+            path, limit_file, self.peak_file = root / f"ptm-bench-{os.getpid()}", "memory.max", "memory.peak"
         else:
-            candidates = [(unified / "memory" / name, "memory.limit_in_bytes", "memory.max_usage_in_bytes")]
-        for path, limit_file, peak_file in candidates:
-            try:
-                path.mkdir()
-                (path / limit_file).write_text(str(limit_mb << 20))
-            except OSError as exc:
-                self.why_not = f"no memory cgroup ({path}: {exc.strerror})"
-                if path.is_dir():
-                    path.rmdir()
-                continue
-            self.path, self.peak_file = path, peak_file
+            path, limit_file, self.peak_file = (root / "memory" / f"ptm-bench-{os.getpid()}", "memory.limit_in_bytes",
+                                                "memory.max_usage_in_bytes")
+        try:
+            path.mkdir()
+            (path / limit_file).write_text(str(limit_mb << 20))
+        except OSError as exc:
+            self.why_not = f"no memory cgroup ({path}: {exc.strerror})"
+            if path.is_dir():
+                path.rmdir()
             return
+        self.path = path
 
     def enter(self) -> None:
         """Move the calling process into the cgroup (a ``preexec_fn``: the child, before exec)."""
@@ -154,8 +152,9 @@ def main() -> None:
     try:
         paths = make_capture(capture, (h, w), args.images)
         jpeg_mb = sum(p.stat().st_size for p in paths) / 1e6
-        predicted_rest = _BASE_MB + _BYTES_PER_PIXEL * w * h / 2**20
-        stack_mb = args.images * w * h / 2**20
+        # What the run itself plans (the README's formula): its peak beyond the stack, the stack.
+        plan = plan_stack(paths, RunOptions())
+        predicted_rest, stack_mb = plan.rest_mb, plan.stack_mb
         runs = []
         for limit in args.limit_mb or [None]:
             out = tmp / "out"
