@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
-from .resources import cpu_count
+from .resources import thread_count
 
 #: Default memory for one band of the stack as float32.
 BAND_BYTES = 32 << 20
@@ -45,7 +45,7 @@ def run_bands(
         Called with the number of rows of each finished band.
     """
     bands = [(r0, min(height, r0 + rows)) for r0 in range(0, height, rows)]
-    workers = min(len(bands), threads or cpu_count())
+    workers = min(len(bands), thread_count(threads))
 
     def one(band: tuple[int, int]) -> int:
         work(*band)

@@ -42,7 +42,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numba
 import numpy as np
 
-from .resources import cpu_count
+from .resources import thread_count
 
 __all__ = ["coefficient_range", "encode_ptm", "lrgb_plane_codes"]
 
@@ -179,7 +179,7 @@ def _bands(height: int, rows: int) -> list[tuple[int, int]]:
 
 
 def _workers(threads: int | None, tasks: int) -> int:
-    return max(1, min(tasks, threads or cpu_count()))
+    return max(1, min(tasks, thread_count(threads)))
 
 
 def _per_coefficient(block: np.ndarray) -> np.ndarray:

@@ -48,7 +48,7 @@ from .diskstack import disk_array, release_rows
 from .errors import InputError
 from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, default_table, linear_to_srgb, srgb_to_linear
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
-from .resources import cpu_count
+from .resources import thread_count
 from .streaming import Photographs, check_same_size, run_in_groups
 
 __all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
@@ -567,7 +567,7 @@ def reduce_photographs(
         raise InputError("no photographs given")
     first = photos.load(0)
     h, w = first.shape[:2]
-    workers = max(1, threads or cpu_count())
+    workers = thread_count(threads)
     per_group = _group_size(first, workers)
     counting = threading.Lock()  # threads add the clipped counts of their bands
     # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in

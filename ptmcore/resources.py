@@ -19,7 +19,7 @@ import math
 import os
 from pathlib import Path
 
-__all__ = ["available_memory_mb", "cpu_count"]
+__all__ = ["available_memory_mb", "cpu_count", "thread_count"]
 
 #: A version-1 cgroup without a memory limit reports this or more (the largest page-aligned
 #: 64-bit value): no limit.
@@ -119,6 +119,12 @@ def cpu_count() -> int:
     if quota is not None:
         count = min(count, math.ceil(quota))
     return max(1, count)
+
+
+def thread_count(threads: int | None = None) -> int:
+    """The threads of a parallel step: ``threads`` when the caller gives them (at least one),
+    else :func:`cpu_count` (``threads=None``, the default of every step and of ``--threads``)."""
+    return max(1, threads) if threads else cpu_count()
 
 
 def available_memory_mb() -> float:

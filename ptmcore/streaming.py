@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import InputError
 from .images import read_image
-from .resources import cpu_count
+from .resources import thread_count
 
 __all__ = ["Photographs", "check_same_size", "run_in_groups"]
 
@@ -111,7 +111,7 @@ def run_in_groups(
     Exception
         The first error in photograph order; later groups are not started.
     """
-    workers = max(1, threads or cpu_count())
+    workers = thread_count(threads)
     pool = ThreadPoolExecutor(max_workers=workers) if workers > 1 else None
     each = pool.map if pool is not None else map
     try:

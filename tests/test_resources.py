@@ -10,7 +10,7 @@ import psutil
 import pytest
 
 from ptmcore import resources
-from ptmcore.resources import _cgroup_available, _cgroup_cpus, available_memory_mb, cpu_count
+from ptmcore.resources import _cgroup_available, _cgroup_cpus, available_memory_mb, cpu_count, thread_count
 
 GIB = 1 << 30
 NO_LIMIT_V1 = "9223372036854771712"
@@ -95,6 +95,7 @@ def test_quota_and_affinity_bound_cpu_count(monkeypatch):
     assert 1 <= machine <= (os.cpu_count() or 1)
     monkeypatch.setattr(resources, "_cgroup_cpus", lambda root: 0.5)
     assert cpu_count() == 1  # half a CPU of quota: one thread
+    assert thread_count(None) == thread_count(0) == 1 and thread_count(3) == 3  # the caller's choice stands
     monkeypatch.setattr(resources, "_cgroup_cpus", lambda root: None)
     if not hasattr(os, "sched_setaffinity"):
         pytest.skip("no CPU affinity on this system")

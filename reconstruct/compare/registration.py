@@ -169,9 +169,10 @@ def _similarity_icp(source: np.ndarray, target: np.ndarray, target_normals: np.n
     """
     tree = cKDTree(target)
     transform = init.copy()
+    workers = cpu_count()
     for _ in range(iterations):
         moved = source @ transform[:3, :3].T + transform[:3, 3]
-        dist, idx = tree.query(moved, distance_upper_bound=max_distance, workers=cpu_count())
+        dist, idx = tree.query(moved, distance_upper_bound=max_distance, workers=workers)
         ok = np.isfinite(dist)
         if np.count_nonzero(ok) < 7:
             break

@@ -42,7 +42,7 @@ from ptmcore import (
     robust_ptm,
     write_ptm,
 )
-from ptmcore.resources import cpu_count
+from ptmcore.resources import thread_count
 from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from reconstruct.calibration.camera import parse_intrinsics
 from reconstruct.mesh.grid import GridMesh, grid_mesh
@@ -349,7 +349,7 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     to the object's median).
     """
     method, why = _integrator(options.integrator, mask)
-    workers = options.threads or cpu_count()  # scipy.fft's -1 would be every CPU of the machine
+    workers = thread_count(options.threads)  # scipy.fft's -1 would be every CPU of the machine
     if options.intrinsics is not None:  # RunOptions refuses fc with intrinsics
         camera = parse_intrinsics(options.intrinsics)
         height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance,

@@ -19,7 +19,7 @@ import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 
-from ptmcore.resources import cpu_count
+from ptmcore.resources import thread_count
 
 __all__ = ["FileWriter"]
 
@@ -42,7 +42,7 @@ class FileWriter:
     """
 
     def __init__(self, threads: int | None = None) -> None:
-        self._pool = ThreadPoolExecutor(max_workers=max(1, threads or cpu_count()),
+        self._pool = ThreadPoolExecutor(max_workers=thread_count(threads),
                                         thread_name_prefix="reconstruct-write")
         self._jobs: list[tuple[tuple[str, ...], Future]] = []
         self._lock = threading.Lock()
