@@ -12,14 +12,7 @@ from __future__ import annotations
 import os
 import sys
 
-#: Ended by Ctrl-C (SIGINT): 128 + 2, as a shell reports a process the signal stopped.
-EXIT_INTERRUPTED = 130
-
-
-def interrupted() -> int:
-    """Say that Ctrl-C stopped the command; its exit status."""
-    print("reconstruct: interrupted", file=sys.stderr, flush=True)
-    return EXIT_INTERRUPTED
+from reconstruct.cli.signals import handlers, interrupted
 
 
 def console() -> None:
@@ -31,12 +24,13 @@ def console() -> None:
     closed what it opened (files, windows, a batch's cluster); only the standard streams are
     left to flush. An exception that escapes ``main`` (a bug) still unwinds as usual.
     """
-    try:
-        from reconstruct.cli.main import main
+    with handlers():  # never left: os._exit ends the process inside (see reconstruct.cli.signals)
+        try:
+            from reconstruct.cli.main import main
 
-        code = main()
-    except KeyboardInterrupt:  # before main() handles it itself: nothing is staged yet
-        code = interrupted()
-    sys.stdout.flush()
-    sys.stderr.flush()
-    os._exit(code)
+            code = main()
+            sys.stdout.flush()
+            sys.stderr.flush()
+        except KeyboardInterrupt:  # before main() handles it itself: nothing is staged yet
+            code = interrupted()
+        os._exit(code)

@@ -8,10 +8,7 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
-import os
 import shlex
-import signal
-import threading
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
@@ -19,13 +16,11 @@ from pathlib import Path
 
 from ptmcore.errors import InputError
 from ptmcore.images import allow_large_images
-from reconstruct.cli.console import interrupted
+from reconstruct.cli.signals import handlers, interrupted
 from reconstruct.cli.parser import build_parser
 from reconstruct.report.summary import unit_words
 
 EXIT_BAD_INPUT = 2
-#: Ended by SIGTERM: 128 + 15, as a shell reports a process the signal killed.
-EXIT_TERMINATED = 143
 
 
 def _compare_summary(result) -> None:
@@ -483,7 +478,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                 "calibrate": _cmd_calibrate, "preview": _cmd_preview,
                 "lights": _cmd_lights, "demo": _cmd_demo}
-    with _signal_handlers():
+    with handlers():
         try:
             return commands[args.command](args)
         except InputError as exc:
@@ -495,71 +490,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             # Output piped into a command that stopped reading (`| head`): not an error.
             sys.stderr.close()
             return 0
-
-
-def _terminate(signum: int, frame) -> None:
-    """SIGTERM (a scheduler's or ``kill``'s stop), or a second Ctrl-C: remove what the runs in
-    progress staged and end at once. Not an exception unwinding the stack, as a first Ctrl-C is:
-    one raised wherever the main thread happens to be (inside an import, say) can leave a lock
-    held and the process hung. Output folders keep their earlier results: they only change by
-    one rename."""
-    from reconstruct.pipeline.staging import abandon_runs
-
-    abandon_runs()
-    if signum == signal.SIGINT:
-        os._exit(interrupted())
-    print("reconstruct: stopped (SIGTERM); output folders keep their earlier results", file=sys.stderr, flush=True)
-    os._exit(EXIT_TERMINATED)
-
-
-def _interrupt(signum: int, frame) -> None:
-    """The first Ctrl-C: Python's own (a KeyboardInterrupt, so that each run removes what it
-    staged on its way out, and a batch stops its cluster). A second one, while that clean-up
-    waits for the files being written, ends the command at once (:func:`_terminate`)."""
-    signal.signal(signal.SIGINT, _terminate)
-    signal.default_int_handler(signum, frame)
-
-
-def _deliver_again() -> None:
-    """Ctrl-C once more, to the main thread, if the command's handler still stands."""
-    if signal.getsignal(signal.SIGINT) is _interrupt:
-        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
-
-
-@contextmanager
-def _signal_handlers() -> Iterator[None]:
-    """SIGTERM ends the command at once (:func:`_terminate`); Ctrl-C unwinds it, a second one
-    ends it (:func:`_interrupt`). Handlers can only be set in the main thread: elsewhere (a
-    caller's thread) the caller's stay."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = {signal.SIGTERM: signal.signal(signal.SIGTERM, _terminate)}
-    hook = sys.unraisablehook
-
-    def interrupt_lost(unraisable) -> None:
-        # A Ctrl-C that came while a finaliser ran (a weakref callback, a __del__) is not
-        # raised: Python prints it as "Exception ignored", with a traceback, and goes on. It is
-        # delivered again, from another thread a moment later (now, it would land in this hook
-        # and be ignored too), as a real signal, which also wakes a main thread that waits.
-        if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            signal.signal(signal.SIGINT, _interrupt)
-            again = threading.Timer(0.01, _deliver_again)
-            again.daemon = True
-            again.start()
-        else:
-            hook(unraisable)
-
-    # Only where Ctrl-C raises KeyboardInterrupt: a caller that ignores it keeps that.
-    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
-        previous[signal.SIGINT] = signal.signal(signal.SIGINT, _interrupt)
-        sys.unraisablehook = interrupt_lost
-    try:
-        yield
-    finally:
-        sys.unraisablehook = hook
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
 
 
 if __name__ == "__main__":

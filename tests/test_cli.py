@@ -115,17 +115,65 @@ def python_ctrl_c():
 
 
 def test_a_second_ctrl_c_ends_the_command_at_once(python_ctrl_c):
-    from reconstruct.cli import main as cli_main
+    from reconstruct.cli import signals as cli_signals
 
     signal = python_ctrl_c
     hook = sys.unraisablehook
-    with cli_main._signal_handlers():
-        assert signal.getsignal(signal.SIGINT) is cli_main._interrupt
+    with cli_signals.handlers():
+        assert signal.getsignal(signal.SIGINT) is cli_signals._interrupt
         with pytest.raises(KeyboardInterrupt):
-            cli_main._interrupt(signal.SIGINT, None)  # the first: unwinds
-        assert signal.getsignal(signal.SIGINT) is cli_main._terminate  # the second: at once
+            cli_signals._interrupt(signal.SIGINT, None)  # the first: unwinds
+        assert signal.getsignal(signal.SIGINT) is cli_signals._terminate  # the second: at once
+        with cli_signals.handlers():  # main()'s inside the entry point's: Ctrl-C's stay
+            assert signal.getsignal(signal.SIGINT) is cli_signals._terminate
+        assert signal.getsignal(signal.SIGINT) is cli_signals._terminate
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     assert sys.unraisablehook is hook
+
+
+_CTRL_C_AGAIN = """
+import os, signal, sys
+from reconstruct.cli import main as cli_main
+from reconstruct.cli.console import console
+
+class Stderr:
+    # Ctrl-C again at each of the next writes or flushes once the message is out: while it is
+    # printed, after main() has returned, while the entry point flushes.
+    def __init__(self, real):
+        self.real, self.said, self.sent = real, False, 0
+    def write(self, text):
+        n = self.real.write(text)
+        self.said = self.said or "interrupted" in text
+        self.again()
+        return n
+    def flush(self):
+        self.real.flush()
+        self.again()
+    def again(self):
+        if self.said and self.sent < 3:
+            self.sent += 1
+            os.kill(os.getpid(), signal.SIGINT)
+    def __getattr__(self, name):
+        return getattr(self.real, name)
+
+def ctrl_c(args):  # the first Ctrl-C, during the command
+    os.kill(os.getpid(), signal.SIGINT)
+
+cli_main._cmd_run = ctrl_c
+sys.stderr = Stderr(sys.stderr)
+sys.argv = ["reconstruct", "run", "capture", "-o", "out"]
+console()
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="signals to oneself: POSIX")
+def test_ctrl_c_after_the_message_says_nothing_more(tmp_path):
+    # The CI failure this reproduces: a second Ctrl-C 0.0 s after the first, once the first's
+    # clean-up was done, printed "reconstruct: interrupted" twice.
+    proc = subprocess.run([sys.executable, "-c", _CTRL_C_AGAIN], capture_output=True, text=True,
+                          cwd=tmp_path, timeout=120)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr == "reconstruct: interrupted\n"
 
 
 def test_ctrl_c_lost_in_a_finaliser_is_delivered_again(python_ctrl_c, capsys):
@@ -133,13 +181,13 @@ def test_ctrl_c_lost_in_a_finaliser_is_delivered_again(python_ctrl_c, capsys):
     # and goes on, so a Ctrl-C that lands in a weakref callback or __del__ would be lost.
     import time
 
-    from reconstruct.cli import main as cli_main
+    from reconstruct.cli import signals as cli_signals
 
     class Finalised:
         def __del__(self):
             raise KeyboardInterrupt
 
-    with cli_main._signal_handlers():
+    with cli_signals.handlers():
         with pytest.raises(KeyboardInterrupt):
             Finalised()
             for _ in range(100):  # the interrupt, delivered again, lands here
