@@ -63,15 +63,17 @@ def _terminate(signum: int, frame) -> None:
 def _interrupt(signum: int, frame) -> None:
     """The first Ctrl-C: Python's own (a KeyboardInterrupt, so that each run removes what it
     staged on its way out, and a batch stops its cluster). A second one, while that clean-up
-    waits for the files being written, ends the command at once (:func:`_terminate`)."""
+    waits for the files being written, ends the command at once (:func:`_terminate`).
+
+    Not where the import system's own code runs: it takes the global import lock before its
+    ``try`` blocks (in ``_get_module_lock`` and in a module lock's weakref callback), so an
+    exception raised there can leave the lock held for good, and the clean-up then waits
+    forever for a thread that imports. The command ends at once there, as on a second Ctrl-C.
+    """
     signal.signal(signal.SIGINT, _terminate)
+    if frame is not None and frame.f_code.co_filename.startswith("<frozen importlib"):
+        _terminate(signum, frame)
     signal.default_int_handler(signum, frame)
-
-
-def _deliver_again() -> None:
-    """Ctrl-C once more, to the main thread, if the command's handler still stands."""
-    if signal.getsignal(signal.SIGINT) is _interrupt:
-        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
 
 def _in_main_thread() -> bool:
@@ -92,16 +94,13 @@ def handlers() -> Iterator[None]:
 
     def interrupt_lost(unraisable) -> None:
         # A Ctrl-C that came while a finaliser ran (a weakref callback, a __del__) is not
-        # raised: Python prints it as "Exception ignored", with a traceback, and goes on. It is
-        # delivered again, from another thread a moment later (now, it would land in this hook
-        # and be ignored too), as a real signal, which also wakes a main thread that waits.
+        # raised: Python prints it as "Exception ignored", with a traceback, and goes on. The
+        # command ends at once instead, as on a second Ctrl-C. (Delivering the signal again a
+        # moment later, from a thread, lost the next Ctrl-C when it landed in this hook, and a
+        # finaliser of the import system can have left its lock held: see _interrupt.)
         if isinstance(unraisable.exc_value, KeyboardInterrupt):
-            signal.signal(signal.SIGINT, _interrupt)
-            again = threading.Timer(0.01, _deliver_again)
-            again.daemon = True
-            again.start()
-        else:
-            hook(unraisable)
+            _terminate(signal.SIGINT, None)
+        hook(unraisable)
 
     # Only where Ctrl-C raises KeyboardInterrupt: a caller that ignores it keeps that.
     if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
