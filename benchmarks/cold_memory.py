@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The page sizes measured, by NumPy's NUMPY_MADVISE_HUGEPAGE.
+_PAGES = {"huge": "1", "small": "0"}
 
 _CHILD = r"""
 import resource, sys, time
@@ -54,9 +56,9 @@ def main() -> None:
     args = ap.parse_args()
     runs = []
     for _ in range(args.repeat):
-        for pages in ("huge", "small"):
+        for pages, flag in _PAGES.items():
             time.sleep(args.pause)
-            env = dict(os.environ, NUMPY_MADVISE_HUGEPAGE="1" if pages == "huge" else "0")
+            env = dict(os.environ, NUMPY_MADVISE_HUGEPAGE=flag)
             text = subprocess.run([sys.executable, "-c", _CHILD, str(args.gb)], capture_output=True, text=True,
                                   check=True, env=env).stdout
             cold_s, cold_sys, warm_s, warm_sys, huge_kb = (float(v) for v in text.split())
@@ -65,11 +67,11 @@ def main() -> None:
             print(f"{args.gb:g} GB, {pages} pages ({huge_kb / 1024:.0f} MB in huge pages): first touch {cold_s:.2f} s "
                   f"({cold_sys:.2f} s system), again {warm_s:.2f} s ({warm_sys:.2f} s system)", flush=True)
     med = {pages: {k: statistics.median(r[k] for r in runs if r["pages"] == pages) for k in runs[0] if k != "pages"}
-           for pages in ("huge", "small")}
+           for pages in _PAGES}
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": f"{platform.machine()}, {os.cpu_count()} cores",
             "gb": args.gb, "repeat": args.repeat, "pause_s": args.pause,
             "transparent_hugepage": _thp_setting()}
-    for pages in ("huge", "small"):
+    for pages in _PAGES:
         print(f"medians, {pages} pages: first touch {med[pages]['cold_s'] / args.gb:.2f} s per GB, "
               f"again {med[pages]['warm_s'] / args.gb:.2f} s per GB")
     out = ROOT / "benchmarks" / "results" / "cold_memory.json"
