@@ -8,6 +8,7 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import os
 import shlex
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -335,6 +336,10 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     return 0
 
 
+#: The warning filter (``PYTHONWARNINGS``) that quiets the resource tracker (see _cmd_batch).
+_TRACKER_QUIET = "ignore::UserWarning:multiprocessing.resource_tracker"
+
+
 def _cmd_batch(args: argparse.Namespace) -> int:
     from reconstruct.batch import run_batch
     from reconstruct.pipeline import RunOptions
@@ -346,6 +351,11 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     if not args.sources and args.manifest is None:
         raise InputError("give capture folders, .ptm files or --manifest")
     options = _options(RunOptions, args)
+    # A batch ended at once (SIGTERM, a second Ctrl-C: reconstruct.cli.signals) leaves the
+    # semaphores of its cluster's queues to multiprocessing's resource tracker, a process of
+    # its own that removes them and warns of them after our one-line message. The removal
+    # is right; the warning, two lines of a standard-library file, is not for our users.
+    os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [os.environ.get("PYTHONWARNINGS"), _TRACKER_QUIET]))
     with _batch_progress(not args.quiet and sys.stderr.isatty()) as progress:
         rows = run_batch(args.sources, args.output, options, manifest=args.manifest, scheduler=args.scheduler,
                          workers=args.workers, force=args.force, progress=progress, echo=print)

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -242,3 +245,103 @@ def test_local_cluster_size_follows_memory_and_cores(collection):
     assert choose_workers(items, cores=2, available_mb=100 * peak) == 2  # never more than cores
     assert choose_workers(items, cores=16, available_mb=2.5 * peak) == 2  # what memory allows
     assert choose_workers(items, cores=16, available_mb=0.5 * peak) == 1  # at least one
+
+
+# Stopping a batch: Ctrl-C in a terminal reaches every process of the foreground group.
+
+@pytest.fixture(scope="module")
+def slow_collection(tmp_path_factory) -> Path:
+    """Captures that take a second or two each, so that objects are caught running."""
+    root = tmp_path_factory.mktemp("slow")
+    for k in range(4):
+        write_capture(root / f"tablet_{k}", shape=(360, 480), n_lights=32, seed=k)
+    return root
+
+
+def _staged(out: Path) -> list[str]:
+    """The hidden staging folders and locks of objects running (or left) in ``out``."""
+    return sorted(p.name for p in out.glob(".*") if p.name != ".batch.lock")
+
+
+def _wait_for(condition, timeout: float = 120.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_a_stopped_object_removes_what_it_staged_and_keeps_its_earlier_result(slow_collection, tmp_path):
+    from reconstruct.batch.runner import BatchStopped, run_object, stop_objects
+
+    (item,), _ = discover([slow_collection / "tablet_0"], OPT)
+    out = tmp_path / "out"
+    assert run_object(item, out).status == "done"
+    before = sorted((p.name, p.stat().st_mtime_ns) for p in (out / item.name).iterdir())
+    rows = []
+    worker = threading.Thread(target=lambda: rows.append(run_object(item, out, force=True, token="t1")))
+    worker.start()
+    assert _wait_for(lambda: any(".partial-" in n for n in _staged(out)))
+    stop_objects("t1")
+    worker.join(60)
+    assert not worker.is_alive()
+    assert rows[0].status == "failed" and "stopped" in rows[0].error, rows[0]
+    assert _staged(out) == []  # its staging folder and its lock are gone
+    assert sorted((p.name, p.stat().st_mtime_ns) for p in (out / item.name).iterdir()) == before
+    # Another batch's objects on the same worker go on; a stopped batch starts no more.
+    assert run_object(item, out, force=True, token="t2").status == "done"
+    assert "before this object started" in run_object(item, out, force=True, token="t1").error
+    assert issubclass(BatchStopped, BaseException) and not issubclass(BatchStopped, Exception)
+
+
+@pytest.mark.parametrize("signals", [["SIGINT"], ["SIGINT", "SIGINT"], ["SIGTERM"]])
+def test_ctrl_c_stops_a_batch_with_one_line(slow_collection, tmp_path, signals):
+    # Sent to the whole process group, as a terminal does: the workers must not print
+    # tracebacks of their own, and the objects running must not leave staging folders.
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "reconstruct", "batch", str(slow_collection), "-o", str(out),
+                             "--workers", "2", "--threads", "1", "-q"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        if not _wait_for(lambda: any(".partial-" in n for n in _staged(out)) or proc.poll() is not None):
+            pytest.fail("no object started within 120 s")
+        for k, name in enumerate(signals):
+            if k:
+                time.sleep(0.1)
+            os.killpg(proc.pid, getattr(signal, name))
+        _, err = proc.communicate(timeout=60)
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+    if proc.returncode == 0:
+        pytest.skip("the batch finished before the signal")
+    if signals == ["SIGTERM"]:
+        # At once: the workers die with the batch's process, and what they staged goes with
+        # the next run on those objects (the README's promise for killed runs).
+        assert proc.returncode == 143, err
+        assert err == "reconstruct: stopped (SIGTERM); output folders keep their earlier results\n", err
+    else:
+        assert proc.returncode == 130, err
+        assert err == "reconstruct: interrupted\n", err  # no worker's traceback, no tracker's warning
+    if signals == ["SIGINT"]:
+        assert _staged(out) == []  # the objects running were stopped and removed what they staged
+    # Every process of the batch has ended (the workers too).
+    assert _wait_for(lambda: not _group_alive(proc.pid), timeout=10)
+
+
+def _group_alive(pgid: int) -> bool:
+    try:
+        os.killpg(pgid, 0)
+    except ProcessLookupError:
+        return False
+    # Zombies count as gone: their parent, the batch, has ended and init reaps them.
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(stat[2]) == pgid and stat[0] != "Z":
+                return True
+    return False

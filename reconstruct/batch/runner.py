@@ -23,10 +23,47 @@ from ptmcore.errors import InputError
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchItem, BatchRow
 from reconstruct.pipeline.report import json_safe
 
-__all__ = ["choose_workers", "estimate_peak_mb", "fingerprint", "is_complete", "run_object"]
+__all__ = ["BatchStopped", "choose_workers", "estimate_peak_mb", "fingerprint", "is_complete", "run_object",
+           "stop_objects"]
 
 #: Fingerprint format; a new one makes every object run again.
 _FINGERPRINT_VERSION = 1
+
+#: The batches stopped in this process (their ``token``s): see :func:`stop_objects`.
+_STOPPED: set[str] = set()
+
+
+class BatchStopped(BaseException):
+    """Raised inside an object's run when its batch was stopped (:func:`stop_objects`).
+
+    A BaseException, as KeyboardInterrupt is: the run's handlers of ``Exception`` (a picture
+    that cannot be made becomes a note on the page) must not take it for a failure of theirs.
+    """
+
+
+def stop_objects(token: str) -> None:
+    """Stop the objects of batch ``token`` running in this process (a Dask worker's: the
+    batch's process runs this on every worker when it is interrupted).
+
+    Each such run stops at its next step of progress (a photograph decoded, a band of
+    normals, a stage begun), by raising :class:`BatchStopped` from there; its hidden staging
+    folder is removed as for any failed run, and its earlier result stays as it was. Objects of
+    other batches on the same workers go on. A run cannot be stopped from outside its own
+    thread any sooner in Python, and killing the worker would leave the staging folder behind.
+    """
+    _STOPPED.add(token)
+
+
+def _stop_when_asked(token: str | None):
+    """The progress callback of a run of batch ``token``: it raises once the batch is stopped."""
+    if token is None:
+        return None
+
+    def progress(stage: str, done: int, total: int) -> None:
+        if token in _STOPPED:
+            raise BatchStopped(f"the batch was stopped during the {stage} stage")
+
+    return progress
 
 
 def _file_facts(path: Path) -> list:
@@ -114,7 +151,7 @@ def _limit_threads(stack: ExitStack, threads: int) -> None:
     stack.callback(cv2.setNumThreads, previous)
 
 
-def _reconstruct(item: BatchItem, folder: Path, print_: str) -> None:
+def _reconstruct(item: BatchItem, folder: Path, print_: str, progress=None) -> None:
     """``reconstruct run`` of one object into ``folder``, with the comparison with its scan
     published in the same step (:func:`reconstruct.pipeline.staging.staged_output` swaps the
     whole folder in, so a batch killed at any moment leaves it old or new, never mixed)."""
@@ -122,10 +159,10 @@ def _reconstruct(item: BatchItem, folder: Path, print_: str) -> None:
     from reconstruct.pipeline.compare_run import ScanStep
 
     if item.scan is None:
-        run(item.source, folder, item.options, fingerprint=print_)
+        run(item.source, folder, item.options, fingerprint=print_, progress=progress)
         return
     step = ScanStep(item.scan, CompareOptions(scan_units=item.scan_units))
-    result = run(item.source, folder, item.options, fingerprint=print_, then=step)
+    result = run(item.source, folder, item.options, fingerprint=print_, then=step, progress=progress)
     step.result(result.output, result.files)
 
 
@@ -143,7 +180,7 @@ def _recover(out: Path, name: str) -> None:
 
 
 def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
-               threads: int = 1) -> BatchRow:
+               threads: int = 1, token: str | None = None) -> BatchRow:
     """Reconstruct one object of a batch into ``out/<name>/``; what a Dask task runs.
 
     Never raises for the object's own problems: a bad capture or a failing stage is a
@@ -151,6 +188,8 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     object is made in a hidden folder beside its own and swapped in when complete
     (:func:`reconstruct.pipeline.staging.staged_output`), so a batch killed at any moment leaves
     each object's folder whole (old or new); the batch's lock says no one else is writing there.
+    With a ``token``, :func:`stop_objects` of that token stops the object: a ``failed`` row
+    says so (the batch's process, interrupted, does not wait for it).
     """
     from ptmcore.images import allow_large_images
     from reconstruct.batch.gallery import write_thumbnails
@@ -168,13 +207,18 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     _recover(out, item.name)
     if not force and is_complete(folder, item, print_):
         return _row_from_folder(item, folder, SKIPPED)
+    if token in _STOPPED:
+        return BatchRow(item.name, str(item.source), FAILED, "the batch was stopped before this object started")
     timer = StageTimer()
     t0 = time.perf_counter()
+    progress = _stop_when_asked(token)
     try:
         with ExitStack() as stack:
             _limit_threads(stack, threads)
             stack.enter_context(timer.stage("object"))
-            _reconstruct(item, folder, print_)
+            _reconstruct(item, folder, print_, progress)
+    except BatchStopped as exc:
+        return BatchRow(item.name, str(item.source), FAILED, str(exc), round(time.perf_counter() - t0, 3))
     except Exception as exc:  # noqa: BLE001 - a stage's bug must not stop the other objects
         message = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
         return BatchRow(item.name, str(item.source), FAILED, message, round(time.perf_counter() - t0, 3))

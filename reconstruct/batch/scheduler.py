@@ -3,21 +3,24 @@
 :func:`run_batch` is what ``reconstruct batch`` calls. Without a client or a scheduler address
 it starts a local cluster of worker processes sized for this machine (:func:`choose_workers`):
 a worker killed by the operating system, for memory say, is replaced and its object retried
-once by Dask, then reported as failed.
+once by Dask, then reported as failed. Interrupted, a batch cancels its tasks and stops its
+objects running on the workers (:func:`reconstruct.batch.runner.stop_objects`).
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
+import secrets
+import signal
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from ptmcore.errors import InputError
 from ptmcore.resources import available_memory_mb, cpu_count
 from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
-from reconstruct.batch.runner import choose_workers, run_object
+from reconstruct.batch.runner import choose_workers, run_object, stop_objects
 from reconstruct.batch.sources import discover, read_manifest
 from reconstruct.pipeline.options import RunOptions
 
@@ -115,11 +118,41 @@ def _client(client, scheduler: str | None, items: list[BatchItem], workers: int 
     # system killed. One Dask thread each: an object's own threads do the parallel work.
     # A worker's death counts against its task: after RETRIES more, the object is failed
     # (Dask's default would run an object that exhausts the memory four times).
-    with dask.config.set({"distributed.scheduler.allowed-failures": RETRIES}), \
-            LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                         memory_limit=0, silence_logs=40) as cluster, Client(cluster) as local:
+    with dask.config.set({"distributed.scheduler.allowed-failures": RETRIES}), ExitStack() as stack:
+        with _ctrl_c_blocked():
+            cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                                                       dashboard_address=":0", memory_limit=0, silence_logs=40))
+        local = stack.enter_context(Client(cluster))
         echo(f"{n} worker(s) × {threads} thread(s); Dask dashboard: {local.dashboard_link}")
         yield local, threads
+
+
+@contextmanager
+def _ctrl_c_blocked() -> Iterator[None]:
+    """Block SIGINT in the calling thread while a local cluster starts.
+
+    A terminal's Ctrl-C goes to every process of the foreground group, the cluster's workers
+    too, each of which then printed a traceback. The batch's own process is the one to stop
+    them (it closes the cluster). A signal mask, unlike a handler, is inherited by the
+    threads a thread starts and kept across ``fork`` and ``exec``: the cluster's event-loop
+    thread, started here, has SIGINT blocked, and so has every worker process it spawns, now
+    or when it replaces a dead one. A Ctrl-C pressed meanwhile still reaches the batch: Python
+    runs signal handlers in its main thread, at the latest once the mask is restored.
+    """
+    if not hasattr(signal, "pthread_sigmask"):  # pragma: no cover - not POSIX
+        yield
+        return
+    # Started first: starting multiprocessing's resource tracker unblocks SIGINT in the
+    # thread that starts it (CPython 3.11 unblocks rather than restores the mask), which
+    # would be the cluster's event loop.
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 def _check_shared_paths(client, out: Path, items: list[BatchItem]) -> None:
@@ -139,24 +172,49 @@ def _check_shared_paths(client, out: Path, items: list[BatchItem]) -> None:
 
 def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads: int,
                 progress: Callable[[BatchRow, int, int], None] | None) -> list[BatchRow]:
-    """One task per object; rows in the items' order, each reported as it finishes."""
+    """One task per object; rows in the items' order, each reported as it finishes.
+
+    Interrupted (Ctrl-C), it cancels the objects not started and stops those running
+    (:func:`_stop`) before the interruption goes on.
+    """
     from distributed import as_completed
 
-    futures = {client.submit(run_object, item, out, force=force, threads=threads, pure=False,
+    token = secrets.token_hex(8)
+    futures = {client.submit(run_object, item, out, force=force, threads=threads, token=token, pure=False,
                              retries=RETRIES, key=f"reconstruct-{k}-{item.name}"): k
                for k, item in enumerate(items)}
     rows: list[BatchRow | None] = [None] * len(items)
-    for done, future in enumerate(as_completed(futures), 1):
-        k = futures[future]
-        try:
-            rows[k] = future.result()
-        except Exception as exc:  # noqa: BLE001 - a dead worker (KilledWorker) or a lost task
-            rows[k] = BatchRow(items[k].name, str(items[k].source), FAILED,
-                               "the worker running it died, also when retried (killed by the operating "
-                               f"system, perhaps for memory): {type(exc).__name__}: {exc}")
-        if progress is not None:
-            progress(rows[k], done, len(items))
+    try:
+        for done, future in enumerate(as_completed(futures), 1):
+            k = futures[future]
+            try:
+                rows[k] = future.result()
+            except Exception as exc:  # noqa: BLE001 - a dead worker (KilledWorker) or a lost task
+                rows[k] = BatchRow(items[k].name, str(items[k].source), FAILED,
+                                   "the worker running it died, also when retried (killed by the operating "
+                                   f"system, perhaps for memory): {type(exc).__name__}: {exc}")
+            if progress is not None:
+                progress(rows[k], done, len(items))
+    except BaseException:
+        _stop(client, list(futures), token)
+        raise
     return rows
+
+
+def _stop(client, futures: list, token: str) -> None:
+    """Cancel a batch's tasks and stop its objects running on the workers.
+
+    Closing a local cluster alone would wait for the running objects (the workers finish
+    their task before they close) and then kill them, leaving their staging folders behind;
+    on an existing cluster they would run on to the end. Stopped, each run removes its
+    staging folder at its next step and the worker is free at once. Best effort: the
+    interruption that called this is what the caller reports.
+    """
+    try:
+        client.cancel(futures)
+        client.run(stop_objects, token, on_error="ignore")
+    except Exception:  # noqa: BLE001, S110 - a worker or scheduler already gone has nothing to stop
+        pass
 
 
 def run_batch(
