@@ -354,7 +354,8 @@ def _cmd_batch(args: argparse.Namespace) -> int:
     # A batch ended at once (SIGTERM, a second Ctrl-C: reconstruct.cli.signals) leaves the
     # semaphores of its cluster's queues to multiprocessing's resource tracker, a process of
     # its own that removes them and warns of them after our one-line message. The removal
-    # is right; the warning, two lines of a standard-library file, is not for our users.
+    # is right; the warning, two lines of a standard-library file, is not for our users. Set
+    # before run_batch starts the tracker (reconstruct.batch.scheduler), which reads it then.
     os.environ["PYTHONWARNINGS"] = ",".join(filter(None, [os.environ.get("PYTHONWARNINGS"), _TRACKER_QUIET]))
     with _batch_progress(not args.quiet and sys.stderr.isatty()) as progress:
         rows = run_batch(args.sources, args.output, options, manifest=args.manifest, scheduler=args.scheduler,
