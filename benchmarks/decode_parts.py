@@ -33,6 +33,7 @@ from pathlib import Path
 from procinfo import measured_run
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
 
 _CHILD = r"""
 import glob, sys, tempfile, time
@@ -65,10 +66,19 @@ def one(mode: str, capture: Path) -> dict:
     return {"seconds": float(out), "user_s": usage.ru_utime, "system_s": usage.ru_stime}
 
 
+#: The kernel alone: photographs per group, and what it makes (as MODES, without decoding).
+GROUPS = (2, 4, 8)
+KERNEL_MODES = {
+    "none": "nothing (the kernel's loop)",
+    "stack": "the 8-bit stack and the colour sums",
+    "ptm": "HP's LRGB PTM sums",
+    "both": "both",
+}
+
+
 def kernel_alone(capture: Path, repeat: int, rows: int = 1024) -> dict[str, dict[int, float]]:
     """Nanoseconds per sample (pixel × photograph) of the reduction kernel alone, by product
     and group size: medians of ``repeat``; ``rows`` rows of the capture's photographs."""
-    sys.path.insert(0, str(ROOT))
     import numpy as np
     import simplejpeg
 
@@ -83,6 +93,7 @@ def kernel_alone(capture: Path, repeat: int, rows: int = 1024) -> dict[str, dict
     u8 = np.dtype(np.uint8)
     tables = rd._Tables(True, None, n, "srgb")
     to8, _ = rd.srgb8_tables()
+    hp = HP_LUMA_WEIGHTS.astype(np.float32)
     pinv = EncodedFit(np.asarray(lights.directions), "lrgb", encoding="srgb").matrices(n)[0]
     # Touched once here, so that no mode pays for fresh memory (that is the table above).
     lum8 = np.ones((n, h, w), np.uint8)
@@ -97,27 +108,18 @@ def kernel_alone(capture: Path, repeat: int, rows: int = 1024) -> dict[str, dict
             luts, wscale = tables.for_photographs(u8, ks)
             rd._reduce_rows(images, group, ks, 0, h, luts, wscale, rd._top(u8), rd._encoded_scale(u8),
                             tables.encoded(u8), None, lum8 if stack else None, to8 if stack else None,
-                            sums[0] if stack else None, HP_LUMA_WEIGHTS.astype(np.float32), pinv if ptm else None,
+                            sums[0] if stack else None, hp, pinv if ptm else None,
                             sums[1] if ptm else None, sums[2] if ptm else None, None, None, None, None)
         return (time.perf_counter() - t0) / (h * w * (n - n % group)) * 1e9
 
-    cases = [(m, g) for m in MODES for g in GROUPS]
+    cases = [(m, g) for m in KERNEL_MODES for g in GROUPS]
     for m, g in cases:
         timed(m, g)  # compiled (or loaded from numba's cache) before timing
     times: dict[tuple[str, int], list[float]] = {c: [] for c in cases}
     for _ in range(repeat):
         for c in cases:
             times[c].append(timed(*c))
-    return {m: {g: statistics.median(times[m, g]) for g in GROUPS} for m in MODES}
-
-
-GROUPS = (2, 4, 8)
-KERNEL_MODES = {
-    "none": "nothing (the kernel's loop)",
-    "stack": "the 8-bit stack and the colour sums",
-    "ptm": "HP's LRGB PTM sums",
-    "both": "both",
-}
+    return {m: {g: statistics.median(times[m, g]) for g in GROUPS} for m in KERNEL_MODES}
 
 
 def main() -> None:
