@@ -36,11 +36,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ptmcore.png import write_png
-from reconstruct.report import outputs
-from reconstruct.mesh.grid import grid_mesh
-from reconstruct.mesh.ply import write_ply
-from reconstruct.pipeline.stages import auto_step
+from ptmcore.png import write_png  # noqa: E402
+from reconstruct.report import outputs  # noqa: E402
+from reconstruct.mesh.grid import grid_mesh  # noqa: E402
+from reconstruct.mesh.ply import write_ply  # noqa: E402
+from reconstruct.pipeline.stages import auto_step  # noqa: E402
 
 _MEASURE = """
 import json, sys, time

@@ -360,8 +360,6 @@ def _add_compare_options(p: argparse.ArgumentParser) -> None:
                    help="points farther than this are outside the overlap (default: from the alignment residual)")
 
 
-
-
 def _add_camera_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--intrinsics", metavar="FX,FY,CX,CY",
                    help="perspective camera in pixels, for short lenses (default: orthographic)")

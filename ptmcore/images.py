@@ -479,6 +479,7 @@ def check_content(stack: ImageStack, grid: int = 256) -> None:
     """
     n, (h, w) = len(stack), stack.shape
     where = stack.paths[0].parent if stack.paths else None
+
     def refuse(names: list[str], what: str, advice: str) -> None:
         if names:
             which = f"all {n} photographs" if len(names) == n else first_few(names)

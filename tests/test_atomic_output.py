@@ -84,7 +84,6 @@ def test_sigterm_stops_cleanly(capture, tmp_path, delay):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
 
 
-
 @pytest.mark.parametrize(("delay", "again"), [(0.2, None), (0.3, None), (0.5, None), (0.8, None),
                                               (0.5, 0.0), (0.7, 0.02), (0.9, 0.05), (1.1, 0.01)])
 def test_ctrl_c_once_or_twice_stops_cleanly(capture, tmp_path, delay, again):
@@ -109,6 +108,7 @@ def test_ctrl_c_once_or_twice_stops_cleanly(capture, tmp_path, delay, again):
     assert err in ("", "reconstruct: interrupted\n"), err
     assert _state(out) in (old, (old[0] | {"coefficients.rti"}, True))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging folder, no lock
+
 
 def test_two_runs_on_one_folder(capture, tmp_path):
     out = tmp_path / "out"

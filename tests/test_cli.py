@@ -103,7 +103,6 @@ def test_console_script_exit_status(capture, tmp_path):
     assert "capture folder not found" in r.stderr
 
 
-
 @pytest.fixture
 def python_ctrl_c():
     """The command's Ctrl-C handling is set up only over Python's own handler."""

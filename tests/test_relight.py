@@ -67,7 +67,6 @@ def test_light_direction_from_vectors():
     np.testing.assert_allclose(light_direction(light=np.array([0.0, 0.0, 5.0])), (0, 0, 1))
 
 
-
 def test_light_angles_invert_light_direction():
     azimuths = np.array([0.0, 45.0, 90.0, 135.0, 200.0, 270.0, 359.0])
     elevations = np.array([0.0, 10.0, 30.0, 45.0, 60.0, 89.0, 5.0])
@@ -80,6 +79,7 @@ def test_light_angles_invert_light_direction():
     assert light_angles((0.0, 1.0, 0.0))[0] == pytest.approx(90.0)
     assert light_angles((0.0, -S, -S))[0] == pytest.approx(270.0)
     assert light_angles((0.0, -S, -S))[1] == pytest.approx(-45.0)
+
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),

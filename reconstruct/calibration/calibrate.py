@@ -156,6 +156,7 @@ def _crops_per_sphere(stack: ImageStack, spheres: list[Sphere], intrinsics: Intr
             intrinsics, cx=intrinsics.cx - x0, cy=intrinsics.cy - y0))
     return crops, corners, local, cameras
 
+
 def calibration_camera(
     photograph: str | os.PathLike,
     shape: tuple[int, int],

@@ -17,7 +17,6 @@ from ptmcore.images import linear_to_srgb
 from ptmcore.png import write_png
 
 
-
 def normals_to_rgb16(normals: np.ndarray) -> np.ndarray:
     """Encode unit normals as a 16-bit OpenGL-style normal map (R=x, G=y, B=z; y up).
 

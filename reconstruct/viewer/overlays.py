@@ -237,6 +237,7 @@ class ScaleBar:
         self.label.SetInput(f"{self.length:g} {self.unit}{self.note}")
         self.label.SetPosition(right, base + tick + 4)
 
+
 class ImageStrip:
     """A picture in a viewport along the bottom of the window, the main view above it.
 
