@@ -168,8 +168,8 @@ def _paint_spheres(img: np.ndarray, background: np.ndarray, patch: tuple, light:
                    highlight: bool, shininess: float, specular: float,
                    sphere_albedo: float, lobe: str = "phong", n_dot_l: bool = False) -> None:
     """Shade the sub-samples of a :func:`_sphere_patch` under a distant light and average
-    them into `img` in place; sub-samples off the spheres see the `background`. With
-    `n_dot_l` the lobe is multiplied by n·l.
+    them into `img` in place; sub-samples off the spheres see `background`, the patch's box of
+    the unpainted image. With `n_dot_l` the lobe is multiplied by n·l.
 
     Boxes may overlap: each box starts again from the background and covers every sphere
     within it. Without `highlight` (an occluded flash) the spheres get no specular lobe.
@@ -193,7 +193,7 @@ def _paint_spheres(img: np.ndarray, background: np.ndarray, patch: tuple, light:
         if n_dot_l:
             spec *= np.clip(ndotl, 0, None)
         sphere_rad = sphere_rad + specular * spec
-    fine = np.repeat(np.repeat(background[r0:r1, c0:c1], ss, 0), ss, 1)
+    fine = np.repeat(np.repeat(background, ss, 0), ss, 1)
     fine[on_sphere] = sphere_rad[:, None]
     img[r0:r1, c0:c1] = fine.reshape(r1 - r0, ss, c1 - c0, ss, 3).mean(axis=(1, 3))
 
@@ -359,7 +359,8 @@ def render_sphere_capture(
         background = bg_albedo * np.clip(bg_normals @ light, 0, None)[..., None]
         img = background.copy()
         for patch in patches:
-            _paint_spheres(img, background, patch, light, k not in hidden,
+            r0, r1, c0, c1 = patch[:4]
+            _paint_spheres(img, background[r0:r1, c0:c1], patch, light, k not in hidden,
                            shininess, specular, sphere_albedo, lobe, n_dot_l)
         img += rng.normal(0.0, noise, img.shape)
         path = out / f"img_{k:03d}{ext}"
@@ -461,10 +462,12 @@ def paint_spheres(images: np.ndarray, lights: np.ndarray, spheres, *, seed: int 
     patches = [_sphere_patch(box, sph, None, None, images.shape[1:3]) for box in _outline_boxes(outlines)]
     rng = np.random.default_rng(seed)
     for image, light in zip(images, np.asarray(lights, dtype=np.float64)):
-        background = image.astype(np.float64)
-        for patch in patches:
+        # The boxes as they were before any was painted (boxes may overlap), in float64 as
+        # the shading is: copies of the boxes only, not of the whole photograph.
+        backgrounds = [image[r0:r1, c0:c1].astype(np.float64) for r0, r1, c0, c1, *_ in patches]
+        for patch, background in zip(patches, backgrounds):
             _paint_spheres(image, background, patch, light, True, shininess, specular, sphere_albedo)
             box = image[patch[0]:patch[1], patch[2]:patch[3]]
             # The background around a sphere already has its noise.
-            sphere = np.any(box != background[patch[0]:patch[1], patch[2]:patch[3]], axis=-1)
+            sphere = np.any(box != background, axis=-1)
             box[sphere] += rng.normal(0.0, noise, (int(sphere.sum()), 3)).astype(image.dtype)
