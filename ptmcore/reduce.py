@@ -62,12 +62,19 @@ _BATCH = 8
 _CHUNK = 256
 #: Pixels per band of rows: the unit of work of a thread.
 _BAND_PIXELS = 1 << 18
-#: Memory for the decoded photographs of a group. At 24 megapixels (72 MB as 8-bit RGB) that
-#: is 6 photographs: each pixel's sums are then read and written once per 6 photographs. Once
-#: per 4 made the reduction 1.6× faster than once per 2; once per 6 made a 24-megapixel run of
-#: 48 photographs about 0.9 s (5 %) faster than once per 4, for 143 MB more at its peak (issue
-#: 14's notes). More is faster still, but the run's peak would pass 2 GB.
+#: Memory for the decoded photographs of a group: at most this, and at most what the run's
+#: memory bound leaves beside the sums (:data:`_GROUP_BOUND`). At 24 megapixels (72 MB as 8-bit
+#: RGB) that is 6 photographs: each pixel's sums are then read and written once per 6
+#: photographs. Once per 4 made the reduction 1.6× faster than once per 2; once per 6 made a
+#: 24-megapixel run of 48 photographs about 0.9 s (5 %) faster than once per 4, for 143 MB more
+#: at its peak (issue 14's notes). More is faster still, but the run's peak would pass 2 GB.
 _GROUP_BYTES = 450 << 20
+#: The group's room in the README's bound on a run's peak, 400 MB + 70 bytes per pixel
+#: (``reconstruct.pipeline.capture``'s plan): the peak, while decoding, is the process's own
+#: 270–290 MB, 56 bytes per pixel of sums and the group, which leaves it about 100 MB + 14 bytes
+#: per pixel. Eight 8-bit photographs of 18 megapixels (24 bytes per pixel) peaked at 1663 MiB
+#: against that bound's 1602; six (the rule) at 1520 MiB.
+_GROUP_BOUND = (100 << 20, 14)
 
 
 def _contribution(lut, wscale, i, ch, v):  # pragma: no cover - replaced in compiled code
@@ -509,9 +516,11 @@ def _encoding_table(dtype: np.dtype, encoding: str, srgb_bytes: bool) -> np.ndar
 
 
 def _group_size(first: np.ndarray, threads: int) -> int:
-    """Photographs per group: within :data:`_GROUP_BYTES`, but at least one per thread (so
-    that they all decode), and at most :data:`_BATCH`."""
-    return int(max(1, min(_BATCH, max(threads, _GROUP_BYTES // max(1, first.nbytes)))))
+    """Photographs per group: within :data:`_GROUP_BYTES` and :data:`_GROUP_BOUND`,
+    but at least one per thread (so that they all decode), and at most :data:`_BATCH`."""
+    base, per_pixel = _GROUP_BOUND
+    budget = min(_GROUP_BYTES, base + per_pixel * first.shape[0] * first.shape[1])
+    return int(max(1, min(_BATCH, max(threads, budget // max(1, first.nbytes)))))
 
 
 def reduce_photographs(

@@ -388,6 +388,27 @@ def test_a_bad_photograph_stops_the_pass_with_its_name(synthetic, tmp_path, monk
         load_stack_and_fits(paths, fit=EncodedFit(lights.directions, "lrgb"), threads=2)
 
 
+@pytest.mark.parametrize(("frame", "dtype", "threads", "photos"), [
+    ((4000, 6000), np.uint8, 2, 6),  # 24 MP: 432 MB, under 450 MB
+    ((3600, 5000), np.uint8, 2, 6),  # 18 MP: eight would fit in 450 MB but pass the run's bound
+    ((3000, 4000), np.uint8, 2, 7),
+    ((2000, 3000), np.uint8, 2, 8),
+    ((100, 100), np.uint8, 2, 8),
+    ((4000, 6000), np.uint16, 2, 3),
+    ((5792, 8688), np.uint8, 2, 3),  # 50 MP: 450 MB holds 3
+    ((8000, 12000), np.uint8, 2, 2),  # one per thread, whatever the budget
+    ((8000, 12000), np.uint8, 1, 1),
+])
+def test_a_group_stays_within_the_runs_memory_bound(frame, dtype, threads, photos):
+    first = np.broadcast_to(np.zeros((), dtype), (*frame, 3))
+    n = reduce_module._group_size(first, threads)
+    assert n == photos
+    # The group's room in the README's 400 MB + 70 bytes per pixel, beside the sums' 56 and
+    # the process's own 270-290 MB.
+    if n > threads:
+        assert n * first.nbytes <= min(reduce_module._GROUP_BYTES, (100 << 20) + 14 * frame[0] * frame[1])
+
+
 # --- the stack's table and 8-bit storage -------------------------------------------------------
 
 
