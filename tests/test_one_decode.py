@@ -410,9 +410,9 @@ def test_a_group_stays_within_the_runs_memory_bound(frame, dtype, threads, photo
 
 
 def test_48_photographs_of_24_megapixels_peak_under_2e9_bytes():
-    # The 2 GB read as bytes, from the peak's parts while decoding: the process's own
-    # (at most 290 MiB measured), 56 bytes per pixel of sums and the group. A group of 6 (the
-    # rule of the eighth session) measured 1960 MiB, 2.06e9 bytes.
+    # The 2 GB target read as bytes, from the peak's parts while decoding: the process's own
+    # (at most 290 MiB measured), 56 bytes per pixel of sums and the group. Groups of 6 (450 MB)
+    # measured 1960 MiB, 2.06e9 bytes.
     first = np.broadcast_to(np.zeros((), np.uint8), (4000, 6000, 3))
     n = reduce_module._group_size(first, 2)
     assert (290 << 20) + 56 * 4000 * 6000 + n * first.nbytes <= 2e9
