@@ -63,19 +63,22 @@ _CHUNK = 256
 #: Pixels per band of rows: the unit of work of a thread.
 _BAND_PIXELS = 1 << 18
 #: Memory for the decoded photographs of a group: at most this, and at most what the run's
-#: memory bound leaves beside the sums (:data:`_GROUP_BOUND`). At 24 megapixels (72 MB as 8-bit
+#: memory bound leaves beside the sums (:data:`_RUN_BOUND`). At 24 megapixels (72 MB as 8-bit
 #: RGB) that is 4 photographs: each pixel's sums are then read and written once per 4
 #: photographs, which made the reduction 1.6× faster than once per 2. Once per 6 (450 MB) made
 #: a 24-megapixel run of 48 photographs about 0.9 s (5 %) faster, but its peak, 1960 MiB, passed
 #: the 2 GB target read as 2 × 10^9 bytes (as /usr/bin/time's kilobytes show it); 5 photographs
 #: (1890 MiB) kept within 1 % of it. With 4 the peak is 1817 MiB (issue 14's notes).
 _GROUP_BYTES = 300 << 20
-#: The group's room in the README's bound on a run's peak, 400 MB + 70 bytes per pixel
-#: (``reconstruct.pipeline.capture``'s plan): the peak, while decoding, is the process's own
-#: 270–290 MB, 56 bytes per pixel of sums and the group, which leaves it about 100 MB + 14 bytes
-#: per pixel. Eight 8-bit photographs of 18 megapixels (24 bytes per pixel) peaked at 1663 MiB
-#: against that bound's 1602; six at 1520 MiB (:data:`_GROUP_BYTES` now allows five).
-_GROUP_BOUND = (100 << 20, 14)
+#: The README's bound on a run's peak, 400 MB + 70 bytes per pixel beside its stack
+#: (``reconstruct.pipeline.capture._BASE_MB`` and ``_BYTES_PER_PIXEL``, which a test keeps
+#: equal; ptmcore does not import the pipeline), and the process's own memory while decoding
+#: (270–290 MB measured). The peak while decoding is the process's own, the sums and the group,
+#: so a group gets what the bound leaves beside the other two: for HP's LRGB fit (56 bytes per
+#: pixel of sums) 100 MB + 14 bytes per pixel. Eight 8-bit photographs of 18 megapixels (24
+#: bytes per pixel) had peaked at 1663 MiB against that bound's 1602; six at 1520 MiB.
+_RUN_BOUND = (400 << 20, 70)
+_OWN_BYTES = 300 << 20
 
 
 def _contribution(lut, wscale, i, ch, v):  # pragma: no cover - replaced in compiled code
@@ -516,11 +519,13 @@ def _encoding_table(dtype: np.dtype, encoding: str, srgb_bytes: bool) -> np.ndar
     return (255.0 * curve).astype(np.float32)
 
 
-def _group_size(first: np.ndarray, threads: int) -> int:
-    """Photographs per group: within :data:`_GROUP_BYTES` and :data:`_GROUP_BOUND`,
-    but at least one per thread (so that they all decode), and at most :data:`_BATCH`."""
-    base, per_pixel = _GROUP_BOUND
-    budget = min(_GROUP_BYTES, base + per_pixel * first.shape[0] * first.shape[1])
+def _group_size(first: np.ndarray, threads: int, sums_bytes: int) -> int:
+    """Photographs per group: within :data:`_GROUP_BYTES` and what :data:`_RUN_BOUND` leaves
+    beside the process's own memory and the sums (``sums_bytes``), but at least one per thread
+    (so that they all decode), and at most :data:`_BATCH`."""
+    base, per_pixel = _RUN_BOUND
+    room = base - _OWN_BYTES + per_pixel * first.shape[0] * first.shape[1] - sums_bytes
+    budget = min(_GROUP_BYTES, room)
     return int(max(1, min(_BATCH, max(threads, budget // max(1, first.nbytes)))))
 
 
@@ -580,7 +585,6 @@ def reduce_photographs(
     first = photos.load(0)
     h, w = first.shape[:2]
     workers = thread_count(threads)
-    per_group = _group_size(first, workers)
     counting = threading.Lock()  # threads add the clipped counts of their bands
     # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in
     # the shadows); gains or linear 8-bit input would need finer steps in the highlights.
@@ -623,6 +627,7 @@ def reduce_photographs(
     # first task would touch (page in) every page of them while the second waited behind it:
     # 1.35 GB at 24 megapixels, seconds on a machine where fresh memory is slow to map.
     run_bands(h, max(1, _BAND_PIXELS // w), lambda r0, r1: [a[r0:r1].fill(0) for a in zeroed], threads=workers)
+    per_group = _group_size(first, workers, sum(a.nbytes for a in zeroed))
     depths = np.zeros(n, np.int64)
     held = [first]  # photograph 0 until its group takes it (and frees it)
     buffers = _Buffers(first.nbytes if first.dtype == np.uint8 else 0)

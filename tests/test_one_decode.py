@@ -388,6 +388,11 @@ def test_a_bad_photograph_stops_the_pass_with_its_name(synthetic, tmp_path, monk
         load_stack_and_fits(paths, fit=EncodedFit(lights.directions, "lrgb"), threads=2)
 
 
+#: Bytes per pixel of a run's sums while decoding with HP's LRGB fit: colour 3, PTM 6 and 5
+#: more, float32.
+_LRGB_SUMS = 56
+
+
 @pytest.mark.parametrize(("frame", "dtype", "threads", "photos"), [
     ((4000, 6000), np.uint8, 2, 4),  # 24 MP: 288 MB, under 300 MB
     ((3600, 5000), np.uint8, 2, 5),
@@ -401,7 +406,7 @@ def test_a_bad_photograph_stops_the_pass_with_its_name(synthetic, tmp_path, monk
 ])
 def test_a_group_stays_within_the_runs_memory_bound(frame, dtype, threads, photos):
     first = np.broadcast_to(np.zeros((), dtype), (*frame, 3))
-    n = reduce_module._group_size(first, threads)
+    n = reduce_module._group_size(first, threads, _LRGB_SUMS * frame[0] * frame[1])
     assert n == photos
     # The group's room in the README's 400 MB + 70 bytes per pixel, beside the sums' 56 and
     # the process's own 270-290 MB.
@@ -414,8 +419,22 @@ def test_48_photographs_of_24_megapixels_peak_under_2e9_bytes():
     # (at most 290 MiB measured), 56 bytes per pixel of sums and the group. Groups of 6 (450 MB)
     # measured 1960 MiB, 2.06e9 bytes.
     first = np.broadcast_to(np.zeros((), np.uint8), (4000, 6000, 3))
-    n = reduce_module._group_size(first, 2)
+    n = reduce_module._group_size(first, 2, _LRGB_SUMS * 4000 * 6000)
     assert (290 << 20) + 56 * 4000 * 6000 + n * first.nbytes <= 2e9
+
+
+def test_larger_sums_leave_a_smaller_group():
+    # RGB-format PTM sums (3 × 6 floats) and colour instead of LRGB's 14 floats a pixel.
+    first = np.broadcast_to(np.zeros((), np.uint8), (3000, 4000, 3))
+    lrgb = reduce_module._group_size(first, 2, _LRGB_SUMS * 3000 * 4000)
+    rgb = reduce_module._group_size(first, 2, (3 + 18) * 4 * 3000 * 4000)
+    assert rgb < lrgb
+    assert rgb == 2  # nothing left beside the sums: one photograph per thread
+
+
+def test_the_group_rule_uses_the_readmes_bound():
+    from reconstruct.pipeline import capture
+    assert reduce_module._RUN_BOUND == (capture._BASE_MB << 20, capture._BYTES_PER_PIXEL)
 
 
 # --- the stack's table and 8-bit storage -------------------------------------------------------
