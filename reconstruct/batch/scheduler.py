@@ -124,7 +124,10 @@ def _client(client, scheduler: str | None, items: list[BatchItem], workers: int 
                                                        dashboard_address=":0", memory_limit=0, silence_logs=40))
         local = stack.enter_context(Client(cluster))
         echo(f"{n} worker(s) × {threads} thread(s); Dask dashboard: {local.dashboard_link}")
-        yield local, threads
+        try:
+            yield local, threads
+        finally:
+            _quiet_workers(local)
 
 
 @contextmanager
@@ -153,6 +156,29 @@ def _ctrl_c_blocked() -> Iterator[None]:
         yield
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _quiet_workers(client) -> None:
+    """Stop the worker processes of ``client``'s local cluster logging below CRITICAL.
+
+    Called as the cluster is about to close, after the batch has said all it has to say. A
+    worker whose heartbeat is on its way when the scheduler closes logs the broken connection
+    with a traceback at ERROR (a race of Dask's own shutdown, dask/distributed#7105), which
+    then lands on the user's terminal after the batch's last line. Every object's outcome is in
+    the batch's rows by then. The worker processes are the cluster's own and end with it, so
+    their process-wide logging is theirs to change; the nannies and the scheduler run in the
+    caller's process, whose logging stays as it is. Best effort, like :func:`_stop`.
+    """
+    try:
+        client.run(_log_critical_only, on_error="ignore")
+    except Exception:  # noqa: BLE001, S110 - a worker already gone prints nothing more
+        pass
+
+
+def _log_critical_only() -> None:
+    import logging
+
+    logging.disable(logging.ERROR)
 
 
 def _check_shared_paths(client, out: Path, items: list[BatchItem]) -> None:
