@@ -318,6 +318,17 @@ def test_a_closing_local_cluster_keeps_its_workers_quiet(capfd):
     assert "heard after" not in err, err
 
 
+def test_a_batch_quiets_its_local_cluster_before_closing_it(collection, tmp_path, monkeypatch):
+    from reconstruct.batch import scheduler
+
+    seen = []
+    monkeypatch.setattr(scheduler, "_quiet_workers",
+                        lambda c: seen.append((c.status, len(c.scheduler_info()["workers"]))))
+    rows = run_batch([collection / "tablet_a"], tmp_path / "out", OPT, workers=1)
+    assert rows[0].status == "done", rows[0].error
+    assert seen == [("running", 1)]  # once, while the client and its worker were still up
+
+
 @pytest.mark.parametrize("signals", [["SIGINT"], ["SIGINT", "SIGINT"], ["SIGTERM"]])
 def test_ctrl_c_stops_a_batch_with_one_line(slow_collection, tmp_path, signals):
     # Sent to the whole process group, as a terminal does: the workers must not print
