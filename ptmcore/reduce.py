@@ -48,7 +48,7 @@ from .diskstack import disk_array, release_rows
 from .errors import InputError
 from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, default_table, linear_to_srgb, srgb_to_linear
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
-from .resources import thread_count
+from .resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, thread_count
 from .streaming import Photographs, check_same_size, run_in_groups
 
 __all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
@@ -63,21 +63,19 @@ _CHUNK = 256
 #: Pixels per band of rows: the unit of work of a thread.
 _BAND_PIXELS = 1 << 18
 #: Memory for the decoded photographs of a group: at most this, and at most what the run's
-#: memory bound leaves beside the sums (:data:`_RUN_BOUND`). At 24 megapixels (72 MB as 8-bit
-#: RGB) that is 4 photographs: each pixel's sums are then read and written once per 4
-#: photographs, which made the reduction 1.6× faster than once per 2. Once per 6 (450 MB) made
-#: a 24-megapixel run of 48 photographs about 0.9 s (5 %) faster, but its peak, 1960 MiB, passed
-#: the 2 GB target read as 2 × 10^9 bytes (as /usr/bin/time's kilobytes show it); 5 photographs
-#: (1890 MiB) kept within 1 % of it. With 4 the peak is 1817 MiB (issue 14's notes).
+#: memory bound (:data:`ptmcore.resources.RUN_BASE_MB`, ``RUN_BYTES_PER_PIXEL``) leaves beside
+#: the process's own memory and the sums. At 24 megapixels (72 MB as 8-bit RGB) that is 4
+#: photographs: each pixel's sums are then read and written once per 4 photographs, which made
+#: the reduction 1.6× faster than once per 2. Once per 6 (450 MB) made a 24-megapixel run of 48
+#: photographs about 0.9 s (5 %) faster, but its peak, 1960 MiB, passed the 2 GB target read as
+#: 2 × 10^9 bytes (as /usr/bin/time's kilobytes show it); 5 photographs (1890 MiB) kept within
+#: 1 % of it. With 4 the peak is 1816 MiB (issue 14's notes).
 _GROUP_BYTES = 300 << 20
-#: The README's bound on a run's peak, 400 MB + 70 bytes per pixel beside its stack
-#: (``reconstruct.pipeline.capture._BASE_MB`` and ``_BYTES_PER_PIXEL``, which a test keeps
-#: equal; ptmcore does not import the pipeline), and the process's own memory while decoding
-#: (270–290 MB measured). The peak while decoding is the process's own, the sums and the group,
-#: so a group gets what the bound leaves beside the other two: for HP's LRGB fit (56 bytes per
-#: pixel of sums) 100 MB + 14 bytes per pixel. Eight 8-bit photographs of 18 megapixels (24
-#: bytes per pixel) had peaked at 1663 MiB against that bound's 1602; six at 1520 MiB.
-_RUN_BOUND = (400 << 20, 70)
+#: The process's own memory while decoding (270–290 MB measured). The peak while decoding is
+#: that, the sums and the group, so a group gets what the run's bound leaves beside the other
+#: two: for HP's LRGB fit (56 bytes per pixel of sums) 100 MB + 14 bytes per pixel. Eight 8-bit
+#: photographs of 18 megapixels (24 bytes per pixel) had peaked at 1663 MiB against that
+#: bound's 1602; six at 1520 MiB.
 _OWN_BYTES = 300 << 20
 
 
@@ -520,11 +518,11 @@ def _encoding_table(dtype: np.dtype, encoding: str, srgb_bytes: bool) -> np.ndar
 
 
 def _group_size(first: np.ndarray, threads: int, sums_bytes: int) -> int:
-    """Photographs per group: within :data:`_GROUP_BYTES` and what :data:`_RUN_BOUND` leaves
-    beside the process's own memory and the sums (``sums_bytes``), but at least one per thread
-    (so that they all decode), and at most :data:`_BATCH`."""
-    base, per_pixel = _RUN_BOUND
-    room = base - _OWN_BYTES + per_pixel * first.shape[0] * first.shape[1] - sums_bytes
+    """Photographs per group: within :data:`_GROUP_BYTES` and what the run's memory bound
+    leaves beside the process's own memory (:data:`_OWN_BYTES`) and the sums (``sums_bytes``),
+    but at least one per thread (so that they all decode), and at most :data:`_BATCH`."""
+    bound = (RUN_BASE_MB << 20) + RUN_BYTES_PER_PIXEL * first.shape[0] * first.shape[1]
+    room = bound - _OWN_BYTES - sums_bytes
     budget = min(_GROUP_BYTES, room)
     return int(max(1, min(_BATCH, max(threads, budget // max(1, first.nbytes)))))
 

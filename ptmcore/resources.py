@@ -19,7 +19,14 @@ import math
 import os
 from pathlib import Path
 
-__all__ = ["available_memory_mb", "cpu_count", "thread_count"]
+__all__ = ["RUN_BASE_MB", "RUN_BYTES_PER_PIXEL", "available_memory_mb", "cpu_count", "thread_count"]
+
+#: A run's peak memory beside its stack (the README's formula, 400 MB + 70 bytes per pixel):
+#: the interpreter and libraries, and per pixel the fits' sums, colour, normals, height, mesh
+#: and texture (benchmarks/speed.py). The pipeline plans a capture's stack with it; the
+#: reduction sizes its groups of decoded photographs within it.
+RUN_BASE_MB = 400
+RUN_BYTES_PER_PIXEL = 70
 
 #: A version-1 cgroup without a memory limit reports this or more (the largest page-aligned
 #: 64-bit value): no limit.

@@ -433,8 +433,12 @@ def test_larger_sums_leave_a_smaller_group():
 
 
 def test_the_group_rule_uses_the_readmes_bound():
-    from reconstruct.pipeline import capture
-    assert reduce_module._RUN_BOUND == (capture._BASE_MB << 20, capture._BYTES_PER_PIXEL)
+    # One definition, used by the group rule and the pipeline's stack plan, and the formula the
+    # README gives users.
+    from ptmcore.resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    assert f"≈ {RUN_BASE_MB} MB + {RUN_BYTES_PER_PIXEL} × W × H bytes" in readme
 
 
 # --- the stack's table and 8-bit storage -------------------------------------------------------

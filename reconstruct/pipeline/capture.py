@@ -27,7 +27,7 @@ from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
 from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
-from ptmcore.resources import available_memory_mb
+from ptmcore.resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, available_memory_mb
 from ptmcore.solvers import RankInfo, analyse_lights
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
@@ -313,12 +313,6 @@ def _storage(opt: RunOptions) -> str:
     return "uint16" if opt.intensities is not None else "auto"
 
 
-#: Memory of a run beyond its stack, per pixel (sums of the fits, colour, normals, height, mesh
-#: and texture; benchmarks/speed.py), and for the interpreter and libraries.
-_BYTES_PER_PIXEL = 70
-_BASE_MB = 400
-
-
 @dataclass(frozen=True)
 class StackPlan:
     """Where a capture's stack goes, from its photographs' headers (:func:`plan_stack`).
@@ -326,8 +320,8 @@ class StackPlan:
     Attributes
     ----------
     stack_mb, rest_mb : float
-        The stack's size and the rest of the run's peak (``_BASE_MB`` and
-        ``_BYTES_PER_PIXEL`` per pixel), MiB.
+        The stack's size and the rest of the run's peak
+        (:data:`ptmcore.resources.RUN_BASE_MB` and ``RUN_BYTES_PER_PIXEL`` per pixel), MiB.
     short : bool
         A run holding the stack in memory would exceed ``memory_limit`` (by default the
         memory available now).
@@ -358,7 +352,7 @@ def plan_stack(paths: Sequence[Path], opt: RunOptions) -> StackPlan | None:
     pixels = size[0] * size[1]
     jpeg = all(p.suffix.lower() in (".jpg", ".jpeg") for p in paths)
     sample = 1 if jpeg and _storage(opt) == "auto" and opt.linearize else 2
-    stack, rest = len(paths) * sample * pixels / 2**20, _BASE_MB + _BYTES_PER_PIXEL * pixels / 2**20
+    stack, rest = len(paths) * sample * pixels / 2**20, RUN_BASE_MB + RUN_BYTES_PER_PIXEL * pixels / 2**20
     if opt.memory_limit is not None:
         limit = opt.memory_limit
     else:
