@@ -7,7 +7,9 @@ one line on stderr and exit status 2; anything else is a bug and keeps its trace
 
 from __future__ import annotations
 
+import codecs
 import os
+import stat
 from collections.abc import Sequence
 from typing import BinaryIO
 
@@ -29,35 +31,82 @@ class InputError(Exception):
         super().__init__(f"{self.path}: {problem}" if self.path else problem)
 
 
-def read_input_file(path: str | os.PathLike, what: str) -> bytes:
+def read_input_file(path: str | os.PathLike, what: str, max_bytes: int | None = None) -> bytes:
     """The bytes of a user's file, or an :class:`InputError` that says why not.
 
-    ``what`` names the kind of file in the message ("PTM file", "RTI file", ...).
+    ``what`` names the kind of file in the message ("PTM file", "RTI file", ...). Only a
+    regular file is read (see :func:`open_input_file`); ``max_bytes``, when given, refuses a
+    larger file before anything is read, so a stray multi-gigabyte file named like an input
+    costs nothing.
     """
     with open_input_file(path, what) as f:
+        size = os.fstat(f.fileno()).st_size
+        if max_bytes is not None and size > max_bytes:
+            raise InputError(f"the {what} is {size:,} bytes, more than the {max_bytes:,} this program "
+                             "reads for it (not the file meant?)", path)
         try:
-            return f.read()
+            # A regular file may still grow while it is read, or report size 0 (/proc):
+            # never read past the bound.
+            data = f.read() if max_bytes is None else f.read(max_bytes + 1)
         except OSError as exc:
             raise InputError(f"cannot read {what} ({exc.strerror or exc})", path) from None
+    if max_bytes is not None and len(data) > max_bytes:
+        raise InputError(f"the {what} is more than the {max_bytes:,} bytes this program reads for it", path)
+    return data
+
+
+def _kind(mode: int) -> str:
+    if stat.S_ISFIFO(mode):
+        return "a named pipe (FIFO)"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
 
 
 def open_input_file(path: str | os.PathLike, what: str) -> BinaryIO:
     """A user's file open for reading in binary, or an :class:`InputError` that says why not
-    (see :func:`read_input_file`)."""
+    (see :func:`read_input_file`).
+
+    Only a regular file is opened. A named pipe, a device (``/dev/zero``) or a socket would
+    block the run or feed it without end, so it is refused with one line; it is opened without
+    blocking to find out what it is (opening a FIFO for reading otherwise waits for a writer).
+    """
     try:
-        return open(path, "rb")
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
         raise InputError(f"{what} not found", path) from None
     except IsADirectoryError:
         raise InputError(f"is a folder, not a {what}", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read {what} ({exc.strerror or exc})", path) from None
+    except (OSError, ValueError) as exc:  # ValueError: a NUL byte in the name
+        raise InputError(f"cannot read {what} ({getattr(exc, 'strerror', None) or exc})", path) from None
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise InputError(f"is a folder, not a {what}", path)
+        if not stat.S_ISREG(mode):
+            raise InputError(f"is {_kind(mode)}, not a {what} file", path)
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
 
 
-def read_input_text(path: str | os.PathLike, what: str) -> str:
-    """The text of a user's file (UTF-8, a byte-order mark dropped, undecodable bytes
-    replaced), or an :class:`InputError` that says why not; see :func:`read_input_file`."""
-    return read_input_file(path, what).decode("utf-8-sig", errors="replace")
+def read_input_text(path: str | os.PathLike, what: str, max_bytes: int | None = None) -> str:
+    """The text of a user's file, or an :class:`InputError` that says why not; see
+    :func:`read_input_file`.
+
+    UTF-8, with or without a byte-order mark; UTF-16 and UTF-32 when their byte-order mark
+    says so (Windows' Notepad saves "Unicode" as UTF-16). Undecodable bytes are replaced.
+    """
+    data = read_input_file(path, what, max_bytes)
+    for bom, codec in ((codecs.BOM_UTF32_LE, "utf-32"), (codecs.BOM_UTF32_BE, "utf-32"),
+                       (codecs.BOM_UTF16_LE, "utf-16"), (codecs.BOM_UTF16_BE, "utf-16")):
+        if data.startswith(bom):
+            return data.decode(codec, errors="replace")
+    return data.decode("utf-8-sig", errors="replace")
 
 
 def first_few(items: Sequence[str], limit: int = 3, sep: str = ", ") -> str:
