@@ -28,7 +28,14 @@ class InputError(Exception):
     def __init__(self, problem: str, path: str | os.PathLike | None = None) -> None:
         self.problem = problem
         self.path = None if path is None else os.fspath(path)
-        super().__init__(f"{self.path}: {problem}" if self.path else problem)
+        shown = _printable(os.fsdecode(self.path)) if self.path else None
+        super().__init__(f"{shown}: {problem}" if shown else problem)
+
+
+def _printable(name: str) -> str:
+    """A file name as one printable line: control characters (a NUL, a newline, an escape
+    sequence in a hostile name) shown as escapes, so the message stays one honest line."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in name)
 
 
 def read_input_file(path: str | os.PathLike, what: str, max_bytes: int | None = None) -> bytes:
@@ -86,7 +93,7 @@ def open_input_file(path: str | os.PathLike, what: str) -> BinaryIO:
         if stat.S_ISDIR(mode):
             raise InputError(f"is a folder, not a {what}", path)
         if not stat.S_ISREG(mode):
-            raise InputError(f"is {_kind(mode)}, not a {what} file", path)
+            raise InputError(f"is {_kind(mode)}, not a {what}", path)
         os.set_blocking(fd, True)
         return os.fdopen(fd, "rb")
     except BaseException:
