@@ -13,10 +13,8 @@ in one compiled pass over its pixels (:mod:`ptmcore.reduce`), to what the later 
 
 Whatever the storage, :attr:`ImageStack.table` maps a stored code to linear luminance.
 
-Decoders: JPEG with simplejpeg (libjpeg-turbo without Pillow's extra copy: 1.6× faster than
-Pillow and 1.5× faster than OpenCV on a 24-megapixel photograph, see benchmarks/decoders.py),
-or Pillow if it is missing; PNG with OpenCV because Pillow reads 16-bit RGB PNG as 8 bits;
-TIFF with tifffile.
+Photographs are decoded by :mod:`ptmcore.decoders`: JPEG, PNG and TIFF only, each by a decoder
+chosen from the file's content, every header's claimed size checked before anything is allocated.
 """
 
 from __future__ import annotations
@@ -30,6 +28,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from .bands import run_bands
+from .decoders import MAX_PIXELS, allow_large_images, image_size, read_raster  # noqa: F401 - their home before decoders.py
 from .diskstack import is_disk_array, release_rows
 from .errors import InputError, first_few
 from .lp import MIN_PHOTOGRAPHS
@@ -76,144 +75,24 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
     return np.where(v <= 0.0031308, v * 12.92, curve).astype(v.dtype, copy=False)
 
 
-#: The largest image read, in pixels: OpenCV's own limit (2^30, e.g. 32768 × 32768). A header
-#: that claims more (a decompression bomb, or a corrupt header) is refused before any memory
-#: is allocated for it.
-MAX_PIXELS = 1 << 30
-
-
-def allow_large_images() -> None:
-    """Let Pillow open any image up to :data:`MAX_PIXELS`, this program's own limit.
-
-    Pillow warns above 89 megapixels and refuses above 179 (its ``Image.MAX_IMAGE_PIXELS``,
-    a guard for servers decoding untrusted uploads). A 150-megapixel camera's photographs are
-    ordinary here: without this, reading their EXIF or a contact-sheet thumbnail prints a
-    "decompression bomb" warning, and a larger BMP or WebP photograph is refused. Every reader
-    of this program checks the header against :data:`MAX_PIXELS` before it allocates.
-
-    Pillow's limit is process-wide, so this is called by the programs that own their process
-    (the ``reconstruct`` command and a batch's workers), not on import: a notebook that
-    imports ptmcore keeps Pillow's default unless it calls this.
-    """
-    import warnings
-
-    from PIL import Image
-
-    # Pillow refuses above twice its limit and warns above the limit itself: refuse where this
-    # program does, and without the warning in between.
-    Image.MAX_IMAGE_PIXELS = MAX_PIXELS // 2
-    warnings.filterwarnings("ignore", category=Image.DecompressionBombWarning)
-
-
-def _check_pixels(width: int, height: int, path: Path) -> None:
-    if width * height > MAX_PIXELS:
-        raise InputError(f"the image claims {width} × {height} pixels, more than the {MAX_PIXELS:,} this program "
-                         "reads (a corrupt header, or an image too large to process)", path)
-
-
-def _decode_jpeg(data: bytes, path: Path, buffer: np.ndarray | None = None) -> np.ndarray:
-    try:
-        import simplejpeg
-    except ImportError:  # pragma: no cover - simplejpeg is a dependency; Pillow still works
-        simplejpeg = None
-    if simplejpeg is not None:
-        try:
-            height, width, colorspace, _ = simplejpeg.decode_jpeg_header(data)
-            _check_pixels(width, height, path)
-            gray = colorspace == "Gray"
-            need = height * width * (1 if gray else 3)
-            out = buffer[:need] if buffer is not None and buffer.nbytes >= need else None
-            img = simplejpeg.decode_jpeg(data, colorspace="GRAY" if gray else "RGB", buffer=out)
-            return img[..., 0] if gray else img
-        except ValueError:
-            pass  # CMYK and other rarities: let Pillow try
-    return _decode_pillow(path)
-
-
-def _decode_pillow(path: Path) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            _check_pixels(*im.size, path)
-            if im.mode not in ("L", "RGB", "I;16", "I;16B", "I;16L"):
-                im = im.convert("RGB")
-            return np.asarray(im)
-    except Image.DecompressionBombError:
-        lift = ("; ptmcore.images.allow_large_images() raises Pillow's limit to this program's"
-                if (Image.MAX_IMAGE_PIXELS or 0) * 2 < MAX_PIXELS else "")
-        raise InputError(f"the image claims more pixels than Pillow reads (a corrupt header, or a "
-                         f"decompression bomb{lift})", path) from None
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as exc:
-        raise InputError(f"cannot decode image ({exc})", path) from None
-
-
-def _decode_png(data: bytes, path: Path) -> np.ndarray:
-    import cv2
-
-    if len(data) >= 24 and data[12:16] == b"IHDR":
-        _check_pixels(int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big"), path)
-    try:
-        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error:
-        img = None
-    if img is None:
-        raise InputError("cannot decode PNG image (corrupt or truncated)", path)
-    if img.ndim == 3:
-        img = img[..., 2::-1] if img.shape[2] >= 3 else img[..., 0]  # BGR(A) -> RGB
-    return img
-
-
-def _decode_tiff(path: Path) -> np.ndarray:
-    import tifffile
-
-    try:
-        with tifffile.TiffFile(path) as tif:
-            page = tif.pages[0]
-            _check_pixels(page.imagewidth, page.imagelength, path)
-            img = page.asarray()
-    except InputError:
-        raise
-    except Exception as exc:  # tifffile raises many types for corrupt files
-        raise InputError(f"cannot decode TIFF image ({exc})", path) from None
-    if img.ndim == 3 and img.shape[0] in (3, 4) and img.shape[2] not in (3, 4):
-        img = np.moveaxis(img, 0, -1)  # planar (C, H, W) layout
-    return img
-
-
-def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
-    """``(width, height)`` of an image from its header (nothing is decoded), or None when the
-    file is missing or unreadable: Pillow's reading, or tifffile's for the 16-bit RGB TIFFs
-    Pillow does not open."""
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (OSError, ValueError, Image.DecompressionBombError):
-        pass
-    if Path(path).suffix.lower() not in (".tif", ".tiff"):
-        return None
-    import tifffile
-
-    try:
-        with tifffile.TiffFile(path) as tif:
-            return tif.pages[0].imagewidth, tif.pages[0].imagelength
-    except (OSError, ValueError, IndexError, tifffile.TiffFileError):
-        return None
-
-
-def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None) -> np.ndarray:
+def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
+               min_side: int | None = None) -> np.ndarray:
     """Read a photograph as it is stored.
 
     Parameters
     ----------
     path : str or PathLike
-        JPEG, PNG or TIFF file; 8 or 16 bit (TIFF may also be float); grey or RGB(A).
+        JPEG, PNG or TIFF file (told by its content; anything else is refused, see
+        :mod:`ptmcore.decoders`); 8 or 16 bit (TIFF may also be float); grey, RGB(A), palette
+        or min-is-white grey.
     buffer : ndarray of uint8, optional
         A JPEG is decoded into it when it is large enough, and the result is a view of it.
         Reusing one buffer saves a fresh array's page faults for every photograph, which on
         some (virtual) machines cost as much time as decoding.
+    min_side : int, optional
+        A JPEG is decoded at the smallest of libjpeg's DCT scales (1/8 to 1) whose sides are
+        both at least this long: a thumbnail for a fraction of the work. Other formats are
+        read whole.
 
     Returns
     -------
@@ -224,25 +103,12 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None) -> 
     Raises
     ------
     InputError
-        If the file is missing, unreadable, not an image, or of an unsupported depth.
+        If the file is missing, not a regular file, unreadable, not a JPEG, PNG or TIFF, of an
+        unsupported depth or colour model, or claims more pixels than its bytes or the memory
+        available allow.
     """
     path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise InputError("image not found", path) from None
-    except OSError as exc:
-        raise InputError(f"cannot read image ({exc.strerror})", path) from None
-    if not data:
-        raise InputError("image file is empty", path)
-    if data[:3] == b"\xff\xd8\xff":
-        img = _decode_jpeg(data, path, buffer)
-    elif data[:8] == b"\x89PNG\r\n\x1a\n":
-        img = _decode_png(data, path)
-    elif data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
-        img = _decode_tiff(path)
-    else:
-        img = _decode_pillow(path)
+    img = read_raster(path, buffer=buffer, min_side=min_side)
     if img.ndim == 3:
         if img.shape[2] == 1 or img.shape[2] == 2:
             img = img[..., 0]

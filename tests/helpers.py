@@ -82,6 +82,27 @@ def run_cli(argv, capsys):
     return code, out.out, out.err
 
 
+def jpeg_header(path, width: int, height: int, extra: int = 0) -> None:
+    """A small JPEG whose frame header claims ``width × height`` pixels (its data is for 16 × 16),
+    with ``extra`` bytes of padding in a comment segment."""
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.full((16, 16, 3), 100, np.uint8)).save(buf, "JPEG")
+    data = bytearray(buf.getvalue())
+    sof = data.index(b"\xff\xc0")
+    data[sof + 5:sof + 9] = height.to_bytes(2, "big") + width.to_bytes(2, "big")
+    pad = b""
+    while extra > 0:
+        n = min(extra, 65533)
+        pad += b"\xff\xfe" + (n + 2).to_bytes(2, "big") + b"\0" * n
+        extra -= n
+    path.write_bytes(bytes(data[:2]) + pad + bytes(data[2:]))
+
+
 def bmp_header(path, width: int, height: int) -> None:
     """A 24-bit BMP that claims ``width × height`` pixels and holds 16 bytes of them."""
     import struct

@@ -13,7 +13,7 @@ import tifffile
 from reconstruct.cli.main import main
 from ptmcore.lp import write_lp
 
-from helpers import bmp_header, dome, sphere_normals, run_cli as _run
+from helpers import bmp_header, dome, jpeg_header, sphere_normals, run_cli as _run
 
 
 def _make_capture(folder: Path, n: int = 12, h: int = 40, w: int = 48, ext: str = "tif") -> Path:
@@ -232,16 +232,24 @@ def test_corrupt_image(capture, tmp_path, capsys):
     _assert_one_line_error(code, err, "img 04.tif")
 
 
-def test_a_photograph_larger_than_pillows_guard_is_read_as_any_other(capture, tmp_path, capsys):
-    """The command lifts Pillow's 179-megapixel refusal (ptmcore.images.allow_large_images):
-    a BMP photograph claiming 195 megapixels gets as far as its missing pixels."""
+def test_a_photograph_claiming_more_than_its_bytes_hold_is_refused_before_decoding(capture, tmp_path, capsys):
+    """A JPEG of a few hundred bytes claiming 195 megapixels (Pillow's 179-megapixel guard lifted
+    by the command) is refused from its header: its bytes cannot hold that many pixels."""
     (capture / "img 04.tif").unlink()
-    bmp_header(capture / "img 04.bmp", 15000, 13000)
+    jpeg_header(capture / "img 04.jpg", 15000, 13000)
     lp = capture / "lights.lp"
-    lp.write_text(lp.read_text().replace("img 04.tif", "img 04.bmp"))
+    lp.write_text(lp.read_text().replace("img 04.tif", "img 04.jpg"))
     code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
-    _assert_one_line_error(code, err, "img 04.bmp")
-    assert "truncated" in err and "Pillow" not in err
+    _assert_one_line_error(code, err, "img 04.jpg")
+    assert "15000 × 13000" in err and "bytes can hold" in err and "Pillow" not in err
+
+
+def test_a_photograph_in_another_format_is_refused_by_its_content(capture, tmp_path, capsys):
+    """Only JPEG, PNG and TIFF are read, told by content: a BMP named .tif is refused."""
+    bmp_header(capture / "img 04.tif", 40, 30)
+    code, _, err = _run(["run", capture, "-o", tmp_path / "o"], capsys)
+    _assert_one_line_error(code, err, "img 04.tif")
+    assert "is BMP, not a JPEG, PNG or TIFF" in err
 
 
 def test_differing_sizes(capture, tmp_path, capsys):

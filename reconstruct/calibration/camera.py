@@ -167,17 +167,14 @@ def intrinsics_from_exif(path) -> Intrinsics | None:
     InputError
         If the file cannot be opened as an image.
     """
-    from PIL import Image, UnidentifiedImageError
-
+    from ptmcore.decoders import pillow_image
     from ptmcore.errors import InputError
 
     try:
-        with Image.open(path) as img:
+        with pillow_image(path) as img:
             width, height = img.size
             exif = img.getexif()
-    except FileNotFoundError:
-        raise InputError("photograph not found", path) from None
-    except (OSError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
+    except (OSError, SyntaxError, ValueError) as exc:  # a damaged EXIF block
         raise InputError(f"cannot read the photograph's EXIF: {exc}", path) from None
     sub = exif.get_ifd(_EXIF_IFD)
     cx, cy = (width - 1) / 2.0, (height - 1) / 2.0

@@ -20,7 +20,7 @@ import numpy as np
 from PIL import Image
 
 from ptmcore.atomic import atomic_write
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, read_input_file
 from ptmcore.png import encode_png
 from ptmcore.resources import cpu_count
 from reconstruct.mesh import objtext
@@ -177,10 +177,12 @@ def _texture_png(texture: str | os.PathLike | np.ndarray) -> bytes:
         rgb = _as_rgb(texture, texture.shape[:2])
         return encode_png(np.ascontiguousarray(rgb))
     try:
-        data = Path(texture).read_bytes()
+        data = read_input_file(texture, "texture image")
         if data.startswith(b"\x89PNG\r\n\x1a\n"):
             return data
-        with Image.open(io.BytesIO(data)) as image:
+        # Pillow chooses among these plugins alone: with none named it tries every one, and
+        # its EPS plugin runs Ghostscript.
+        with Image.open(io.BytesIO(data), formats=["JPEG", "TIFF"]) as image:
             return encode_png(np.asarray(image.convert("RGB")))
     except (OSError, Image.DecompressionBombError) as exc:
         raise InputError(f"cannot read the texture image ({exc})", texture) from exc

@@ -132,10 +132,11 @@ def downscale_file(path: str | os.PathLike, max_width: int = MAX_WIDTH, fmt: str
     """An image file as ``fmt`` bytes at most ``max_width`` wide (a PNG that fits is kept as it is)."""
     from PIL import Image
 
-    data = Path(path).read_bytes()
-    with Image.open(io.BytesIO(data)) as im:
+    from ptmcore.decoders import pillow_image
+
+    with pillow_image(path) as im:
         if im.width <= max_width and im.format == fmt:
-            return data
+            return Path(path).read_bytes()
         im = im.convert("RGB")
         im.thumbnail((max_width, max_width * im.height // im.width + 1), Image.Resampling.LANCZOS)
         return encode(np.asarray(im), fmt)
@@ -150,18 +151,9 @@ def photograph_thumbnail(path: str | os.PathLike, max_side: int = 240) -> np.nda
     16-bit and float images are linear light: they are scaled to their 99.5th percentile and
     encoded as sRGB so they look as a photograph does.
     """
-    from PIL import Image
-
     from ptmcore.images import read_image
 
-    path = Path(path)
-    if path.suffix.lower() in (".jpg", ".jpeg"):
-        with Image.open(path) as im:
-            im.draft("RGB", (max_side, max_side))
-            im = im.convert("RGB")
-            im.thumbnail((max_side, max_side), Image.Resampling.LANCZOS)
-            return np.asarray(im)
-    image = read_image(path)
+    image = read_image(path, min_side=max_side)
     s = stride_for(image.shape, 2 * max_side)
     image = image[::s, ::s]
     if image.ndim == 2:
