@@ -1,9 +1,11 @@
-"""Which JPEG decoder is fastest: simplejpeg, Pillow and OpenCV on one large JPEG.
+"""Which decoders are fastest: simplejpeg, Pillow and OpenCV on one large JPEG; imagecodecs
+and OpenCV on the same photograph as a 16-bit RGB PNG.
 
-The project decodes JPEGs with simplejpeg (see ptmcore/images.py); this script is the
-measurement behind that choice. It renders one synthetic 6000×4000 photograph (or takes
-``--image FILE``) and reports the median of ``--repeat`` decodes per decoder, each to an
-(H, W, 3) uint8 array, and the ratio to simplejpeg.
+The project decodes JPEGs with simplejpeg and PNGs with imagecodecs (see ptmcore/decoders.py);
+this script is the measurement behind those choices. It renders one synthetic 6000×4000
+photograph (or takes ``--image FILE``) and reports the median of ``--repeat`` decodes per
+decoder, each to an (H, W, 3) array, and the ratio to the project's decoder. (Pillow reads a
+16-bit RGB PNG as 8 bits, so it is not in the PNG table.)
 
 Run: ``.venv/bin/python benchmarks/decoders.py [--image FILE] [--repeat 7]``
 """
@@ -54,20 +56,34 @@ def main() -> None:
         "Pillow": lambda: np.asarray(Image.open(io.BytesIO(data)).convert("RGB")),
         "OpenCV": lambda: cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR),
     }
+    _table(f"{len(data) / 1e6:.1f} MB JPEG", decoders, args.repeat)
+
+    import imagecodecs
+
+    rgb16 = (simplejpeg.decode_jpeg(data, colorspace="RGB").astype(np.uint16) * 257)
+    png = cv2.imencode(".png", rgb16[..., ::-1])[1].tobytes()
+    _table(f"{len(png) / 1e6:.1f} MB 16-bit RGB PNG of the same photograph", {
+        "imagecodecs": lambda: imagecodecs.png_decode(png),
+        "OpenCV": lambda: cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED),
+    }, args.repeat)
+
+
+def _table(what: str, decoders: dict, repeat: int) -> None:
     times = {}
     for name, decode in decoders.items():
         decode()
         runs = []
-        for _ in range(args.repeat):
+        for _ in range(repeat):
             t0 = time.perf_counter()
             decode()
             runs.append(time.perf_counter() - t0)
         times[name] = statistics.median(runs)
-    print(f"{len(data) / 1e6:.1f} MB JPEG, median of {args.repeat} decodes "
-          f"({time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores):")
-    print("| decoder | seconds | × simplejpeg |\n| --- | --- | --- |")
+    first = next(iter(times))
+    print(f"{what}, median of {repeat} decodes "
+          f"({time.strftime('%Y-%m-%d %H:%M')}, {platform.machine()}, {os.cpu_count()} cores):")
+    print(f"| decoder | seconds | × {first} |\n| --- | --- | --- |")
     for name, t in times.items():
-        print(f"| {name} | {t:.3f} | {t / times['simplejpeg']:.2f} |")
+        print(f"| {name} | {t:.3f} | {t / times[first]:.2f} |")
 
 
 if __name__ == "__main__":
