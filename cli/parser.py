@@ -168,9 +168,11 @@ outputs (in the -o folder):
                              memory, size, height range, accuracy, scan RMS, warnings
   index.html                 a gallery: failures first, then a card per object
   thumbnails/                the gallery's small relit images and height maps
+An object named like one of these gets a suffix, as a repeated name does: index.html-2/.
 
 Running the same command again skips the objects whose output is complete and whose
-photographs, .lp and options have not changed (--force redoes them).
+photographs, .lp, mask, scan, other inputs and options have not changed (--force redoes
+them).
 
 manifest (--manifest objects.csv): a header row, then one row per object; columns `capture`
 (path relative to the CSV), `name`, `scan`, `scan_units`, and any run option by its long name
@@ -196,7 +198,7 @@ def _add_batch_command(sub: argparse._SubParsersAction) -> None:
     batch.add_argument("-o", "--output", type=_path, required=True, help="the batch's output folder")
     batch.add_argument("--manifest", type=_path, metavar="CSV", help="one row per object, overriding options")
     batch.add_argument("--workers", type=_positive_int, metavar="N",
-                       help="workers of the local cluster (default: as many as cores and memory allow)")
+                       help="workers of the local cluster (default, and at most: as many as cores and memory allow)")
     batch.add_argument("--scheduler", metavar="ADDRESS",
                        help="run on an existing Dask cluster (tcp://host:8786); workers need the same paths")
     batch.add_argument("--force", action="store_true", help="redo objects that are complete and unchanged")

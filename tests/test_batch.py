@@ -143,11 +143,11 @@ def test_manifest_overrides_and_names(collection, client, tmp_path):
 @pytest.mark.parametrize("body, message", [
     ("capture,pixelsize\ntablet_a,0.1\n", "unknown column"),
     ("name\nx\n", "no capture column"),
-    ("capture,pixel_size\ntablet_a,0.1\nmissing,0.1\n", "row 2: capture not found"),
-    ("capture,pixel_size\ntablet_a,-1\n", "row 1: --pixel-size"),
-    ("capture,normals\ntablet_a,magic\n", "row 1: --normals"),
-    ("capture,glb\ntablet_a,perhaps\n", "row 1: glb"),
-    ("capture,scan\ntablet_a,scan.ply\n", "row 1: scan not found"),
+    ("capture,pixel_size\ntablet_a,0.1\nmissing,0.1\n", "line 3: capture not found"),
+    ("capture,pixel_size\ntablet_a,-1\n", "line 2: --pixel-size"),
+    ("capture,normals\ntablet_a,magic\n", "line 2: --normals"),
+    ("capture,glb\ntablet_a,perhaps\n", "line 2: glb"),
+    ("capture,scan\ntablet_a,scan.ply\n", "line 2: scan not found"),
 ])
 def test_manifest_errors_name_the_row_and_nothing_runs(collection, tmp_path, body, message, capsys):
     manifest = collection / f"bad_{abs(hash(body))}.csv"
@@ -156,7 +156,7 @@ def test_manifest_errors_name_the_row_and_nothing_runs(collection, tmp_path, bod
         with pytest.raises(InputError, match=message):
             read_manifest(manifest, OPT)
         code, _, err = run_cli(["batch", "--manifest", manifest, "-o", tmp_path / "out"], capsys)
-        assert code == 2 and ("row" in err or "column" in err)
+        assert code == 2 and ("line" in err or "column" in err)
         assert not (tmp_path / "out").exists()
     finally:
         manifest.unlink()

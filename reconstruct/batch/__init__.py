@@ -13,8 +13,8 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
     submod_attrs={
         "gallery": ["write_index", "write_thumbnails"],
         "rows": ["BatchItem", "BatchRow", "write_rows"],
-        "runner": ["BatchStopped", "choose_workers", "estimate_peak_mb", "fingerprint", "is_complete", "run_object",
-                   "stop_objects"],
+        "runner": ["BatchStopped", "choose_workers", "describe_failure", "estimate_peak_mb", "fingerprint",
+                   "is_complete", "run_object", "stop_objects"],
         "scheduler": ["batch_lock", "collect_items", "run_batch"],
         "sources": ["discover", "read_manifest"],
     },

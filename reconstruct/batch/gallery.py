@@ -22,6 +22,7 @@ from urllib.parse import quote
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError, read_input_text
 from ptmcore.images import image_size
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchRow
 from reconstruct.report import figures
@@ -173,9 +174,10 @@ def _url(path: str) -> str:
 
 def _read_report(folder: Path) -> dict | None:
     try:
-        return json.loads((folder / "report.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        report = json.loads(read_input_text(folder / "report.json", "report"))
+    except (InputError, ValueError):
         return None
+    return report if isinstance(report, dict) else None
 
 
 def _relit(folder: Path, report: dict | None, max_side: int) -> bytes | None:

@@ -18,6 +18,9 @@ __all__ = ["DONE", "FAILED", "SKIPPED", "BatchItem", "BatchRow", "write_rows"]
 
 DONE, SKIPPED, FAILED = "done", "skipped", "failed"
 
+#: What a spreadsheet may take a cell starting with for a formula (OWASP, "CSV Injection").
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
 
 @dataclass
 class BatchItem:
@@ -36,7 +39,7 @@ class BatchItem:
     scan_units : str
         The scan's unit.
     row : int or None
-        The manifest row it came from (1 = the first row after the header).
+        The manifest's line it came from (the spreadsheet's row number: the header is line 1).
     """
 
     name: str
@@ -100,12 +103,24 @@ def write_rows(out: str | os.PathLike, rows: list[BatchRow]) -> None:
     out = Path(out)
     fields = [f.name for f in dataclasses.fields(BatchRow)]
     text = io.StringIO()
-    writer = csv.DictWriter(text, fieldnames=fields, lineterminator="\n")
+    # CSV's own line ends (RFC 4180): the writer quotes a cell holding any character of them,
+    # so a carriage return in an error cannot end its row early.
+    writer = csv.DictWriter(text, fieldnames=fields, lineterminator="\r\n")
     writer.writeheader()
     for row in rows:
-        writer.writerow({k: ("" if v is None else v) for k, v in dataclasses.asdict(row).items()})
+        writer.writerow({k: _cell(v) for k, v in dataclasses.asdict(row).items()})
     with atomic_write(out / "batch.csv", "w") as f:
         f.write(text.getvalue())
     with atomic_write(out / "batch.json", "w") as f:
         json.dump([dataclasses.asdict(r) for r in rows], f, indent=1)
         f.write("\n")
+
+
+def _cell(value: object) -> object:
+    """A value as ``batch.csv`` holds it: a text that a spreadsheet could take for a formula
+    (a name, a path or an error starting with ``=``, ``+``, ``-``, ``@``, a tab or a carriage
+    return) starts with an apostrophe, which spreadsheets show as text; numbers, negative
+    heights included, stay numbers. ``batch.json`` keeps every value as it is."""
+    if value is None:
+        return ""
+    return f"'{value}" if isinstance(value, str) and value.startswith(_FORMULA_STARTS) else value

@@ -16,18 +16,19 @@ import math
 import os
 import shutil
 import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, open_input_file, read_input_text
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchItem, BatchRow
 from reconstruct.pipeline.report import json_safe
 
-__all__ = ["BatchStopped", "choose_workers", "estimate_peak_mb", "fingerprint", "is_complete", "run_object",
-           "stop_objects"]
+__all__ = ["BatchStopped", "choose_workers", "describe_failure", "estimate_peak_mb", "fingerprint", "is_complete",
+           "run_object", "stop_objects"]
 
 #: Fingerprint format; a new one makes every object run again.
-_FINGERPRINT_VERSION = 1
+_FINGERPRINT_VERSION = 2
 
 #: The batches stopped in this process (their ``token``s): see :func:`stop_objects`.
 _STOPPED: set[str] = set()
@@ -54,46 +55,146 @@ def stop_objects(token: str) -> None:
     _STOPPED.add(token)
 
 
-def _stop_when_asked(token: str | None):
-    """The progress callback of a run of batch ``token``: it raises once the batch is stopped."""
-    if token is None:
-        return None
+class _Watch:
+    """The progress callback of an object's run: it remembers the stage reported last (a
+    failure's message names it) and, in a batch stopped by :func:`stop_objects` (its
+    ``token``), raises :class:`BatchStopped`."""
 
-    def progress(stage: str, done: int, total: int) -> None:
-        if token in _STOPPED:
+    def __init__(self, token: str | None) -> None:
+        self.token = token
+        self.stage: str | None = None
+
+    def __call__(self, stage: str, done: int, total: int) -> None:
+        self.stage = stage
+        if self.token is not None and self.token in _STOPPED:
             raise BatchStopped(f"the batch was stopped during the {stage} stage")
 
-    return progress
+
+def _regular_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
 
 
-def _file_facts(path: Path) -> list:
-    stat = path.stat()
-    return [path.name, stat.st_size, stat.st_mtime_ns]
+def _run_inputs(item: BatchItem) -> tuple[set[Path], set[Path]]:
+    """The files an object's run reads, as (photographs, the others), as far as they can be found.
+
+    The photographs: those of its folder, those its ``.lp`` files list (wherever they are) and
+    a ``.ptm`` source. The others: every other file of its folder (``.lp``, dataset files), the
+    ``--lp`` given, the ``light_positions.csv`` beside each ``.lp`` (or the file given), the
+    mask, the intensities, the ground truth's files (given, or ``ground_truth/`` of the
+    capture) and the scan. A file that does not exist is listed too: its appearing matters.
+    """
+    from ptmcore.lp import read_lp
+    from reconstruct.pipeline.capture import IMAGE_SUFFIXES
+
+    source, opt = item.source, item.options
+    if source.suffix.lower() == ".ptm" and not source.is_dir():
+        photographs, others = {source}, set()
+    else:
+        folder = source if source.is_dir() else source.parent
+        files = _regular_files(folder)
+        photographs = {p for p in files if p.suffix.lower() in IMAGE_SUFFIXES}
+        others = set(files) - photographs
+        lps = [opt.lp] if opt.lp is not None else [p for p in files if p.suffix.lower() == ".lp"]
+        for lp in lps:
+            others.add(lp)
+            if opt.light_positions == "auto":
+                others.add(lp.parent / "light_positions.csv")
+            try:
+                photographs.update(read_lp(lp).paths)
+            except InputError:
+                pass  # the run fails on it, and names it; its content is in the fingerprint
+    truth = opt.ground_truth or (source if source.is_dir() else source.parent) / "ground_truth"
+    others.update(_regular_files(truth))
+    others.update(Path(p) for p in (opt.mask, opt.light_positions, item.scan) if isinstance(p, Path))
+    if opt.intensities not in (None, "estimate"):
+        others.add(Path(opt.intensities))
+    return photographs, others - photographs
+
+
+def _photograph_facts(path: Path) -> list:
+    """A photograph's (or a PTM's) part of a fingerprint: its size and modification time.
+
+    Hashing them would read every photograph of the collection again at each resume, as
+    long as decoding them; a photograph edited, exported again or replaced gets a new
+    modification time (a copy keeps it only when asked to, ``cp -p``).
+    """
+    try:
+        stat = path.stat()
+    except OSError as exc:
+        return [exc.strerror]
+    return [stat.st_size, stat.st_mtime_ns]
+
+
+def _content_facts(path: Path) -> str:
+    """Any other input's part of a fingerprint: the SHA-256 of its content (these files are
+    small beside the photographs, and a mask or light file is often rewritten in place)."""
+    try:
+        with open_input_file(path, "file") as f:
+            return hashlib.file_digest(f, "sha256").hexdigest()
+    except (InputError, OSError) as exc:
+        # Missing or unreadable: the run fails on it and names it; once it is put right,
+        # the fingerprint changes.
+        return str(exc)
 
 
 def fingerprint(item: BatchItem) -> str:
-    """A hash of what an object's result depends on: the names, sizes and modification times of
-    its files, the content of its ``.lp`` files, its options and its scan.
+    """A hash of what an object's result depends on: the content of every input its run reads
+    besides the photographs (``.lp`` files wherever they are, mask, light positions,
+    intensities, ground truth, scan and the folder's other files), the photographs' names,
+    sizes and modification times (:func:`_photograph_facts`), and its options.
 
-    A changed photograph, light file, option or scan gives another fingerprint, so a batch run
-    again redoes that object and skips the others.
+    A changed photograph, light file, mask, scan, ground truth or option gives another
+    fingerprint, so a batch run again redoes that object and skips the others. Files of the
+    capture's folder are named by their name alone, so a collection moved elsewhere with its
+    files' times still skips.
     """
     import ptmcore
 
-    source = item.source
-    if source.is_dir():
-        files = sorted(p for p in source.iterdir() if p.is_file())
-    else:
-        files = [source, *sorted(p for p in source.parent.glob("*.lp"))] if source.suffix.lower() == ".lp" else [source]
+    photographs, others = _run_inputs(item)
+    folder = item.source if item.source.is_dir() else item.source.parent
+
+    def key(path: Path) -> str:
+        return path.name if path.parent == folder else str(path)
+
     facts = {
         "version": [_FINGERPRINT_VERSION, ptmcore.__version__],
-        "files": [_file_facts(p) for p in files],
-        "lp": [hashlib.sha256(p.read_bytes()).hexdigest() for p in files if p.suffix.lower() == ".lp"],
+        "photographs": {key(p): _photograph_facts(p) for p in photographs},
+        "inputs": {key(p): _content_facts(p) for p in others},
         # Threads change how fast, not what: a batch resumed with other workers skips.
         "options": json_safe({k: v for k, v in dataclasses.asdict(item.options).items() if k != "threads"}),
-        "scan": [str(item.scan), *_file_facts(item.scan), item.scan_units] if item.scan else None,
+        "scan_units": item.scan_units if item.scan else None,
     }
     return hashlib.sha256(json.dumps(facts, sort_keys=True, default=str).encode()).hexdigest()[:32]
+
+
+def describe_failure(exc: BaseException, stage: str | None = None) -> str:
+    """What a failed object's row says of ``exc``, raised during ``stage`` (when known).
+
+    An :class:`InputError` says it all. Running out of memory says so, and what to do. Any
+    other exception is its type and message; one without a message (``KeyError()``, an
+    ``assert``) gets its type's meaning in words, from the first line of its documentation.
+    """
+    if isinstance(exc, InputError):
+        return str(exc)
+    during = f" during the {stage} stage" if stage else ""
+    text = str(exc)
+    if isinstance(exc, MemoryError):
+        return (f"ran out of memory{during}" + (f" ({text})" if text else "")
+                + ": run fewer objects at once (--workers) or give --memory-limit")
+    if not text:
+        doc = next((c.__doc__.strip() for c in type(exc).__mro__ if c.__doc__ and c.__doc__.strip()), "")
+        text = doc.splitlines()[0].rstrip(".").lower() if doc else "no message"
+    return f"{type(exc).__name__}{during}: {text}"
+
+
+def _read_json(path: Path) -> dict:
+    """An output's JSON object (report.json, comparison.json); empty when it is missing, not
+    a regular file (it is read without blocking) or not a JSON object."""
+    try:
+        value = json.loads(read_input_text(path, "JSON file"))
+    except (InputError, ValueError):
+        return {}
+    return value if isinstance(value, dict) else {}
 
 
 def is_complete(folder: Path, item: BatchItem, print_: str) -> bool:
@@ -102,10 +203,7 @@ def is_complete(folder: Path, item: BatchItem, print_: str) -> bool:
     report.json is published last by a run, report.html last by a comparison, so a folder left
     by a killed object never passes.
     """
-    try:
-        report = json.loads((folder / "report.json").read_text())
-    except (OSError, ValueError):
-        return False
+    report = _read_json(folder / "report.json")
     needed = ["report.html", "mesh.ply"] + (["comparison.json"] if item.scan else [])
     return report.get("fingerprint") == print_ and all((folder / n).is_file() for n in needed)
 
@@ -116,22 +214,22 @@ def _row_from_folder(item: BatchItem, folder: Path, status: str, seconds: float 
     import numpy as np
     import tifffile
 
-    report = json.loads((folder / "report.json").read_text())
+    report = _read_json(folder / "report.json")
     inputs = report.get("inputs") or {}
     row = BatchRow(item.name, str(item.source), status, seconds=round(seconds, 3), peak_rss_mb=peak,
                    photographs=inputs.get("photographs"), width=inputs.get("width"), height=inputs.get("height"),
                    normals=(report.get("parameters") or {}).get("normals"), height_unit=report.get("height_unit"),
                    warnings=len(report.get("warnings") or []))
     try:
-        height = tifffile.imread(folder / "height.tif")
+        height = tifffile.imread(folder / "height.tif") if (folder / "height.tif").is_file() else np.empty(0)
         if np.isfinite(height).any():
             row.height_min, row.height_max = float(np.nanmin(height)), float(np.nanmax(height))
     except (OSError, ValueError):
         pass
     accuracy = (report.get("accuracy") or {}).get("normals") or {}
     row.accuracy_mean_deg = accuracy.get("mean_deg")
-    if item.scan is not None and (folder / "comparison.json").is_file():
-        comparison = json.loads((folder / "comparison.json").read_text())
+    if item.scan is not None:
+        comparison = _read_json(folder / "comparison.json")
         row.scan_rms_mm = (comparison.get("statistics_mm") or {}).get("rms")
         row.warnings += len(comparison.get("warnings") or [])
     return row
@@ -203,7 +301,10 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
     allow_large_images()
     out = Path(out)
     folder = out / item.name
-    print_ = fingerprint(item)
+    try:
+        print_ = fingerprint(item)
+    except Exception as exc:  # noqa: BLE001 - an unreadable capture folder fails this object alone
+        return BatchRow(item.name, str(item.source), FAILED, describe_failure(exc))
     _recover(out, item.name)
     if not force and is_complete(folder, item, print_):
         return _row_from_folder(item, folder, SKIPPED)
@@ -211,17 +312,17 @@ def run_object(item: BatchItem, out: str | os.PathLike, *, force: bool = False,
         return BatchRow(item.name, str(item.source), FAILED, "the batch was stopped before this object started")
     timer = StageTimer()
     t0 = time.perf_counter()
-    progress = _stop_when_asked(token)
+    watch = _Watch(token)
     try:
         with ExitStack() as stack:
             _limit_threads(stack, threads)
             stack.enter_context(timer.stage("object"))
-            _reconstruct(item, folder, print_, progress)
+            _reconstruct(item, folder, print_, watch)
     except BatchStopped as exc:
         return BatchRow(item.name, str(item.source), FAILED, str(exc), round(time.perf_counter() - t0, 3))
     except Exception as exc:  # noqa: BLE001 - a stage's bug must not stop the other objects
-        message = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
-        return BatchRow(item.name, str(item.source), FAILED, message, round(time.perf_counter() - t0, 3))
+        return BatchRow(item.name, str(item.source), FAILED, describe_failure(exc, watch.stage),
+                        round(time.perf_counter() - t0, 3))
     write_thumbnails(folder, out / "thumbnails", item.name)
     return _row_from_folder(item, folder, DONE, time.perf_counter() - t0, timer.stages["object"]["peak_rss_mb"])
 
@@ -240,9 +341,18 @@ def estimate_peak_mb(item: BatchItem) -> float:
     return 1024.0 if peak is None else peak
 
 
-def choose_workers(items: list[BatchItem], cores: int, available_mb: float) -> int:
+def choose_workers(items: list[BatchItem], cores: int, available_mb: float, wanted: int | None = None,
+                   echo: Callable[[str], None] = lambda line: None) -> int:
     """Workers for a local cluster: as many as cores and memory allow (workers × the largest
-    object's estimated peak within the available memory), never more than objects."""
-    peak = max(estimate_peak_mb(item) for item in items)
-    return max(1, min(cores, len(items), math.floor(available_mb / peak)))
+    object's estimated peak within the available memory), never more than objects.
 
+    ``wanted`` (``--workers``) is taken within the same bounds: more workers than the CPUs
+    would only crowd them, and more than the memory holds would be killed for memory; ``echo``
+    is told when it is cut, and why.
+    """
+    peak = max(estimate_peak_mb(item) for item in items)
+    allowed = max(1, min(cores, math.floor(available_mb / peak)))
+    if wanted is not None and wanted > allowed:
+        echo(f"warning: {wanted} workers are more than this machine allows: {cores} CPU(s), and "
+             f"{available_mb:,.0f} MB of memory for objects of up to {peak:,.0f} MB each; using {allowed}")
+    return min(wanted or allowed, allowed, len(items))

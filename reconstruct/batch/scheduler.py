@@ -9,6 +9,7 @@ objects running on the workers (:func:`reconstruct.batch.runner.stop_objects`).
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import os
 import secrets
@@ -17,10 +18,10 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, first_few
 from ptmcore.resources import available_memory_mb, cpu_count
 from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
-from reconstruct.batch.runner import choose_workers, run_object, stop_objects
+from reconstruct.batch.runner import choose_workers, describe_failure, run_object, stop_objects
 from reconstruct.batch.sources import discover, read_manifest
 from reconstruct.pipeline.options import RunOptions
 
@@ -30,29 +31,107 @@ LOCK_NAME = ".batch.lock"
 #: Tries of an object whose worker died, after the first (the local cluster's setting; an
 #: existing scheduler has its own, distributed.scheduler.allowed-failures).
 RETRIES = 1
+#: How long a batch tries to reach a scheduler given by its address, in seconds.
+CONNECT_SECONDS = 20
+#: Bytes the batch adds to an object's name for what it makes beside the object's folder: the
+#: longest is a stopped run's staging folder, ``.NAME.partial-``, 8 letters and ``.abandoned``
+#: (:mod:`reconstruct.pipeline.staging`); a thumbnail's temporary file adds 24.
+NAME_MARGIN = 28
 
 
 @contextmanager
 def batch_lock(out: Path) -> Iterator[None]:
     """Hold ``out/.batch.lock`` for the batch; a second batch on ``out`` gets an InputError.
 
-    An advisory lock (``flock``) on an open file: the kernel releases it when the process
-    ends, however it ends, so a killed batch never leaves a stale lock.
+    An advisory lock (``flock``) on the file, which the batch removes as it ends, done, failed
+    or interrupted (and ``out`` too, if the batch made it and it is still empty). A killed
+    batch leaves the file, but the kernel released its lock with the process: the next batch
+    takes it over.
     """
+    made = not os.path.isdir(out)
     try:
         out.mkdir(parents=True, exist_ok=True)
-        handle = open(out / LOCK_NAME, "a+")
     except OSError as exc:
         raise InputError(f"cannot write the output folder ({exc.strerror})", out) from None
     try:
+        fd = _lock(out / LOCK_NAME)
         try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise InputError("another batch is writing into this folder (it holds .batch.lock); "
-                             "wait for it or choose another output folder", out) from None
-        yield
+            yield
+        finally:
+            # Removed while still locked: a batch that opened it meanwhile finds it gone
+            # once it has the lock, and locks a new file (_lock).
+            with contextlib.suppress(OSError):
+                os.unlink(out / LOCK_NAME)
+            os.close(fd)
     finally:
-        handle.close()
+        if made:
+            with contextlib.suppress(OSError):
+                out.rmdir()
+
+
+def _lock(path: Path) -> int:
+    """An open descriptor holding the ``flock`` of ``path``; InputError when another holds it.
+
+    The file may be removed by the batch ending between our opening it and locking it: a lock
+    on a file removed is no lock, so it is taken again on the file now at ``path``.
+    """
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o666)
+        except OSError as exc:
+            raise InputError(f"cannot write the output folder ({exc.strerror})", path.parent) from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            os.close(fd)
+            raise InputError("another batch is writing into this folder (it holds .batch.lock); "
+                             "wait for it or choose another output folder", path.parent) from None
+        held = os.fstat(fd)
+        try:
+            now = os.stat(path, follow_symlinks=False)
+        except FileNotFoundError:
+            now = None
+        if now is not None and (now.st_dev, now.st_ino) == (held.st_dev, held.st_ino):
+            return fd
+        os.close(fd)
+
+
+def _check_names(items: list[BatchItem], out: Path) -> None:
+    """Refuse object names longer than the output folder's file system takes, with the
+    :data:`NAME_MARGIN` the batch adds: the object would fail only once a worker wrote it."""
+    folder = out.absolute()
+    while not os.path.isdir(folder):
+        folder = folder.parent
+    try:
+        limit = os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):  # not said: the usual limit of Linux, macOS and Windows
+        limit = 255
+    longest = limit - NAME_MARGIN
+    long = [f"{i.name[:40]}…" for i in items if len(os.fsencode(i.name)) > longest]
+    if long:
+        raise InputError(f"object name(s) too long: {first_few(long)}; the output folder's file system takes names of "
+                         f"{limit} bytes, of which the batch needs {NAME_MARGIN}, so at most {longest} bytes: give "
+                         "shorter names in a manifest's name column", out)
+
+
+def _check_scheduler_address(address: str) -> None:
+    """Refuse a ``--scheduler`` that is not a Dask scheduler's address: a scheme Dask knows
+    (``tcp://`` when none is given) and ``HOST:PORT``."""
+    from distributed.comm.addressing import parse_address, parse_host_port
+    from distributed.comm.registry import get_backend
+
+    try:
+        scheme, location = parse_address(address)
+        get_backend(scheme)
+        host, port = parse_host_port(location)
+        if not host:
+            raise ValueError("no host")
+        if not 0 < port < 65536:
+            raise ValueError(f"port {port} is not within 1 to 65535")
+    except ValueError as exc:
+        shown = address if len(address) <= 80 else address[:79] + "…"
+        raise InputError(f"--scheduler {shown!r} is not a Dask scheduler's address ({exc}); give it as "
+                         "`dask scheduler` prints it, tcp://HOST:PORT") from None
 
 
 def collect_items(sources: list[str | os.PathLike], options: RunOptions, manifest: str | os.PathLike | None,
@@ -103,16 +182,19 @@ def _client(client, scheduler: str | None, items: list[BatchItem], workers: int 
         return
     if scheduler is not None:
         try:
-            remote = Client(scheduler, timeout="20s")
+            remote = Client(scheduler, timeout=f"{CONNECT_SECONDS}s")
         except OSError as exc:
             raise InputError(f"cannot reach the Dask scheduler at {scheduler} ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - whatever a server that is no Dask scheduler sends
+            raise InputError(f"{scheduler} answered, but not as a Dask scheduler does ({type(exc).__name__}): "
+                             "give the address `dask scheduler` prints") from None
         with remote:
             echo(f"Dask scheduler {scheduler}; dashboard: {remote.dashboard_link}")
             _wait_for_a_worker(remote)
             yield remote, 1
         return
     cores = cpu_count()
-    n = workers or choose_workers(items, cores, available_memory_mb())
+    n = choose_workers(items, cores, available_memory_mb(), workers, echo)
     threads = max(1, cores // n)
     # Worker processes isolate crashes and memory; the nanny restarts a worker the operating
     # system killed. One Dask thread each: an object's own threads do the parallel work.
@@ -218,7 +300,7 @@ def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads:
             except Exception as exc:  # noqa: BLE001 - a dead worker (KilledWorker) or a lost task
                 rows[k] = BatchRow(items[k].name, str(items[k].source), FAILED,
                                    "the worker running it died, also when retried (killed by the operating "
-                                   f"system, perhaps for memory): {type(exc).__name__}: {exc}")
+                                   f"system, perhaps for memory): {describe_failure(exc)}")
             if progress is not None:
                 progress(rows[k], done, len(items))
     except BaseException:
@@ -275,7 +357,8 @@ def run_batch(
         Address of a running Dask scheduler (``tcp://host:8786``); its workers must see the
         same paths.
     workers : int, optional
-        Workers of the local cluster (default: as many as cores and memory allow).
+        Workers of the local cluster (default, and at most: as many as cores and memory allow;
+        ``echo`` is told when more are asked for).
     force : bool
         Redo objects whose output is complete and unchanged (default: skip them).
     progress : callable, optional
@@ -291,14 +374,18 @@ def run_batch(
     Raises
     ------
     InputError
-        For bad batch arguments (a source or manifest row, a scheduler that cannot be reached,
-        paths the workers cannot see, another batch on ``out``), before any object runs.
+        For bad batch arguments (a source or manifest row, a name too long for ``out``'s file
+        system, a scheduler address that is none or cannot be reached, paths the workers cannot
+        see, another batch on ``out``), before any object runs.
     """
     from reconstruct.batch.gallery import write_index
 
     out = Path(out)
     opt = options or RunOptions()
     items = collect_items(list(sources or []), opt, manifest, echo)
+    _check_names(items, out)
+    if client is None and scheduler is not None:
+        _check_scheduler_address(scheduler)
     with batch_lock(out), _client(client, scheduler, items, workers, echo) as (dask, threads):
         _check_shared_paths(dask, out.resolve(), items)
         threads = opt.threads or threads

@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import os
 import re
 import typing
 from pathlib import Path
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, first_few, read_input_text
 from ptmcore.psdataset import is_ps_dataset
 from reconstruct.batch.rows import BatchItem
 from reconstruct.pipeline.capture import IMAGE_SUFFIXES
@@ -28,6 +29,14 @@ __all__ = ["discover", "read_manifest", "unique_names"]
 #: Manifest columns besides the run options.
 _OWN_COLUMNS = ("capture", "name", "scan", "scan_units")
 _TRUE, _FALSE = {"1", "true", "yes", "y"}, {"0", "false", "no", "n"}
+#: The batch's own files in its output folder: an object of one of these names gets a suffix,
+#: as a repeated name does, so that its folder and the file never collide.
+BATCH_FILES = ("batch.csv", "batch.json", "index.html", "thumbnails")
+#: The largest manifest read, in bytes: thousands of times a collection's (a row is a few
+#: hundred bytes); a stray file given as the manifest is refused before it is read.
+MAX_MANIFEST_BYTES = 64 * 2**20
+#: A manifest cell in a message is cut to this many characters: a cell may be megabytes long.
+_SHOWN_CHARS = 60
 
 
 def _is_capture(folder: Path) -> bool:
@@ -45,8 +54,9 @@ def _name_of(source: Path) -> str:
 
 
 def unique_names(names: list[str]) -> list[str]:
-    """``names`` made safe as folder names and unique (``-2``, ``-3`` … for repeats)."""
-    seen: dict[str, int] = {}
+    """``names`` made safe as folder names and unique (``-2``, ``-3`` … for repeats); the
+    batch's own files (:data:`BATCH_FILES`) count as taken, so ``index.html`` is ``index.html-2``."""
+    seen: dict[str, int] = dict.fromkeys(BATCH_FILES, 1)
     out = []
     for name in names:
         base = re.sub(r"[^\w.\- ]+", "_", name).strip(" .") or "object"
@@ -146,57 +156,86 @@ def _row_item(row: dict[str, str], base: Path, options: RunOptions, hints: dict)
     return item
 
 
+def _clip(text: str, limit: int) -> str:
+    """``text`` cut to ``limit`` characters for a message (a manifest's cell may be huge)."""
+    return text if len(text) <= limit else text[:limit - 1] + "…"
+
+
+def _lines(text: str, path: Path) -> list[tuple[int, list[str]]]:
+    """The manifest's rows as (line number, cells), the header first, blank rows left out.
+
+    A quoted cell that goes on past its line is refused, naming the line where its quote
+    opened: no manifest cell (a path, a name, an option) holds a line break, so it is a quote
+    left open, which would otherwise swallow the rows after it into one cell.
+    """
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    rows = []
+    while True:
+        line = reader.line_num + 1
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return rows
+        except csv.Error as exc:
+            if reader.line_num > line:
+                raise InputError(f"line {line}: a quote opened on this line is never closed", path) from None
+            raise InputError(f"line {line}: {exc}", path) from None
+        if reader.line_num > line:
+            raise InputError(f"line {line}: a quote opened on this line closes only on line {reader.line_num}; "
+                             "a manifest's cells are one line each", path)
+        if any(c.strip() for c in cells):
+            rows.append((line, cells))
+
+
 def read_manifest(path: str | os.PathLike, options: RunOptions) -> list[BatchItem]:
     """The objects of a manifest CSV, every row checked before anything runs.
 
     Parameters
     ----------
     path : path
-        A CSV file with a header row: ``capture`` (a path relative to the CSV), optional
-        ``name`` (the output sub-folder), ``scan``, ``scan_units``, and any
+        A CSV file (UTF-8, or UTF-16/32 with a byte-order mark; at most
+        :data:`MAX_MANIFEST_BYTES`) with a header row: ``capture`` (a path relative to the
+        CSV), optional ``name`` (the output sub-folder), ``scan``, ``scan_units``, and any
         :class:`~reconstruct.pipeline.RunOptions` field by its name (``pixel_size``, ``mask``,
         ``lp``, ``normals``, ``integrator``, ``intrinsics``, ``distance``, ``light_positions``,
-        …). Empty cells keep the command line's value.
+        …). Empty cells keep the command line's value; blank rows are skipped.
     options : RunOptions
         The command line's options, which each row overrides.
 
     Raises
     ------
     InputError
-        Naming every bad row by its number (1 = the first row after the header) and the problem:
-        an unknown column, a value the option refuses, a missing capture or scan.
+        Naming bad rows by their line in the file (the spreadsheet's row number: the header is
+        line 1) and the problem: an unknown column, more cells than the header, a value the
+        option refuses, a missing capture or scan; the first few, and how many more. Also for
+        a quote left open, and for a manifest that is not a regular file or is too large.
     """
     path = Path(path)
     base = path.resolve().parent
-    try:
-        with open(path, newline="", encoding="utf-8-sig") as f:
-            table = list(csv.DictReader(f))
-            header = list(table[0]) if table else []
-    except FileNotFoundError:
-        raise InputError("manifest not found", path) from None
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
-        raise InputError(f"cannot read the manifest ({exc})", path) from None
+    table = _lines(read_input_text(path, "manifest", MAX_MANIFEST_BYTES), path)
+    header = [c.strip() for c in table[0][1]] if table else []
     hints = typing.get_type_hints(RunOptions)
-    unknown = [c for c in header if c not in _OWN_COLUMNS and c not in hints]
+    unknown = [_clip(repr(c), _SHOWN_CHARS) for c in header if c not in _OWN_COLUMNS and c not in hints]
     if "capture" not in header or unknown:
         known = ", ".join([*_OWN_COLUMNS, *hints])
-        problem = f"unknown column(s) {', '.join(map(repr, unknown))}" if unknown else "no capture column"
+        problem = f"unknown column(s) {first_few(unknown)}" if unknown else "no capture column"
         raise InputError(f"{problem}; columns are: {known}", path)
     items, errors = [], []
-    for number, row in enumerate(table, 1):
-        if None in row:
-            errors.append(f"row {number}: more cells than columns")
+    for line, cells in table[1:]:
+        if any(c.strip() for c in cells[len(header):]):
+            errors.append(f"line {line}: {len(cells)} cells, more than the header's {len(header)} columns")
             continue
         try:
-            items.append(_row_item(row, base, options, hints))
+            item = _row_item(dict(zip(header, cells)), base, options, hints)
         except (ValueError, InputError) as exc:
-            errors.append(f"row {number}: {exc}")
+            errors.append(f"line {line}: {_clip(str(exc), 4 * _SHOWN_CHARS)}")
+            continue
+        item.row = line
+        items.append(item)
     if errors:
-        raise InputError("; ".join(errors), path)
+        raise InputError(first_few(errors, sep="; "), path)
     if not items:
         raise InputError("the manifest lists no object", path)
     for item, name in zip(items, unique_names([i.name for i in items])):
         item.name = name
-    for k, item in enumerate(items, 1):
-        item.row = k
     return items
