@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
+from ptmcore.atomic import resolve_output
 from ptmcore.errors import InputError
 from ptmcore.images import allow_large_images
 from reconstruct.cli.signals import handlers, interrupted
@@ -68,6 +70,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     from reconstruct.pipeline.capture import capture_images
     from reconstruct.calibration.triangulate import sphere_lights, write_near_light_files
 
+    for output in (args.output, args.diagnostic):  # before the photographs are read
+        if output is not None:
+            resolve_output(output)
     paths = capture_images(args.capture)
     stack = load_stack(paths, min_photographs=1)
     camera = calibration_camera(paths[0], stack.shape, intrinsics=args.intrinsics, focal_mm=args.focal_mm,
@@ -103,6 +108,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import CompareOptions, run_compare
 
     options = _options(CompareOptions, args)
+    resolve_output(args.output, folder=True)  # before the scan is read
     with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
         result = run_compare(args.reconstruction, args.scan, args.output, options, progress=progress)
     _compare_summary(result)
@@ -170,6 +176,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.scan is None and args.scan_units is not None:
         raise InputError("--scan-units needs --scan: it is the unit of the scan's coordinates")
     scan_units = args.scan_units or default(CompareOptions, "scan_units")
+    resolve_output(args.output, folder=True)  # before a scan is read
     if args.scan is None:
         with _progress_display(not args.quiet and sys.stderr.isatty()) as progress:
             result = run(args.capture, args.output, options, progress=progress)
@@ -317,6 +324,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                 light = light_direction(azimuth_deg=args.azimuth, elevation_deg=args.elevation)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    resolve_output(args.output)
     ptm = load_source(args.source, args.basis)
     # Every image a person sees is display-encoded: a file of linear light is encoded here.
     linear = holds_linear_light(args.source)
@@ -424,9 +432,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from reconstruct.pipeline import RunOptions, run_capture
 
     w, h = _parse_size(args.size, 16)
+    resolve_output(args.output / "result", folder=True)
     capture_dir = args.output / "capture"
     print(f"Rendering a synthetic clay tablet ({w}×{h}, {args.lights} lights, {args.encoding}) in {capture_dir}/ ...")
-    info = write_capture(capture_dir, scene="tablet", shape=(h, w), n_lights=args.lights, encoding=args.encoding, seed=args.seed)
+    # The folders made for the capture go again if it cannot be finished (a full disk, Ctrl-C).
+    new = next((p for p in [*reversed(capture_dir.absolute().parents), capture_dir.absolute()] if not p.exists()), None)
+    try:
+        info = write_capture(capture_dir, scene="tablet", shape=(h, w), n_lights=args.lights, encoding=args.encoding,
+                             seed=args.seed)
+    except BaseException:
+        if new is not None:
+            shutil.rmtree(new, ignore_errors=True)
+        raise
     options = RunOptions(pixel_size=info.pixel_size, normals=args.normals, integrator=args.integrator)
     with _progress_display(sys.stderr.isatty()) as progress:
         result = run_capture(capture_dir, args.output / "result", options, progress=progress)

@@ -224,9 +224,10 @@ def run_capture(
         A capture folder (photographs and one ``.lp`` file), an ``.lp`` file, a
         photometric-stereo dataset folder, or a folder of photographs with glossy spheres.
     output : path
-        Output folder; created if needed. Files are written to a staging folder inside it and
-        moved into place only when every stage succeeded, so a failed run leaves earlier
-        results untouched and nothing half-written.
+        Output folder; created if needed, or where it points if it is a symbolic link. Files
+        are written to a staging folder beside it and moved into place only when every stage
+        succeeded, so a failed run (a full disk among the causes) leaves earlier results
+        untouched and nothing half-written (:func:`reconstruct.pipeline.staging.staged_output`).
     options : RunOptions, optional
     progress : callable, optional
         ``progress(stage, done, total)`` as work advances.

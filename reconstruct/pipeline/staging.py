@@ -13,9 +13,16 @@ One run at a time per folder: :func:`staged_output` holds an exclusive lock
 (``.NAME.lock`` beside the folder, ``flock``, released by the system when the process dies), and
 a second run refuses with a message naming the first one's process. Holding it, a run removes
 what dead runs left beside the folder. A folder that exists must be empty or hold only the
-files results hold: a folder with any other file (the user's notes, the photographs) is never
-replaced. A run that fails leaves nothing new behind, not even the folders it
-created to hold the output.
+files results hold, in its sub-folders too: a folder with any other file (the user's notes, the
+photographs) is never replaced. A run that fails leaves nothing new behind, not even the folders
+it created to hold the output.
+
+The output folder is checked before anything else (:func:`ptmcore.atomic.resolve_output`): a
+symbolic link is followed once, so the result goes where it points and the link stays; a link
+to nothing or that loops, a mount point, a name too long are refused. A name so long that the
+hidden names would not fit the file system's limit (255 bytes) is cut in them and ends with a
+hash of the whole (:func:`ptmcore.atomic.hidden_name`). The disk failing (full, over quota,
+read-only) is an :class:`InputError` naming the file of the output folder being written.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ptmcore.atomic import hidden_name, name_max, resolve_output, storage_problem
 from ptmcore.errors import InputError, first_few
 
 __all__ = ["StagedOutput", "abandon_runs", "staged_output"]
@@ -45,6 +53,9 @@ CARRIED = ("preview",)
 STAGING_PREFIX = ".partial-"
 _OLD_PREFIX = ".old-"
 _LOCK_SUFFIX = ".lock"
+#: The most bytes a hidden name adds to ``.NAME``: a staging folder's, as
+#: :func:`abandon_runs` renames it (``.partial-`` and 8 hexadecimal digits, ``.abandoned``).
+_ADDED_BYTES = len(STAGING_PREFIX) + 8 + len(".abandoned")
 #: The names a result folder holds (README, "Output folder"; ``compare``'s files): only a folder
 #: of these alone (or an empty one) is replaced by a new result. Later versions add names here,
 #: never rename them, as the README promises of the files.
@@ -52,6 +63,9 @@ _OUTPUT_NAMES = ("coefficients.ptm", "coefficients.rti", "web", "solid.stl", "me
                  "normals.png", "albedo.png", "height.tif", "mesh.ply", "mesh.obj", "mesh.mtl",
                  "mesh_texture.png", "mask.png", "loo_*.tif", "light_positions.csv", "lights.lp", "report.json",
                  "report.html", "comparison.json", "distances.ply", "histogram.png", "overlay.png", *CARRIED)
+#: What the folders among them hold (README: ``web/``). Any other folder of a result holds
+#: nothing; :data:`CARRIED` ones are the user's and hold anything.
+_FOLDER_NAMES = {"web": ("index.html", "viewer.json", "normals.png", "height.png", "info.json", "plane_*.jpg")}
 
 
 #: The staging folders and lock files of this process's runs in progress, for
@@ -78,9 +92,16 @@ def abandon_runs() -> None:
                 path.unlink()
 
 
+def _hidden_stem(output: Path) -> str:
+    """``.NAME`` for ``output``, cut and hashed if needed so that every hidden name made from
+    it fits the file system's limit."""
+    return hidden_name(output.name, _ADDED_BYTES, name_max(output.parent))
+
+
 def staging_names(output: Path) -> tuple[str, str]:
     """The prefixes of the hidden folders beside ``output``: being built, renamed aside."""
-    return f".{output.name}{STAGING_PREFIX}", f".{output.name}{_OLD_PREFIX}"
+    stem = _hidden_stem(output)
+    return f"{stem}{STAGING_PREFIX}", f"{stem}{_OLD_PREFIX}"
 
 
 @dataclass
@@ -116,7 +137,8 @@ class StagedOutput:
         kept = []
         for entry in sorted(self.output.iterdir()):
             if entry.name not in skip:
-                _carry(entry, self.staging / entry.name)
+                with _disk_errors(entry):
+                    _carry(entry, self.staging / entry.name)
                 kept.append(entry.name)
         return kept
 
@@ -131,15 +153,29 @@ class StagedOutput:
         if self.output.is_dir():  # the user's figures live on in the new result
             for name in CARRIED:
                 if (self.output / name).is_dir() and not (self.staging / name).exists():
-                    _carry(self.output / name, self.staging / name)
+                    with _disk_errors(self.output / name):
+                        _carry(self.output / name, self.staging / name)
                     keep.add(Path(name))
         missing = [str(n) for n in keep if not (self.staging / n).exists()]
         if missing:
             raise FileNotFoundError(f"not written, cannot publish: {', '.join(sorted(missing))}")
         _prune(self.staging, keep)
-        _swap_in(self.staging, self.output)
+        with _disk_errors(self.output):
+            _swap_in(self.staging, self.output)
         self.files = {str(n): self.output / n for n in sorted(keep, key=str)}
         return self.files
+
+
+@contextmanager
+def _disk_errors(path: Path) -> Iterator[None]:
+    """The disk failing while the result is put in place (full, read-only; a folder that
+    cannot be renamed) as an :class:`InputError` naming ``path``."""
+    try:
+        yield
+    except OSError as exc:
+        reason = storage_problem(exc) or (exc.strerror or str(exc)).lower()
+        raise InputError(f"cannot put the new result in place ({reason}); the folder keeps its earlier result",
+                         path) from None
 
 
 def _carry(src: Path, dst: Path) -> None:
@@ -201,16 +237,33 @@ def _swap_in(staging: Path, output: Path) -> None:
         return
     aside = _unique_folder(output.parent, staging_names(output)[1])
     os.rename(output, aside / "result")  # a kill from here …
-    os.rename(staging, output)  # … to here leaves the old result aside: the next run restores it
+    try:
+        os.rename(staging, output)  # … to here leaves the old result aside: the next run restores it
+    except OSError:
+        os.rename(aside / "result", output)
+        raise
     shutil.rmtree(aside, ignore_errors=True)
 
 
 def _foreign(folder: Path) -> list[str]:
-    """The entries of ``folder`` that no result holds (:data:`_OUTPUT_NAMES`): a folder with
-    any is not replaced, since they would go with the old result and might be anything of the
-    user's (notes put beside a result, or the photographs themselves)."""
-    return sorted(p.name for p in folder.iterdir()
-                  if not any(fnmatch.fnmatchcase(p.name, name) for name in _OUTPUT_NAMES))
+    """The files and folders in ``folder``'s tree that no result holds (:data:`_OUTPUT_NAMES`,
+    and in their folders :data:`_FOLDER_NAMES`), relative to it: a folder with any is not
+    replaced, since they would go with the old result and might be anything of the user's
+    (notes put beside a result or in its ``web/``, the photographs themselves)."""
+    foreign = []
+    for entry in sorted(folder.iterdir()):
+        if not _named_like(entry.name, _OUTPUT_NAMES):
+            foreign.append(entry.name)
+        elif entry.name not in CARRIED and entry.is_dir() and not entry.is_symlink():
+            inside = _FOLDER_NAMES.get(entry.name, ())
+            # A result's folders hold files only: a folder in them is the user's.
+            foreign += [f"{entry.name}/{p.name}" for p in sorted(entry.iterdir())
+                        if not _named_like(p.name, inside) or (p.is_dir() and not p.is_symlink())]
+    return foreign
+
+
+def _named_like(name: str, patterns: Iterable[str]) -> bool:
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in patterns)
 
 
 def _recover(output: Path) -> None:
@@ -239,7 +292,7 @@ def _folder_lock(output: Path) -> Iterator[None]:
     except ImportError:  # pragma: no cover - not POSIX
         yield
         return
-    path = output.parent / f".{output.name}{_LOCK_SUFFIX}"
+    path = output.parent / f"{_hidden_stem(output)}{_LOCK_SUFFIX}"
     while True:
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
@@ -263,8 +316,9 @@ def _folder_lock(output: Path) -> Iterator[None]:
         os.close(fd)
     _LIVE.add(path)
     try:
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        with contextlib.suppress(OSError):  # a full disk: the process is only named in a message
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
         yield
     finally:
         with contextlib.suppress(OSError):
@@ -302,6 +356,14 @@ def _make_folder(folder: Path) -> list[Path]:
     return created
 
 
+def _in_output(exc: InputError, staging: Path, output: Path) -> InputError:
+    """``exc`` naming the output folder's file where it named the staging folder's: the user
+    knows the one, and the other is gone when the message is read."""
+    if exc.path is None or not Path(exc.path).is_relative_to(staging):
+        return exc
+    return InputError(exc.problem, output / Path(exc.path).relative_to(staging))
+
+
 @contextmanager
 def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
     """Lock ``output``, build the new result in a staging folder beside it, and remove the
@@ -323,14 +385,12 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
     Raises
     ------
     InputError
-        If ``output`` is empty, exists and is not a folder, holds files that are not an earlier
-        result, is being written by another run, or its parent cannot be written.
+        If ``output`` cannot be an output folder (:func:`ptmcore.atomic.resolve_output`: empty,
+        a file, a link to nothing, a mount point, a name too long), holds files that are not an
+        earlier result, is being written by another run, or its parent cannot be written; or if
+        the disk fails a write (named as the output folder's file, not the staging folder's).
     """
-    if not os.fspath(output):
-        raise InputError("the output folder is an empty path; give a folder name with -o")
-    out = Path(os.path.abspath(output))
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", output)
+    out = Path(resolve_output(output, folder=True))
     created: list[Path] = []
     try:
         try:
@@ -351,6 +411,11 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
             staged = StagedOutput(out, staging)
             try:
                 yield staged
+            except InputError as exc:
+                named = _in_output(exc, staging, out)
+                if named is exc:
+                    raise
+                raise named from None
             finally:
                 shutil.rmtree(staging, ignore_errors=True)
                 _LIVE.discard(staging)
