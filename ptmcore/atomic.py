@@ -87,6 +87,8 @@ def resolve_output(path: str | os.PathLike, *, folder: bool = False) -> str:
     """
     if not os.fspath(path):
         raise InputError("the output is an empty path; give a name with -o")
+    if "\0" in os.fsdecode(path):
+        raise InputError("is not a usable output path (a NUL character in the name)", path)
     path = os.path.abspath(path)
     # Before the links are followed: an existing link's target has names that fit.
     limit = name_max(os.path.dirname(path))

@@ -331,3 +331,29 @@ def test_only_the_web_pages_files_may_be_in_web(tmp_path_factory, name):
     (out / "web" / name).write_text("?")
     allowed = name in WEB_FILES or re.fullmatch(r"plane_.*\.jpg", name, re.S)
     assert staging._foreign(out) == ([] if allowed else [f"web/{name}"])
+
+
+def test_an_output_folder_that_cannot_be_read_is_one_line(result, tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    shutil.copytree(result, out)
+    iterdir = Path.iterdir
+
+    def unreadable(path):
+        if path == out / "web":  # another user's folder, or a failing disk
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+        return iterdir(path)
+
+    monkeypatch.setattr(Path, "iterdir", unreadable)
+    with pytest.raises(InputError, match="cannot read the output folder \\(permission denied\\)") as info, \
+            staged_output(out):
+        pass
+    assert info.value.path == str(out / "web")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_nul_in_an_output_name_is_an_input_error(tmp_path):
+    with pytest.raises(InputError, match="NUL"), staged_output(tmp_path / "a\0b"):
+        pass
+    with pytest.raises(InputError, match="NUL"), atomic_write(tmp_path / "a\0b.png"):
+        pass
+    assert list(tmp_path.iterdir()) == []

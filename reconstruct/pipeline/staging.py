@@ -398,8 +398,12 @@ def staged_output(output: str | os.PathLike) -> Iterator[StagedOutput]:
         except OSError as exc:
             raise InputError(f"cannot write the output folder ({exc.strerror})", output) from None
         with _folder_lock(out):
-            _recover(out)
-            foreign = _foreign(out) if out.is_dir() else []
+            try:
+                _recover(out)
+                foreign = _foreign(out) if out.is_dir() else []
+            except OSError as exc:  # a folder of it that cannot be read
+                raise InputError(f"cannot read the output folder ({(exc.strerror or str(exc)).lower()})",
+                                 exc.filename or output) from None
             if foreign:
                 raise InputError(f"the output folder is not a reconstruct result: it holds {first_few(foreign)}, "
                                  "which a new result would replace; move them, or choose a new or empty folder",
