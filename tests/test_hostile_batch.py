@@ -96,16 +96,20 @@ def test_an_unterminated_quote_names_its_line_and_drops_no_row(capture, tmp_path
 
 
 @FAST
-@given(names=st.lists(st.text(alphabet=st.sampled_from('ab-,"\n\r '), max_size=8), min_size=1, max_size=5))
-def test_a_manifest_read_keeps_one_object_per_line_or_refuses_it(capture, names):
-    """Whatever the name cells hold (quotes, commas, line breaks), an accepted manifest gives
-    one object per line that has one, and a refused one says so in an InputError."""
+@given(names=st.lists(st.text(alphabet=st.sampled_from('ab-,"\n\r \x00\u00e9'), max_size=8), min_size=1, max_size=5),
+       encoding=st.sampled_from(["utf-8", "utf-8-sig", "utf-16", "utf-32"]))
+def test_a_manifest_read_keeps_one_object_per_line_or_refuses_it(capture, names, encoding):
+    """Whatever the name cells hold (quotes, commas, line breaks, NUL), in any encoding with
+    a byte-order mark, an accepted manifest gives one object per line that has a cell, and a
+    refused one says so in one line that names the manifest."""
     body = "capture,name\n" + "".join(f"cap,{n}\n" for n in names)
-    manifest = _manifest(capture, body, "random.csv")
+    manifest = capture.parent / "random.csv"
+    manifest.write_bytes(body.encode(encoding))
     try:
         items = read_manifest(manifest, OPT)
     except InputError as exc:
-        assert "\n" not in str(exc)
+        message = str(exc)
+        assert message.startswith(str(manifest)) and "\n" not in message and "\r" not in message
         return
     lines = list(io.StringIO(body, newline=""))[1:]
     with_cells = [k + 2 for k, line in enumerate(lines) if any(c.strip() for c in next(csv.reader([line]), []))]
@@ -429,3 +433,16 @@ def test_a_server_that_is_no_dask_scheduler_is_one_line(capture, tmp_path, capsy
     assert code == 2 and err.count("\n") == 1, err
     assert "answered, but not as a Dask scheduler does" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_sources_and_manifest_paths_the_system_refuses_are_one_line(capture, tmp_path, capsys):
+    too_long = tmp_path / ("a" * (os.pathconf(tmp_path, "PC_NAME_MAX") + 1))
+    fifo = tmp_path / "capture.ptm"
+    os.mkfifo(fifo)
+    for source, words in ((too_long, "cannot read it (File name too long)"),
+                          (fifo, "not a capture: give a folder, an .lp file or a .ptm file")):
+        code, _, err = run_cli(["batch", source, "-o", tmp_path / "out"], capsys)
+        assert code == 2 and err.count("\n") == 1 and words in err, err
+    manifest = _manifest(capture, f"capture\n{too_long.name}\ncap\n", "toolong.csv")
+    with pytest.raises(InputError, match=r"line 2: File name too long: .{59}…$"):
+        read_manifest(manifest, OPT)

@@ -76,35 +76,43 @@ def discover(sources: list[str | os.PathLike], options: RunOptions,
     Raises
     ------
     InputError
-        For a source that does not exist, or a batch with no capture at all.
+        For a source that does not exist, is not a regular file or folder, or cannot be read
+        (a name too long, a folder that cannot be listed), or a batch with no capture at all.
     """
     found: list[Path] = []
     skipped: list[tuple[Path, str]] = []
     for source in map(Path, sources):
-        if not source.exists():
-            raise InputError("no such capture, file or folder", source)
-        if source.is_file():
-            if source.suffix.lower() in (".ptm", ".lp"):
-                found.append(source)
-            else:
-                raise InputError("not a capture: give a folder, an .lp file or a .ptm file", source)
-        elif _is_capture(source):
-            found.append(source)
-        else:
-            for child in sorted(source.iterdir(), key=lambda p: p.name):
-                if child.name.startswith("."):
-                    continue
-                if child.is_file() and child.suffix.lower() == ".ptm":
-                    found.append(child)
-                elif child.is_dir() and _is_capture(child):
-                    found.append(child)
-                else:
-                    skipped.append((child, "not a capture (no .lp file, dataset files or photographs)"
-                                    if child.is_dir() else "not a .ptm file"))
+        try:
+            _take(source, found, skipped)
+        except OSError as exc:
+            raise InputError(f"cannot read it ({exc.strerror or exc})", exc.filename or source) from None
     if not found:
         raise InputError("no capture found in " + ", ".join(str(s) for s in sources))
     names = unique_names([_name_of(p) for p in found])
     return [BatchItem(n, p, options) for n, p in zip(names, found)], skipped
+
+
+def _take(source: Path, found: list[Path], skipped: list[tuple[Path, str]]) -> None:
+    """Add the captures of one SOURCE to ``found``, and what it holds that is none to ``skipped``."""
+    if not source.exists():
+        raise InputError("no such capture, file or folder", source)
+    if source.is_file() and source.suffix.lower() in (".ptm", ".lp"):
+        found.append(source)
+    elif not source.is_dir():
+        raise InputError("not a capture: give a folder, an .lp file or a .ptm file", source)
+    elif _is_capture(source):
+        found.append(source)
+    else:
+        for child in sorted(source.iterdir(), key=lambda p: p.name):
+            if child.name.startswith("."):
+                continue
+            if child.is_file() and child.suffix.lower() == ".ptm":
+                found.append(child)
+            elif child.is_dir() and _is_capture(child):
+                found.append(child)
+            else:
+                skipped.append((child, "not a capture (no .lp file, dataset files or photographs)"
+                                if child.is_dir() else "not a .ptm file"))
 
 
 def _converter(hint: object) -> typing.Callable[[str, Path], object]:
@@ -229,6 +237,9 @@ def read_manifest(path: str | os.PathLike, options: RunOptions) -> list[BatchIte
             item = _row_item(dict(zip(header, cells)), base, options, hints)
         except (ValueError, InputError) as exc:
             errors.append(f"line {line}: {_clip(str(exc), 4 * _SHOWN_CHARS)}")
+            continue
+        except OSError as exc:  # a path the system refuses: a name too long, a folder unreadable
+            errors.append(f"line {line}: {exc.strerror}: {_clip(str(exc.filename), _SHOWN_CHARS)}")
             continue
         item.row = line
         items.append(item)
