@@ -21,6 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from data_synthetic import write_capture
+from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from reconstruct.batch import read_manifest, run_batch
 from reconstruct.batch import runner, scheduler, sources
@@ -283,6 +284,19 @@ def test_a_name_too_long_for_the_file_system_is_refused_before_anything_runs(cap
     with pytest.raises(InputError, match=rf"object name\(s\) too long: x{{40}}…; .* at most {longest} bytes"):
         run_batch(None, out, OPT, manifest=manifest, client=client)
     assert not out.exists()
+    # The longest name taken runs through, and its thumbnails' names fit.
+    manifest = _manifest(capture, f"capture,name\ncap,{'n' * longest}\n", "long.csv")
+    (row,) = run_batch(None, out, OPT, manifest=manifest, client=client)
+    assert row.status == "done", row.error
+    assert (out / "thumbnails" / f"{row.name}_relit.jpg").is_file()
+    with atomic_write(out / "thumbnails" / f"{row.name}_height.png") as f:
+        f.write(b"fits")
+
+
+def test_the_name_margin_is_the_longest_thumbnail_suffix():
+    from reconstruct.batch.gallery import THUMBNAILS
+
+    assert scheduler.NAME_MARGIN == max(len(os.fsencode(s)) for s in THUMBNAILS.values())
 
 
 # 9, 11. A scheduler address that is none, or cannot be reached: one line, nothing left.

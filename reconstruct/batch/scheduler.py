@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
+from ptmcore.atomic import name_max
 from ptmcore.errors import InputError, first_few
 from ptmcore.resources import available_memory_mb, cpu_count
 from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
@@ -33,10 +34,11 @@ LOCK_NAME = ".batch.lock"
 RETRIES = 1
 #: How long a batch tries to reach a scheduler given by its address, in seconds.
 CONNECT_SECONDS = 20
-#: Bytes the batch adds to an object's name for what it makes beside the object's folder: the
-#: longest is a stopped run's staging folder, ``.NAME.partial-``, 8 letters and ``.abandoned``
-#: (:mod:`reconstruct.pipeline.staging`); a thumbnail's temporary file adds 24.
-NAME_MARGIN = 28
+#: Bytes the batch adds to an object's name in names it cannot shorten: its thumbnails',
+#: ``NAME_height.png`` (:data:`reconstruct.batch.gallery.THUMBNAILS`; an earlier version's
+#: ``.replaced-NAME`` adds 10). Hidden names made beside a file or folder, a run's staging
+#: folder and a temporary file, are shortened to fit (:func:`ptmcore.atomic.hidden_name`).
+NAME_MARGIN = len("_height.png")
 
 
 @contextmanager
@@ -99,18 +101,12 @@ def _lock(path: Path) -> int:
 def _check_names(items: list[BatchItem], out: Path) -> None:
     """Refuse object names longer than the output folder's file system takes, with the
     :data:`NAME_MARGIN` the batch adds: the object would fail only once a worker wrote it."""
-    folder = out.absolute()
-    while not os.path.isdir(folder):
-        folder = folder.parent
-    try:
-        limit = os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):  # not said: the usual limit of Linux, macOS and Windows
-        limit = 255
+    limit = name_max(out)
     longest = limit - NAME_MARGIN
     long = [f"{i.name[:40]}…" for i in items if len(os.fsencode(i.name)) > longest]
     if long:
         raise InputError(f"object name(s) too long: {first_few(long)}; the output folder's file system takes names of "
-                         f"{limit} bytes, of which the batch needs {NAME_MARGIN}, so at most {longest} bytes: give "
+                         f"{limit} bytes, and the thumbnails add {NAME_MARGIN}, so at most {longest} bytes: give "
                          "shorter names in a manifest's name column", out)
 
 
