@@ -181,14 +181,15 @@ def test_dev_zero_as_manifest_is_refused_in_one_line(tmp_path):
     assert done.stderr.count("\n") == 1 and "/dev/zero: is a device, not a manifest" in done.stderr
 
 
-# 5. A failure without a message still says something.
+# 5. A failure says something useful, on one line, even without a message of its own.
 
 @pytest.mark.parametrize("exc, words", [
     (MemoryError(), "ran out of memory during the normals stage: run fewer objects at once"),
     (KeyError(), "KeyError during the normals stage: mapping key not found"),
     (AssertionError(), "AssertionError during the normals stage: assertion failed"),
+    (ValueError("a library's\nmessage\r\n" * 1000), "ValueError during the normals stage: a library's message a"),
 ])
-def test_a_failure_without_a_message_is_put_in_words(capture, tmp_path, monkeypatch, exc, words):
+def test_a_failure_s_message_says_something_on_one_line(capture, tmp_path, monkeypatch, exc, words):
     def failing(item, folder, print_, progress):
         if progress is not None:
             progress("normals", 0, 1)
@@ -197,6 +198,7 @@ def test_a_failure_without_a_message_is_put_in_words(capture, tmp_path, monkeypa
     monkeypatch.setattr(runner, "_reconstruct", failing)
     row = runner.run_object(BatchItem("a", capture, OPT), tmp_path)
     assert row.status == FAILED and words in row.error
+    assert "\n" not in row.error and "\r" not in row.error and len(row.error) < 600
 
 
 # 6. A resume redoes an object when any input it reads changed, even at the same size and time.

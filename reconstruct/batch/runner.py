@@ -30,6 +30,9 @@ __all__ = ["BatchStopped", "choose_workers", "describe_failure", "estimate_peak_
 #: Fingerprint format; a new one makes every object run again.
 _FINGERPRINT_VERSION = 2
 
+#: A failure's message in a row at most, in characters: a library's message may be pages long.
+_MESSAGE_CHARS = 500
+
 #: The batches stopped in this process (their ``token``s): see :func:`stop_objects`.
 _STOPPED: set[str] = set()
 
@@ -171,13 +174,17 @@ def describe_failure(exc: BaseException, stage: str | None = None) -> str:
     """What a failed object's row says of ``exc``, raised during ``stage`` (when known).
 
     An :class:`InputError` says it all. Running out of memory says so, and what to do. Any
-    other exception is its type and message; one without a message (``KeyError()``, an
-    ``assert``) gets its type's meaning in words, from the first line of its documentation.
+    other exception is its type and message, on one line of at most :data:`_MESSAGE_CHARS`
+    characters (as ``batch.csv`` and the summary show it); one without a message
+    (``KeyError()``, an ``assert``) gets its type's meaning in words, from the first line of its
+    documentation.
     """
     if isinstance(exc, InputError):
         return str(exc)
     during = f" during the {stage} stage" if stage else ""
-    text = str(exc)
+    text = " ".join(str(exc).split())
+    if len(text) > _MESSAGE_CHARS:
+        text = text[:_MESSAGE_CHARS - 1] + "…"
     if isinstance(exc, MemoryError):
         return (f"ran out of memory{during}" + (f" ({text})" if text else "")
                 + ": run fewer objects at once (--workers) or give --memory-limit")
