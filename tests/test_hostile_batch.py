@@ -127,6 +127,12 @@ def test_a_row_with_more_cells_than_the_header_names_its_line(capture):
     assert [i.name for i in read_manifest(manifest, OPT)] == ["a"]
 
 
+def test_a_column_given_twice_is_refused(capture):
+    manifest = _manifest(capture, "capture,name,pixel_size,name\ncap,a,0.1,b\n", "twice.csv")
+    with pytest.raises(InputError, match=r"twice\.csv: column\(s\) given twice in the header: 'name'$"):
+        read_manifest(manifest, OPT)
+
+
 def test_thousands_of_bad_rows_give_a_short_message(capture):
     body = "capture,glb\n" + "".join(f"cap,{'maybe' * 20}{k}\n" for k in range(10_000))
     manifest = _manifest(capture, body, "many.csv")

@@ -214,9 +214,10 @@ def read_manifest(path: str | os.PathLike, options: RunOptions) -> list[BatchIte
     ------
     InputError
         Naming bad rows by their line in the file (the spreadsheet's row number: the header is
-        line 1) and the problem: an unknown column, more cells than the header, a value the
-        option refuses, a missing capture or scan; the first few, and how many more. Also for
-        a quote left open, and for a manifest that is not a regular file or is too large.
+        line 1) and the problem: an unknown column or one given twice, more cells than the
+        header, a value the option refuses, a missing capture or scan; the first few, and how
+        many more. Also for a quote left open, and for a manifest that is not a regular file or
+        is too large.
     """
     path = Path(path)
     base = path.resolve().parent
@@ -228,6 +229,10 @@ def read_manifest(path: str | os.PathLike, options: RunOptions) -> list[BatchIte
         known = ", ".join([*_OWN_COLUMNS, *hints])
         problem = f"unknown column(s) {first_few(unknown)}" if unknown else "no capture column"
         raise InputError(f"{problem}; columns are: {known}", path)
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:
+        # Which of the two a row means cannot be known: neither is taken.
+        raise InputError(f"column(s) given twice in the header: {first_few([repr(c) for c in twice])}", path)
     items, errors = [], []
     for line, cells in table[1:]:
         if any(c.strip() for c in cells[len(header):]):
