@@ -35,6 +35,7 @@ import numba
 import numpy as np
 
 from .bands import run_bands
+from .normals import FLAT
 
 __all__ = ["maximum_bands", "maximum_rows"]
 
@@ -161,7 +162,7 @@ def _circle_maxima(chunk, listed, m, tables, circle, best, moving):  # pragma: n
 # error_model="numpy": division by zero gives inf or NaN (the closed form where it is not
 # used) and raises nothing, which also lets that loop vectorise.
 @numba.njit(nogil=True, cache=True, error_model="numpy")
-def maximum_rows(a, tables, lu, lv, nz, interior):  # pragma: no cover - compiled
+def maximum_rows(a, tables, lu, lv, nz, interior, valid=None):  # pragma: no cover - compiled
     """Each pixel's maximum over the unit disk, as :func:`ptmcore.normals.ptm_maximum`.
 
     Parameters
@@ -174,9 +175,12 @@ def maximum_rows(a, tables, lu, lv, nz, interior):  # pragma: no cover - compile
         Out: the light direction of the maximum.
     nz : ndarray, shape (R, W), float32, or None
         Out: the normal's third component, √(1 − lu² − lv²) in float32 as
-        :func:`ptmcore.normals.normals_from_ptm` had it.
+        :func:`ptmcore.normals.normals_from_ptm` had it. With it, a flat PTM
+        (:data:`ptmcore.normals.FLAT`) has the normal (0, 0, 1) in (lu, lv, nz).
     interior : ndarray, shape (R, W), bool, or None
         Out: where the maximum is the interior closed-form one.
+    valid : ndarray, shape (R, W), bool, or None
+        Out, with ``nz``: where a normal was read (not flat, finite).
     """
     w = a.shape[1]
     n = a.shape[0] * w
@@ -225,13 +229,24 @@ def maximum_rows(a, tables, lu, lv, nz, interior):  # pragma: no cover - compile
             if interior is not None:
                 interior[r, col] = inside[j]
             if nz is not None:
-                # float32, NaN kept: np.clip and np.sqrt on the float32 results.
-                z = one - u32 * u32 - v32 * v32
-                if z < zero:
-                    z = zero
-                elif z > one:
-                    z = one
-                nz[r, col] = np.sqrt(z)
+                a0, a1, a2, a3, a4, a5 = chunk[0, j], chunk[1, j], chunk[2, j], chunk[3, j], chunk[4, j], chunk[5, j]
+                finite = (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2) and math.isfinite(a3)
+                          and math.isfinite(a4) and math.isfinite(a5))
+                if finite and max(abs(a0), abs(a1), abs(a2), abs(a3), abs(a4)) <= FLAT * abs(a5):
+                    # Flat: the maximum is the rounding's, and differs between CPUs.
+                    lu[r, col], lv[r, col], nz[r, col] = zero, zero, one
+                    if valid is not None:
+                        valid[r, col] = False
+                else:
+                    # float32, NaN kept: np.clip and np.sqrt on the float32 results.
+                    z = one - u32 * u32 - v32 * v32
+                    if z < zero:
+                        z = zero
+                    elif z > one:
+                        z = one
+                    nz[r, col] = np.sqrt(z)
+                    if valid is not None:
+                        valid[r, col] = math.isfinite(u32) and math.isfinite(v32)
             col += 1
             if col == w:
                 r, col = r + 1, 0
@@ -252,12 +267,14 @@ def maximum_bands(
     nz: np.ndarray | None = None,
     interior: np.ndarray | None = None,
     *,
+    valid: np.ndarray | None = None,
     threads: int | None = None,
 ) -> None:
     """Run :func:`maximum_rows` over bands of rows of ``coefficients`` (H, W, 6) in threads.
 
-    ``lu``, ``lv`` and ``nz`` (float32) and ``interior`` (bool) are (H, W) outputs, or views of
-    them; ``nz`` and ``interior`` may be None. ``threads``: default, the number of CPUs.
+    ``lu``, ``lv`` and ``nz`` (float32) and ``interior`` and ``valid`` (bool) are (H, W)
+    outputs, or views of them; ``nz``, ``interior`` and ``valid`` may be None (``valid`` is
+    written only with ``nz``). ``threads``: default, the number of CPUs.
 
     Raises
     ------
@@ -268,12 +285,13 @@ def maximum_bands(
     if coefficients.ndim != 3 or coefficients.shape[2] != 6:
         raise ValueError(f"PTM coefficients must be (H, W, 6), not {coefficients.shape}")
     h, w = coefficients.shape[:2]
-    for out in (lu, lv, nz, interior):
+    for out in (lu, lv, nz, interior, valid):
         if out is not None and out.shape != (h, w):
             raise ValueError(f"an output of shape {out.shape} for coefficients of shape {coefficients.shape}")
 
     def work(r0: int, r1: int) -> None:
         maximum_rows(_kernel_input(coefficients[r0:r1]), _TABLES, lu[r0:r1], lv[r0:r1],
-                     None if nz is None else nz[r0:r1], None if interior is None else interior[r0:r1])
+                     None if nz is None else nz[r0:r1], None if interior is None else interior[r0:r1],
+                     None if valid is None else valid[r0:r1])
 
     run_bands(h, max(1, _BAND_PIXELS // max(1, w)), work, threads=threads)

@@ -17,6 +17,15 @@ from .images import ImageStack
 from .lp import as_directions
 from .pixelfit import SINGULAR
 
+#: A PTM is flat where its coefficients are finite and its five shape coefficients are all at
+#: most this × |a5| (an all-zero PTM too): the pixel's samples carry no direction (all clipped,
+#: all black, or one value under every light), and what shape the fit has is the float32 sums'
+#: rounding, about 1e-7 of the level, which differs between CPUs and BLAS libraries. Real
+#: shading varies by more than 1e-2 of the level over a dome's lights, and one 16-bit code of a
+#: bright pixel is 1.5e-5 of it. No normal is read from a flat PTM (:func:`normals_from_ptm`,
+#: :func:`ptmcore.robustptm.debiased_normals`, the robust PTM's kernel): it is (0, 0, 1), flagged.
+FLAT = 1e-4
+
 
 def ptm_maximum(
     coefficients: np.ndarray, *, threads: int | None = None
@@ -60,14 +69,20 @@ def ptm_maximum(
     return lu.reshape(shape), lv.reshape(shape), interior.reshape(shape)
 
 
-def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None) -> np.ndarray:
+def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None,
+                     valid: np.ndarray | None = None) -> np.ndarray:
     """Normals ``(lu0, lv0, √(1 − lu0² − lv0²))`` from each PTM's maximum (:func:`ptm_maximum`).
+
+    A flat PTM (:data:`FLAT`: an all-zero one, or the fit of samples all clipped or all one
+    value) has no maximum but its rounding's: its normal is (0, 0, 1).
 
     Parameters
     ----------
     coefficients : ndarray, shape (H, W, 6)
     threads : int, optional
         Threads working on bands of rows (default: all CPUs).
+    valid : ndarray, shape (H, W), bool, optional
+        Out: where a normal was read (False where the PTM is flat or not finite).
 
     Returns
     -------
@@ -83,7 +98,7 @@ def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None) ->
 
     coefficients = np.asarray(coefficients)
     out = np.empty(coefficients.shape[:-1] + (3,), dtype=np.float32)  # maximum_bands checks the shape
-    maximum_bands(coefficients, out[..., 0], out[..., 1], out[..., 2], threads=threads)
+    maximum_bands(coefficients, out[..., 0], out[..., 1], out[..., 2], valid=valid, threads=threads)
     return out
 
 

@@ -24,8 +24,10 @@ factorisation of :func:`ptmcore.pixelfit.cholesky_solve`, vectorised over the pi
 
 The arithmetic follows the NumPy steps: float32 where they use float32 (residuals, weights,
 thresholds, the least-squares sums), float64 for the normal equations; results agree within
-float32 rounding (``tests/test_robust_kernel.py``, ``tests/test_robust_ptm_kernel.py``), but
-where a sample's weight is on a threshold's edge and rounding tips it across. The NumPy steps stay in
+float32 rounding, magnified by each pixel's condition number (``tests/test_robust_kernel.py``,
+``tests/test_robust_ptm_kernel.py`` bound it so on any CPU and BLAS library), but
+where a sample's weight is on a threshold's edge and rounding tips it across; a flat PTM
+(:data:`ptmcore.normals.FLAT`) gives no normal in both. The NumPy steps stay in
 :mod:`ptmcore.robust` and :mod:`ptmcore.robustptm` as the kernel's reference (``compiled=False``),
 and for what the kernel does not do (a robust PTM with fixed normals or refining passes).
 
@@ -226,10 +228,11 @@ def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always", **_JIT)
-def _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4):  # pragma: no cover - compiled
+def _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat):  # pragma: no cover - compiled
     """The debiased normal (float32 x, y, z) of a PTM ``a`` and its hemisphere PTM ``q``
-    (float64; the constant terms play no part): :func:`ptmcore.robustptm._debiased` for one
-    pixel."""
+    (float64; ``q``'s constant term plays no part), and whether it was read:
+    :func:`ptmcore.robustptm._debiased` for one pixel. (0, 0, 1), not read, where the PTM is
+    flat (shape coefficients all at most ``flat`` × |a5|) or gives no normal facing the camera."""
     det = 4 * a0 * a1 - a2 * a2
     concave = (a0 < 0) and (det > 0)
     if not concave:
@@ -245,9 +248,10 @@ def _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4):  # pragma: no cove
     length = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     norm = length if length > 0 else 1.0
     x, y, z = np.float32(g0 / norm), np.float32(g1 / norm), np.float32(g2 / norm)
-    if not (length > 0 and math.isfinite(length)) or not z > 0:
-        return np.float32(0.0), np.float32(0.0), np.float32(1.0)
-    return x, y, z
+    shape = max(abs(a0), abs(a1), abs(a2), abs(a3), abs(a4))
+    if not (shape > flat * abs(a5) and length > 0 and math.isfinite(length) and z > 0):
+        return np.float32(0.0), np.float32(0.0), np.float32(1.0), False
+    return x, y, z, True
 
 
 @numba.njit(inline="always", **_JIT)
@@ -279,8 +283,8 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
     operations are vectors over the pixels.
     """
     outer_t, u_t, back, plain_z = ptm.outer_t, ptm.u_t, ptm.back, ptm.plain_z
-    gram_rows, extra_rows, singular = ptm.gram_rows, ptm.extra_rows, ptm.singular
-    coef, hemi, nout, used = ptm.coefficients, ptm.hemisphere, ptm.normals, ptm.used
+    gram_rows, extra_rows, singular, flat = ptm.gram_rows, ptm.extra_rows, ptm.singular, ptm.flat
+    coef, hemi, nout, valid, used = ptm.coefficients, ptm.hemisphere, ptm.normals, ptm.valid, ptm.used
     n = u_t.shape[1]  # the photographs (v and w have padded rows past them)
     r = u_t.shape[0]
     k_sums = outer_t.shape[0]
@@ -393,7 +397,9 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
         coef[row, col, 3], coef[row, col, 4], coef[row, col, 5] = a3, a4, a5
         hemi[row, col, 0], hemi[row, col, 1], hemi[row, col, 2] = q0, q1, q2
         hemi[row, col, 3], hemi[row, col, 4], hemi[row, col, 5] = q3, q4, q5
-        nout[row, col, 0], nout[row, col, 1], nout[row, col, 2] = _debiased_normal(a0, a1, a2, a3, a4, q0, q1, q2, q3, q4)
+        x, y, z, read = _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat)
+        nout[row, col, 0], nout[row, col, 1], nout[row, col, 2] = x, y, z
+        valid[row, col] = read
         used[row, col] = total[j]
 
 

@@ -12,6 +12,12 @@ where ``q`` is the same fit (same weights) of ``lz = √(1 − lu² − lv²)`` 
 ``(nx, ny) = −nz ∇q(lu0, lv0)``. :func:`debiased_normals` uses this to read the normal from the
 maximum through ``q``. On a Lambertian surface the result is exact; the plain maximum
 (:func:`ptmcore.normals.normals_from_ptm`) is not. See ``benchmarks/normals_table.py``.
+
+Degenerate pixels. Where every sample is clipped or black, or has one value under every light,
+the PTM is flat (:data:`ptmcore.normals.FLAT`) and no normal is read from it: the direction of
+its rounding noise would differ between CPUs and between the kernel and the NumPy steps. Its
+normal is (0, 0, 1) and ``RobustPTM.valid`` is False there, in both; the PTM is kept for
+relighting.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ from .bands import run_bands
 from .fit import PTM, evaluate_at, fit_matrix, light_matrix
 from .images import ImageStack
 from .lp import as_directions
+from .normals import FLAT
 from .pixelfit import blocked_matmul, orthonormal_basis, weighted_fit
 from .robust import Lights, RobustOptions, band_height, reweight, robust_lambertian, robust_rows, unit_columns
 
@@ -46,9 +53,11 @@ def hemisphere_coefficients(directions: np.ndarray) -> np.ndarray:
     return fit_matrix(d) @ d[:, 2]
 
 
-def _debiased(a: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Normals (3, P) float32 from PTM coefficients ``a`` and hemisphere PTMs ``q`` (6, P)."""
-    a0, a1, a2, a3, a4 = a[:5]
+def _debiased(a: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Normals (3, P) float32 from PTM coefficients ``a`` and hemisphere PTMs ``q`` (6, P),
+    and where they were read (P,): not where the PTM is flat (:data:`ptmcore.normals.FLAT`) or
+    gives no normal facing the camera, where they are (0, 0, 1)."""
+    a0, a1, a2, a3, a4, a5 = a[:6]
     q0, q1, q2, q3, q4 = q[:5]
     det = 4 * a0 * a1 - a2 * a2
     concave = (a0 < 0) & (det > 0)
@@ -67,11 +76,13 @@ def _debiased(a: np.ndarray, q: np.ndarray) -> np.ndarray:
         np.where(concave, 1.0, rho_z),
     ])
     unit, length = unit_columns(g)
-    bad = ~(length > 0) | ~np.isfinite(length) | (unit[2] <= 0)
-    return np.where(bad, _UP, unit).astype(np.float32)
+    shape = np.max(np.abs(a[:5]), axis=0)
+    good = (shape > FLAT * np.abs(a5)) & (length > 0) & np.isfinite(length) & (unit[2] > 0)
+    return np.where(good, unit, _UP).astype(np.float32), good
 
 
-def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray) -> np.ndarray:
+def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray, *,
+                     valid: np.ndarray | None = None) -> np.ndarray:
     """Normals from each PTM's maximum, read through the fit's own model of the hemisphere.
 
     For a Lambertian pixel the fitted PTM is ``ρ (nx·lu + ny·lv + nz·q)``, where ``q`` is the
@@ -80,6 +91,11 @@ def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray) -> np.nda
     ``ρ·nz`` is read from its quadratic part and ``ρ·(nx, ny)`` from what remains of its
     linear part.
 
+    No normal is read from a flat PTM, whose five shape coefficients are all at most
+    :data:`ptmcore.normals.FLAT` × |a5| (an all-zero PTM too): its samples carry no direction,
+    and the direction of what shape it has is rounding, which differs between CPUs. Nor where
+    the reading gives no finite normal facing the camera. Those pixels' normals are (0, 0, 1).
+
     Parameters
     ----------
     coefficients : ndarray, shape (..., 6)
@@ -87,6 +103,9 @@ def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray) -> np.nda
     hemisphere : ndarray, shape (..., 6) or (6,)
         The fit's PTM of ``lz``. For :func:`robust_ptm` there is one per pixel; for a plain fit,
         :func:`hemisphere_coefficients` gives one for all pixels.
+    valid : ndarray, shape (...), bool, optional
+        Out: where a normal was read (False where it is the (0, 0, 1) of a flat PTM or of no
+        reading).
 
     Returns
     -------
@@ -98,10 +117,14 @@ def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray) -> np.nda
     a = coefficients.reshape(-1, 6)
     q = np.broadcast_to(np.asarray(hemisphere), coefficients.shape).reshape(-1, 6)
     out = np.empty((a.shape[0], 3), dtype=np.float32)
+    good = np.empty(a.shape[0], dtype=bool)
     step = 1 << 16  # keeps the float64 temporaries of a large map bounded
     for p0 in range(0, a.shape[0], step):
         part = slice(p0, p0 + step)
-        out[part] = _debiased(a[part].T.astype(np.float64), q[part].T.astype(np.float64)).T
+        unit, good[part] = _debiased(a[part].T.astype(np.float64), q[part].T.astype(np.float64))
+        out[part] = unit.T
+    if valid is not None:
+        valid[...] = good.reshape(shape)
     return out.reshape(*shape, 3)
 
 
@@ -121,9 +144,11 @@ class KernelPTM(NamedTuple):
     gram_rows: np.ndarray  #: (r(r+1)/2,) int64, the rows of the sums that make the normal matrix
     extra_rows: np.ndarray  #: (r,) int64, the rows of Σ w φ lz
     singular: float  #: below it (det G / mean eigenvalue^r) the plain fit stands in
+    flat: float  #: :data:`ptmcore.normals.FLAT`
     coefficients: np.ndarray  #: out: (H, W, 6) float32
     hemisphere: np.ndarray  #: out: (H, W, 6) float32
     normals: np.ndarray  #: out: (H, W, 3) float32, debiased
+    valid: np.ndarray  #: out: (H, W) bool, where a normal was read
     used: np.ndarray  #: out: (H, W) float32, the weights' sums
 
 
@@ -141,12 +166,17 @@ class RobustPTM:
         ``debiased_normals(ptm.coefficients, hemisphere)``.
     samples : ndarray, shape (H, W), float32
         Sum of the final weights (how many photographs count).
+    valid : ndarray, shape (H, W), bool
+        Where a normal was read: False where the PTM is flat (:data:`ptmcore.normals.FLAT`:
+        all samples clipped or black, or one value under every light) or gives no normal
+        facing the camera, and the normal is (0, 0, 1).
     """
 
     ptm: PTM
     hemisphere: np.ndarray
     normals: np.ndarray
     samples: np.ndarray
+    valid: np.ndarray
 
 
 def robust_ptm(
@@ -225,14 +255,15 @@ def robust_ptm(
     coef = np.empty((h, w, 6), dtype=np.float32)
     hemi = np.empty((h, w, 6), dtype=np.float32)
     nout = np.empty((h, w, 3), dtype=np.float32)
+    valid = np.empty((h, w), dtype=bool)
     used = np.empty((h, w), dtype=np.float32)
     if compiled and normals is None and refine == 0:
         ptm = KernelPTM(np.ascontiguousarray(basis.outer.T), np.ascontiguousarray(basis.u.T),
                         np.ascontiguousarray(basis.back), np.ascontiguousarray(plain_z[:, 0]),
                         basis.gram_rows.astype(np.int64), basis.extra_rows[0].astype(np.int64), _PTM_SINGULAR,
-                        coef, hemi, nout, used)
+                        FLAT, coef, hemi, nout, valid, used)
         robust_rows(stack, dirs, opt, threads, progress, ptm=ptm)
-        return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
+        return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used, valid)
     lights = Lights.of(dirs)
 
     def work(r0: int, r1: int) -> None:
@@ -253,7 +284,7 @@ def robust_ptm(
         for _ in range(refine):
             a = blocked_matmul(basis.back, c)
             if normals is None:
-                unit = _debiased(a, blocked_matmul(basis.back, cz))
+                unit, _ = _debiased(a, blocked_matmul(basis.back, cz))
                 shading = blocked_matmul(lights.dirs, unit)
             candidates = (shading > min_shading) & usable
             pred = blocked_matmul(basis.u, c.astype(np.float32))
@@ -268,11 +299,13 @@ def robust_ptm(
         q = blocked_matmul(basis.back, cz)
         coef[r0:r1] = a.T.reshape(r1 - r0, w, 6)
         hemi[r0:r1] = q.T.reshape(r1 - r0, w, 6)
-        nout[r0:r1] = _debiased(a, q).T.reshape(r1 - r0, w, 3)
+        unit, good = _debiased(a, q)
+        nout[r0:r1] = unit.T.reshape(r1 - r0, w, 3)
+        valid[r0:r1] = good.reshape(r1 - r0, w)
         used[r0:r1] = weights.sum(axis=0).reshape(r1 - r0, w)
 
     run_bands(h, band_height(n, w), work, threads=threads, progress=progress)
-    return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used)
+    return RobustPTM(PTM(coef, stack.chroma), hemi, nout, used, valid)
 
 
 def robust_fit_ptm(stack: ImageStack, directions: np.ndarray, **options: Any) -> PTM:

@@ -3,6 +3,7 @@ import pytest
 
 from ptmcore import pixelfit, robust
 from ptmcore.fit import fit_ptm, light_matrix
+from ptmcore.lp import as_directions
 from ptmcore.normals import angular_error, normals_from_ptm, photometric_stereo
 from ptmcore.robust import robust_photometric_stereo
 from ptmcore.robustptm import debiased_normals, hemisphere_coefficients, robust_fit_ptm, robust_ptm
@@ -32,6 +33,41 @@ def _corrupted_sphere(seed=0):
     values[rng.random(values.shape) < 0.1] = 0.0
     values += rng.normal(0.0, 0.003, values.shape)
     return np.clip(values, 0.0, 1.0), n_true, mask, dirs
+
+
+#: float32's machine epsilon: a sum of n float32 terms is within n × this of its value, relative
+#: to the sum of their magnitudes.
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def final_weights(stack, dirs, method="irls", specular_cone=30.0):
+    """The NumPy steps' final robust weights (N, H·W), with robust_ptm's other defaults."""
+    opt = robust.RobustOptions(method, 3, 0.05, 0.05, 0.4, specular_cone, 3.0, 2.0, 0.002, 0.01)
+    values, saturated = stack.band(0, stack.shape[0])
+    n = len(stack)
+    lights = robust.Lights.of(as_directions(dirs, n))
+    return robust.robust_lambertian(lights, opt, values.reshape(n, -1), ~saturated.reshape(n, -1))[3]
+
+
+def conditioning(weights, basis, singular, fallback):
+    """Each pixel's condition number of its weighted least squares (Σ w u uᵀ + λI, as the solves
+    have it), (P,): two float32 evaluations of it, whose sums of n terms are each within
+    n·EPS32 of their value, differ by at most n·EPS32·κ relative to its size.
+
+    Where the fit is ill posed (det ≤ ``singular`` × mean eigenvalue^r) ``fallback`` stands in:
+    1 where a matrix product (the plain fit) takes its place, inf where an earlier estimate
+    does. Within a factor 2 of that test, which of the two each evaluation takes is rounding:
+    inf, nothing to compare.
+    """
+    u = basis.u.astype(np.float64)
+    r = u.shape[1]
+    gram = np.einsum("nk,nl,np->pkl", u, u, weights.astype(np.float64))
+    mean = np.maximum(np.trace(gram, axis1=1, axis2=2) / r, 1e-30)
+    gram += pixelfit._RIDGE * mean[:, None, None] * np.eye(r)
+    eig = np.linalg.eigvalsh(gram)
+    posed = np.prod(eig, axis=1) / mean**r / singular
+    kappa = np.where(posed > 1, eig[:, -1] / eig[:, 0], fallback)
+    return np.where((posed > 0.5) & (posed < 2), np.inf, kappa)
 
 
 def test_exact_recovery_on_clean_lambertian_sphere():
