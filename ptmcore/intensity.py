@@ -26,7 +26,7 @@ import numpy as np
 from .diskstack import release_rows
 from .errors import InputError, read_input_text
 from .images import _LUM_SCALE, LUMA_WEIGHTS, SATURATED, ImageStack, linear_to_srgb
-from .lp import as_directions
+from .lp import MAX_TEXT_BYTES, as_directions, decimal_number
 from .pixelfit import SINGULAR
 
 #: Samples with ``n·l`` below this are left out: dim, and the most sensitive to the normal's
@@ -66,7 +66,8 @@ def read_numeric_rows(
 ) -> tuple[np.ndarray, list[int]]:
     """Read a text file of whitespace-separated numbers, the same count on every line.
 
-    Blank lines and ``#`` comments (whole-line or trailing) are skipped.
+    Blank lines and ``#`` comments (whole-line or trailing) are skipped. Numbers are plain
+    decimals (:func:`ptmcore.lp.decimal_number`: not ``1_0``, ``nan`` or ``0x10``).
 
     Parameters
     ----------
@@ -90,7 +91,7 @@ def read_numeric_rows(
         field that is not a finite number, or the lines disagree on the count.
     """
     path = Path(path)
-    text = read_input_text(path, what)
+    text = read_input_text(path, what, max_bytes=MAX_TEXT_BYTES)
     rows: list[list[float]] = []
     numbers: list[int] = []
     expected = " or ".join(str(w) for w in widths)
@@ -103,9 +104,10 @@ def read_numeric_rows(
         if len(fields) not in widths:
             raise InputError(f"line {no}: expected {expected} number(s), got {raw.strip()[:60]!r}", path)
         try:
-            vals = [float(f) for f in fields]
+            vals = [decimal_number(f) for f in fields]
         except ValueError:
-            raise InputError(f"line {no}: not a number: {raw.strip()[:60]!r}", path) from None
+            raise InputError(f"line {no}: not a number (plain decimals, as 0.5 or 1.2e-3): {raw.strip()[:60]!r}",
+                             path) from None
         if not all(np.isfinite(vals)):
             raise InputError(f"line {no}: value is not finite: {raw.strip()[:60]!r}", path)
         if rows and len(vals) != len(rows[0]):

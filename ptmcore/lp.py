@@ -10,7 +10,15 @@ An ``.lp`` file lists one photograph per line with the unit vector towards its l
 The first line is the count N. Each following line is a file name (which may contain spaces;
 the last three fields are the vector) and x, y, z in the frame x right, y up, z towards the
 camera. File names are resolved relative to the ``.lp`` file; absolute Windows paths, as
-RTIBuilder writes them, are taken by their base name.
+RTIBuilder writes them, are taken by their base name. The numbers are plain decimals
+(``-0.5``, ``.866``, ``8.66e-1``): Python's ``float`` would also read ``0_5`` as 5 and take
+``nan``, ``inf`` or other scripts' digits, none of which a light file means.
+
+Blank lines are skipped, and so are comments: lines starting with ``#`` (RTIBuilder writes
+none; other tools write a line of words, or an entry commented out). A photograph's name may
+start with ``#`` too: a ``#`` line of the form of an entry (a name and three numbers,
+``#1.jpg 0.1 0.2 0.97``) is a photograph when the count on the first line includes it, and a
+comment when the count matches the file without it.
 
 Some tools write light positions rather than unit vectors; they are normalised, as RTIBuilder
 does. A vector that is not finite, (nearly) zero, longer than :data:`MAX_VECTOR_LENGTH`, or at
@@ -22,6 +30,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path, PureWindowsPath
 
@@ -38,6 +47,11 @@ MIN_ELEVATION_DEG = 0.5
 #: below it; a longer vector is a typing or export error, and its square overflows.
 MAX_VECTOR_LENGTH = 1e6
 
+#: Longest light file read, and longest list of lights, intensities or light positions
+#: (:mod:`ptmcore.intensity`, :mod:`ptmcore.nearlight`, :mod:`ptmcore.psdataset`): 16 MB
+#: hold hundreds of thousands of lines, far more than any dome's; a larger file is not one.
+MAX_TEXT_BYTES = 16 * 2**20
+
 #: Shorter vectors give no direction (``0 0 0``, or rounding of one).
 MIN_VECTOR_LENGTH = 1e-6
 
@@ -50,6 +64,9 @@ _SAME_DIRECTION = 1e-6
 
 #: Duplicates named one by one in warnings; the rest are counted.
 _SHOWN = 3
+
+#: A plain decimal number: sign, digits with a decimal point, exponent, in ASCII.
+_DECIMAL = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 
 
 @dataclass(frozen=True)
@@ -76,6 +93,26 @@ class LightSet:
 
     def __len__(self) -> int:
         return len(self.paths)
+
+
+def decimal_number(text: str) -> float:
+    """The value of a plain decimal number (``-0.5``, ``.866``, ``8.66e-1``, ``1e400`` is inf).
+
+    Raises
+    ------
+    ValueError
+        For anything else that ``float`` would take: ``0_5``, ``nan``, ``inf``, ``0x1p3``,
+        other scripts' digits, surrounding spaces.
+    """
+    if not _DECIMAL.fullmatch(text):
+        raise ValueError(f"not a decimal number: {text!r}")
+    return float(text)
+
+
+def _entry_form(line: str) -> bool:
+    """Whether ``line`` reads as ``name x y z``."""
+    fields = line.split()
+    return len(fields) >= 4 and all(_DECIMAL.fullmatch(f) for f in fields[-3:])
 
 
 def _resolve(name: str, base: Path) -> Path:
@@ -173,25 +210,29 @@ def read_lp(path: str | os.PathLike) -> LightSet:
     Raises
     ------
     InputError
-        If the file is missing or unreadable, the count does not match the lines, a line does
-        not parse or has no file name, a vector is (nearly) zero, not finite, absurdly long,
-        or at or below the horizon, or the file lists fewer than :data:`MIN_PHOTOGRAPHS`.
+        If the file is missing, unreadable, not a regular file, larger than
+        :data:`MAX_TEXT_BYTES` or UTF-16 without a byte-order mark, the count does not match
+        the lines, a line does not parse, has no file name or a NUL byte in it, a vector is
+        (nearly) zero, not finite, absurdly long, or at or below the horizon, or the file lists
+        fewer than :data:`MIN_PHOTOGRAPHS`.
     """
     path = Path(path)
-    text = read_input_text(path, "light file")
+    text = read_input_text(path, "light file", max_bytes=MAX_TEXT_BYTES)
+    if text.count("\0") * 3 >= len(text) > 0:
+        # NULs between the characters: UTF-16 (Notepad's "Unicode") without the byte-order mark
+        # that would tell it.
+        raise InputError("the light file is UTF-16 text without a byte-order mark; save it as UTF-8", path)
     lines = [(i + 1, ln.strip()) for i, ln in enumerate(text.splitlines())]
-    lines = [(no, ln) for no, ln in lines if ln and not ln.startswith("#")]
-    if not lines:
+    lines = [(no, ln) for no, ln in lines if ln]
+    # A photograph cannot come before the count: a '#' line there is a comment.
+    head = next((k for k, (_, ln) in enumerate(lines) if not ln.startswith("#")), None)
+    if head is None:
         raise InputError("light file is empty", path)
-    try:
-        count = int(lines[0][1].split()[0])
-    except (ValueError, IndexError):
-        raise InputError(
-            f"line {lines[0][0]}: expected the number of photographs, got {lines[0][1][:40]!r}", path
-        ) from None
-    entries = lines[1:]
-    if count != len(entries):
-        raise InputError(f"declares {count} photographs but lists {len(entries)}", path)
+    no, first = lines[head]
+    if not re.fullmatch(r"[0-9]+", first.split()[0]):
+        raise InputError(f"line {no}: expected the number of photographs, got {first[:40]!r}", path)
+    count = int(first.split()[0])
+    entries = _entries(lines[head + 1:], count, path)
 
     base = path.parent
     names: list[str] = []
@@ -202,11 +243,14 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         if len(fields) < 4:
             raise InputError(f"line {no}: expected 'filename x y z', got {line[:60]!r}", path)
         try:
-            vectors[k] = [float(f) for f in fields[-3:]]
+            vectors[k] = [decimal_number(f) for f in fields[-3:]]
         except ValueError:
-            raise InputError(f"line {no}: light direction is not three numbers: {line[:60]!r}", path) from None
+            raise InputError(f"line {no}: light direction is not three numbers (plain decimals, as 0.5 or "
+                             f"-8.66e-1): {line[:60]!r}", path) from None
         # Names may contain spaces: the name is everything before the last three fields.
         name = line.rsplit(maxsplit=3)[0]
+        if "\0" in name:
+            raise InputError(f"line {no}: the photograph's name holds a NUL byte, which no file name can", path)
         resolved = _resolve(name, base)
         if not resolved.name:
             raise InputError(f"line {no}: no file name in {line[:60]!r}", path)
@@ -222,6 +266,19 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         )
     return LightSet(paths=paths, directions=directions, source=path,
                     warnings=duplicate_warnings(paths, directions, numbers))
+
+
+def _entries(lines: list[tuple[int, str]], count: int, path: Path) -> list[tuple[int, str]]:
+    """The numbered lines after the count that list photographs: every line not starting with
+    ``#``, and the ``#`` lines of the form of an entry when ``count`` includes them (a
+    photograph named ``#1.jpg``); otherwise those are comments (an entry commented out)."""
+    plain = [(no, ln) for no, ln in lines if not ln.startswith("#")]
+    named = [(no, ln) for no, ln in lines if not ln.startswith("#") or _entry_form(ln)]
+    for entries in (named, plain):
+        if len(entries) == count:
+            return entries
+    besides = f" ({len(plain)} besides the lines starting with '#')" if len(plain) != len(named) else ""
+    raise InputError(f"declares {count} photographs but lists {len(named)}{besides}", path)
 
 
 def duplicate_warnings(paths: list[Path], directions: np.ndarray, lines: list[int]) -> tuple[str, ...]:

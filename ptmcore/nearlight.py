@@ -37,6 +37,7 @@ from .bands import band_rows, run_bands
 from .errors import InputError, read_input_text
 from .fit import PTM, ptm_terms
 from .images import ImageStack
+from .lp import MAX_TEXT_BYTES, decimal_number
 from .normals import (
     PhotometricStereo,
     albedo_fit,
@@ -97,19 +98,25 @@ def read_light_positions(path: str | os.PathLike) -> tuple[list[str], np.ndarray
     ------
     InputError
         Missing or unreadable file, wrong header, a line without four fields, a value that
-        is not a finite number, a light below the base plane, or no lines at all.
+        is not a finite plain decimal number (:func:`ptmcore.lp.decimal_number`), a light
+        below the base plane, or no lines at all.
     """
-    text = read_input_text(path, "light-position file")
-    rows = [r for r in csv.reader(io.StringIO(text)) if any(field.strip() for field in r)]
-    if not rows or tuple(f.strip().lower() for f in rows[0]) != POSITION_HEADER:
+    text = read_input_text(path, "light-position file", max_bytes=MAX_TEXT_BYTES)
+    reader = csv.reader(io.StringIO(text))
+    try:
+        # Numbered as the file's lines, blank ones included.
+        rows = [(reader.line_num, r) for r in reader if any(field.strip() for field in r)]
+    except csv.Error as exc:  # a field longer than csv's limit (128 KiB)
+        raise InputError(f"line {reader.line_num}: {exc}", path) from None
+    if not rows or tuple(f.strip().lower() for f in rows[0][1]) != POSITION_HEADER:
         raise InputError("light-position file must start with the header 'name,x,y,z'", path)
     names: list[str] = []
     values: list[tuple[float, float, float]] = []
-    for line, row in enumerate(rows[1:], start=2):
+    for line, row in rows[1:]:
         if len(row) != 4 or not row[0].strip():
             raise InputError(f"line {line}: expected 'name,x,y,z', got {','.join(row)!r}", path)
         try:
-            xyz = tuple(float(v) for v in row[1:])
+            xyz = tuple(decimal_number(v.strip()) for v in row[1:])
         except ValueError:
             raise InputError(f"line {line}: x, y, z must be numbers, got {row[1:]!r}", path) from None
         if not np.isfinite(xyz).all():

@@ -22,6 +22,7 @@ multi-view data, provided they all exist.
 
 from __future__ import annotations
 
+import io
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,10 +30,10 @@ from pathlib import Path, PureWindowsPath
 
 import numpy as np
 
-from .errors import InputError, read_input_text
+from .errors import InputError, read_input_file, read_input_text
 from .images import ImageStack, load_stack, read_image
 from .intensity import check_positive, read_numeric_rows
-from .lp import MIN_PHOTOGRAPHS, LightSet, unit_directions
+from .lp import MAX_TEXT_BYTES, MIN_PHOTOGRAPHS, LightSet, unit_directions
 
 FILENAMES = "filenames.txt"
 DIRECTIONS = "light_directions.txt"
@@ -45,6 +46,11 @@ NORMALS_MAT = "Normal_gt.mat"
 #: background of a normal map is stored as black, grey or white); 8-bit quantisation moves
 #: the length by less than 0.01.
 _UNIT_TOLERANCE = 0.1
+
+#: Bytes per pixel a ``Normal_gt.mat`` may hold: its normals as doubles (24), and as much
+#: again beside them; and room for its headers.
+_MAT_BYTES_PER_PIXEL = 48
+_MAT_HEADERS = 2**20
 
 
 @dataclass
@@ -105,14 +111,14 @@ def is_ps_dataset(folder: str | os.PathLike) -> bool:
 def _read_filenames(folder: Path, count: int) -> list[Path]:
     """Image paths from ``filenames.txt``, or the numbered images when it is missing."""
     path = folder / FILENAMES
-    if not path.exists():
+    if not os.path.lexists(path):
         numbered = [folder / f"{k:03d}.png" for k in range(1, count + 1)]
         if count and all(p.is_file() for p in numbered):
             return numbered
         raise InputError(
             f"file list not found (and the images are not 001.png … {count:03d}.png)", path
         )
-    text = read_input_text(path, "file list")
+    text = read_input_text(path, "file list", max_bytes=MAX_TEXT_BYTES)
     paths = []
     for line in text.splitlines():
         name = line.strip()
@@ -184,18 +190,22 @@ def _decode_normal_png(path: Path, shape: tuple[int, int]) -> np.ndarray:
 
 
 def _read_normal_mat(path: Path, shape: tuple[int, int]) -> np.ndarray:
-    try:
-        from scipy.io import loadmat
+    what = "ground-truth normals file"
+    data = read_input_file(path, what, max_bytes=_MAT_BYTES_PER_PIXEL * shape[0] * shape[1] + _MAT_HEADERS)
+    from scipy.io import loadmat, whosmat
 
-        data = loadmat(path)
+    try:
+        # The variables' shapes first: only the normals, of the photographs' size, are
+        # inflated, so a small compressed file cannot claim gigabytes.
+        found = {name: tuple(dims) for name, dims, _ in whosmat(io.BytesIO(data))}
+        arrays = [k for k, dims in found.items() if len(dims) == 3]
+        name = "Normal_gt" if "Normal_gt" in found else arrays[0] if len(arrays) == 1 else None
+        fits = name is not None and found[name] == (*shape, 3)
+        n = loadmat(io.BytesIO(data), variable_names=[name])[name] if fits else None
     except Exception as exc:  # scipy raises several types for a corrupt or v7.3 file
-        raise InputError(f"cannot read ground-truth normals ({exc})", path) from None
-    n = data.get("Normal_gt")
+        raise InputError(f"cannot read {what} ({exc})", path) from None
     if n is None:
-        arrays = [v for k, v in data.items() if not k.startswith("__") and np.ndim(v) == 3]
-        n = arrays[0] if len(arrays) == 1 else None
-    if n is None or n.shape != (*shape, 3):
-        got = "no H×W×3 array 'Normal_gt'" if n is None else f"an array of shape {n.shape}"
+        got = "no H×W×3 array 'Normal_gt'" if name is None else f"an array of shape {found[name]}"
         raise InputError(f"expected normals of shape {(*shape, 3)}, found {got}", path)
     n = np.asarray(n, dtype=np.float32)
     length = np.linalg.norm(n, axis=2, keepdims=True)
@@ -274,10 +284,11 @@ def read_ps_dataset(
     first = read_image(paths[0])
     h, w = first.shape[:2]
     # Small files first, so that a wrong mask or normal map is reported before minutes of decoding.
-    mask = _read_mask(folder / MASK, (h, w)) if (folder / MASK).exists() else None
-    if (folder / NORMALS_PNG).exists():
+    # A broken link or a folder in a file's place is reported, not taken for no file.
+    mask = _read_mask(folder / MASK, (h, w)) if os.path.lexists(folder / MASK) else None
+    if os.path.lexists(folder / NORMALS_PNG):
         normals = _decode_normal_png(folder / NORMALS_PNG, (h, w))
-    elif (folder / NORMALS_MAT).exists():
+    elif os.path.lexists(folder / NORMALS_MAT):
         normals = _read_normal_mat(folder / NORMALS_MAT, (h, w))
     else:
         normals = None

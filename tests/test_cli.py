@@ -265,7 +265,7 @@ def test_differing_sizes(capture, tmp_path, capsys):
         (lambda lines: lines[:3] + ["img 02.tif 0.1 x 0.9"] + lines[4:], "not three numbers"),
         (lambda lines: lines[:3] + ["img 02.tif 0 0 0"] + lines[4:], "zero length"),
         (lambda lines: lines[:3] + ["img 02.tif 0.9 0 -0.1"] + lines[4:], "horizon"),
-        (lambda lines: lines[:3] + ["img 02.tif nan 0 1"] + lines[4:], "not finite"),
+        (lambda lines: lines[:3] + ["img 02.tif 1e999 0 1"] + lines[4:], "not finite"),
     ],
 )
 def test_malformed_lp(capture, tmp_path, capsys, edit, needle):
@@ -395,7 +395,7 @@ def test_demo_command(tmp_path, capsys):
 @pytest.mark.parametrize("size", ["15x120", "160x15", "160", "160x120x3", "ax120", "x"])
 def test_demo_refuses_a_bad_size_before_rendering(tmp_path, capsys, size):
     code, _, err = _run(["demo", "-o", tmp_path / "demo", "--size", size], capsys)
-    _assert_one_line_error(code, err, f"--size must be WxH with both at least 16, got {size!r}")
+    _assert_one_line_error(code, err, f"--size: must be WxH, both sides at least 16 pixels, got {size!r}")
     assert not (tmp_path / "demo").exists()
 
 

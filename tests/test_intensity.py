@@ -161,7 +161,8 @@ def test_reads_rgb_per_line(tmp_path):
         ("1 1 1\n1\n1 1 1\n", ("line 2", "line 1")),
         ("1\n0\n1\n", ("line 2", "positive")),
         ("1\n1\n-2\n", ("line 3", "positive")),
-        ("1\ninf\n1\n", ("line 2", "not finite")),
+        ("1\ninf\n1\n", ("line 2", "not a number")),
+        ("1\n1e999\n1\n", ("line 2", "not finite")),
         ("# nothing\n\n", ("empty",)),
     ],
 )

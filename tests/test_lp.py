@@ -52,7 +52,8 @@ def test_reads_hp_fixture(shared_fixture):
         ("1\na.jpg 0 0 0\n", "zero length"),
         ("1\na.jpg 1 0 0\n", "horizon"),
         ("1\na.jpg 0.5 0 -0.8\n", "horizon"),
-        ("1\na.jpg nan 0 1\n", "not finite"),
+        ("1\na.jpg nan 0 1\n", "not three numbers"),
+        ("1\na.jpg 1e999 0 1\n", "not finite"),
     ],
 )
 def test_malformed_files_name_the_problem(tmp_path, text, message):

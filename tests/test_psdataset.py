@@ -244,7 +244,8 @@ def test_count_mismatch_directions(dataset):
     [
         ("light_directions.txt", "0.1 0.2 abc", ("line 4", "not a number")),
         ("light_directions.txt", "0.1 0.2", ("line 4", "3 number")),
-        ("light_directions.txt", "0.1 nan 0.9", ("line 4", "not finite")),
+        ("light_directions.txt", "0.1 nan 0.9", ("line 4", "not a number")),
+        ("light_directions.txt", "0.1 1e999 0.9", ("line 4", "not finite")),
         ("light_intensities.txt", "1.0 x 1.0", ("line 4", "not a number")),
         ("light_intensities.txt", "1.0 1.0", ("line 4",)),
         ("light_intensities.txt", "1.0 0 1.0", ("line 4", "positive")),

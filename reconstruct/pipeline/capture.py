@@ -124,17 +124,21 @@ class Capture:
 
 def find_lp(capture: Path, lp: Path | None = None) -> Path:
     """The light file of a capture: ``lp`` if given, the capture itself if it is an ``.lp``
-    file, else the single ``.lp`` file in the capture folder."""
+    file, else the single ``.lp`` file in the capture folder.
+
+    Anything named ``*.lp`` counts, a broken link or a folder too: reading it then says what
+    is wrong with it, where skipping it would say there is no light file, or take another.
+    """
     if lp is not None:
         return Path(lp)
     capture = Path(capture)
+    if capture.suffix.lower() == ".lp" and not capture.is_dir():
+        return capture
     if capture.is_file():
-        if capture.suffix.lower() == ".lp":
-            return capture
         raise InputError("not a capture folder or .lp file", capture)
     if not capture.is_dir():
         raise InputError("capture folder not found", capture)
-    found = sorted(p for p in capture.iterdir() if p.suffix.lower() == ".lp" and p.is_file())
+    found = sorted(p for p in capture.iterdir() if p.suffix.lower() == ".lp")
     if not found:
         raise InputError("no .lp light file in the capture folder (give one with --lp)", capture)
     if len(found) > 1:
@@ -206,7 +210,7 @@ def _near_lights_from_file(lights: LightSet, lp_path: Path, option: Path | str) 
     if option == "none":
         return None
     path = lp_path.parent / "light_positions.csv" if option == "auto" else Path(option)
-    if option == "auto" and not path.is_file():
+    if option == "auto" and not os.path.lexists(path):
         return None
     names, positions = read_light_positions(path)
     by_name = dict(zip(names, positions))
@@ -388,7 +392,7 @@ def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
     if opt.ground_truth is not None:
         return opt.ground_truth
     guess = (capture if capture.is_dir() else capture.parent) / "ground_truth"
-    return guess if (guess / "normals.npy").exists() else None
+    return guess if os.path.lexists(guess / "normals.npy") else None
 
 
 def _check_exposure(loaded: Capture) -> None:
@@ -455,7 +459,7 @@ def load_capture(
         loaded.mask = given if loaded.mask is None or loaded.layout == PS_DATASET else given & loaded.mask
     gt_dir = _ground_truth_folder(capture, opt)
     if gt_dir is not None:
-        loaded.truth, loaded.truth_source = load_ground_truth(gt_dir), str(gt_dir)
+        loaded.truth, loaded.truth_source = load_ground_truth(gt_dir, loaded.shape), str(gt_dir)
     if opt.intensities is not None:
         directions = loaded.lights.directions
         if opt.intensities == "estimate":

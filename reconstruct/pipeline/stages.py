@@ -61,6 +61,7 @@ from reconstruct.surface.segment import foreground_mask
 
 __all__ = [
     "AUTO_MESH_VERTICES",
+    "MIN_DETERMINED_FRACTION",
     "NormalsResult",
     "Relighting",
     "Surface",
@@ -85,6 +86,12 @@ AUTO_MESH_VERTICES = 4_000_000
 
 Advance = Callable[[int], None]
 
+#: Photometric stereo that determines a normal at fewer pixels than this fraction of the
+#: object's (its mask's, or the whole frame's) has failed: what it would publish is the plane
+#: (0, 0, 1) put where no normal was found. An object filling a thousandth of the frame,
+#: with no mask, still passes.
+MIN_DETERMINED_FRACTION = 1e-3
+
 
 @dataclass
 class NormalsResult:
@@ -103,6 +110,24 @@ def _robust_method(fit: str) -> str:
     return "irls" if fit == "lobe" else fit
 
 
+def _undetermined(valid: np.ndarray, capture: Capture) -> int:
+    """The pixels without a normal (``valid`` false), once it is checked that enough have one.
+
+    Raises
+    ------
+    InputError
+        Naming the capture, when fewer than :data:`MIN_DETERMINED_FRACTION` of the object's
+        pixels, or none, have a normal: too few of its photographs light them.
+    """
+    where = np.ones(valid.shape, bool) if capture.mask is None else capture.mask
+    pixels, found = int(np.count_nonzero(where)), int(np.count_nonzero(valid & where))
+    if found == 0 or found < MIN_DETERMINED_FRACTION * pixels:
+        whose = "the photographs'" if capture.mask is None else "the mask's"
+        raise InputError(f"no surface to reconstruct: {found:,} of {whose} {pixels:,} pixels have three or more lit, "
+                         "unsaturated photographs to determine a normal (are most photographs dark?)", capture.source)
+    return int(np.count_nonzero(~valid))
+
+
 def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: Advance | None) -> NormalsResult:
     """Near lights: every pixel has its own directions and falloff."""
     if opt.normals == "ptm-debiased":
@@ -113,7 +138,7 @@ def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: 
         normals = normals_from_ptm(coefficients, threads=opt.threads)
         return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads))
     ps = near_photometric_stereo(capture.stack, near.positions, threads=opt.threads, progress=advance)
-    return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()))
+    return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture))
 
 
 def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
@@ -137,6 +162,11 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     Returns
     -------
     NormalsResult
+
+    Raises
+    ------
+    InputError
+        When photometric stereo finds (nearly) no normal (:data:`MIN_DETERMINED_FRACTION`).
     """
     opt = options or RunOptions()
     if capture.near is not None:
@@ -148,7 +178,8 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
         else:
             ps = robust_photometric_stereo(stack, directions, method=_robust_method(opt.fit), lobe=opt.fit == "lobe",
                                            threads=opt.threads, progress=progress)
-        return NormalsResult(ps.normals, ps.albedo, int((~ps.valid).sum()), ps.lobe.summary() if ps.lobe else None)
+        return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture),
+                             ps.lobe.summary() if ps.lobe else None)
     if opt.fit == "plain":
         coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
         if opt.normals == "ptm":
