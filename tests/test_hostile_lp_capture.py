@@ -334,18 +334,27 @@ def test_a_broken_dataset_mask_is_named_not_ignored(tmp_path):
 
 
 def _darken(folder: Path, lit: np.ndarray) -> None:
-    """Every photograph black outside ``lit`` (H, W), and photograph k lit at pixel (k, k), so
-    that none is black everywhere or a copy of another."""
+    """Every photograph black outside ``lit`` (H, W), and pixel (0, 0) lit differently in each,
+    so that none is black everywhere or a copy of another."""
     for k, p in enumerate(sorted(folder.glob("img_*.tif"))):
         img = np.where(lit[..., None], tifffile.imread(p), 0)
-        img[k, k] = 30000
+        img[0, 0] = 1000 * (k + 1)
         tifffile.imwrite(p, img)
 
 
+def _dark_capture(good: Path, tmp_path: Path, *pixels: tuple[int, int]) -> Path:
+    """The capture lit only at ``pixels`` (and (0, 0))."""
+    folder = _copy(good, tmp_path)
+    lit = np.zeros((32, 40), bool)
+    for at in pixels:
+        lit[at] = True
+    _darken(folder, lit)
+    return folder
+
+
 def test_a_capture_lighting_no_pixel_is_refused_and_a_partly_dark_one_warned_of(good, tmp_path, capsys):
-    dark = _copy(good, tmp_path / "dark")
-    _darken(dark, np.zeros((32, 40), bool))
-    _refused(dark, tmp_path, capsys, str(dark), "no surface", "0 of the photographs' 1,280 pixels")
+    dark = _dark_capture(good, tmp_path / "dark")
+    _refused(dark, tmp_path, capsys, str(dark), "no surface", "1 of the photographs' 1,280 pixels")
 
     half = _copy(good, tmp_path / "half")
     left = np.zeros((32, 40), bool)
@@ -357,6 +366,17 @@ def test_a_capture_lighting_no_pixel_is_refused_and_a_partly_dark_one_warned_of(
     assert (out / "mesh.ply").exists()
 
 
+@pytest.mark.parametrize("normals, fit", [("ptm", "plain"), ("ptm", "irls"), ("ptm-debiased", "plain"),
+                                          ("ptm-debiased", "irls"), ("ps", "plain")])
+def test_every_normal_method_refuses_a_capture_lighting_no_pixel(good, tmp_path, capsys, normals, fit):
+    dark = _dark_capture(good, tmp_path)
+    out = tmp_path / "out"
+    assert main(["run", str(dark), "-o", str(out), "-q", "--normals", normals, "--fit", fit]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no surface" in err[0] and "1,280 pixels" in err[0], err
+    assert not out.exists()
+
+
 def test_the_threshold_is_a_fraction_of_the_object(good, tmp_path):
     """One determined pixel of 1,280 is under MIN_DETERMINED_FRACTION, two are not; with a
     mask, the object is the mask."""
@@ -365,20 +385,15 @@ def test_the_threshold_is_a_fraction_of_the_object(good, tmp_path):
     from reconstruct.pipeline import estimate_normals
 
     assert 1 < MIN_DETERMINED_FRACTION * 32 * 40 < 2
-    for pixels in (1, 2):
-        folder = _copy(good, tmp_path / str(pixels))
-        lit = np.zeros((32, 40), bool)
-        lit[16, 30:30 + pixels] = True
-        _darken(folder, lit)
-        capture = load_capture(folder, RunOptions())
-        if pixels == 1:
-            message = _error(estimate_normals, capture, RunOptions())
-            assert message.startswith(str(folder)) and "1 of the photographs' 1,280 pixels" in message
-        else:
-            assert estimate_normals(capture, RunOptions()).undetermined == 32 * 40 - 2
+    one = _dark_capture(good, tmp_path / "one")
+    message = _error(estimate_normals, load_capture(one, RunOptions()), RunOptions())
+    assert message.startswith(str(one)) and "1 of the photographs' 1,280 pixels" in message
+    two = _dark_capture(good, tmp_path / "two", (16, 30))
+    assert estimate_normals(load_capture(two, RunOptions()), RunOptions()).undetermined == 32 * 40 - 2
     mask = np.zeros((32, 40), np.uint8)
-    mask[:, :20] = 255  # the two determined pixels outside
+    mask[:, 20:] = 255
+    mask[16, 30] = 0
     Image.fromarray(mask).save(tmp_path / "mask.png")
-    capture = load_capture(tmp_path / "2" / "capture", RunOptions(mask=tmp_path / "mask.png"))
+    capture = load_capture(two, RunOptions(mask=tmp_path / "mask.png"))
     message = _error(estimate_normals, capture, RunOptions())
-    assert "0 of the mask's 640 pixels" in message
+    assert "0 of the mask's 639 pixels" in message

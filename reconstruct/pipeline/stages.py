@@ -86,8 +86,8 @@ AUTO_MESH_VERTICES = 4_000_000
 
 Advance = Callable[[int], None]
 
-#: Photometric stereo that determines a normal at fewer pixels than this fraction of the
-#: object's (its mask's, or the whole frame's) has failed: what it would publish is the plane
+#: Normals determined at fewer pixels than this fraction of the object's (its mask's, or the
+#: whole frame's) are a failed reconstruction: what it would publish is the plane
 #: (0, 0, 1) put where no normal was found. An object filling a thousandth of the frame,
 #: with no mask, still passes.
 MIN_DETERMINED_FRACTION = 1e-3
@@ -123,8 +123,9 @@ def _undetermined(valid: np.ndarray, capture: Capture) -> int:
     pixels, found = int(np.count_nonzero(where)), int(np.count_nonzero(valid & where))
     if found == 0 or found < MIN_DETERMINED_FRACTION * pixels:
         whose = "the photographs'" if capture.mask is None else "the mask's"
-        raise InputError(f"no surface to reconstruct: {found:,} of {whose} {pixels:,} pixels have three or more lit, "
-                         "unsaturated photographs to determine a normal (are most photographs dark?)", capture.source)
+        raise InputError(f"no surface to reconstruct: a normal was determined at {found:,} of {whose} {pixels:,} "
+                         "pixels, the others having too few lit, unsaturated photographs (are most photographs dark?)",
+                         capture.source)
     return int(np.count_nonzero(~valid))
 
 
@@ -135,8 +136,10 @@ def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: 
                          "use ps or ptm (or --light-positions none)")
     if opt.normals == "ptm":
         coefficients = fit_ptm_near(capture.stack, near.positions, threads=opt.threads, progress=advance).coefficients
-        normals = normals_from_ptm(coefficients, threads=opt.threads)
-        return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads))
+        valid = np.empty(capture.shape, bool)
+        normals = normals_from_ptm(coefficients, threads=opt.threads, valid=valid)
+        return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads),
+                             _undetermined(valid, capture))
     ps = near_photometric_stereo(capture.stack, near.positions, threads=opt.threads, progress=advance)
     return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture))
 
@@ -166,7 +169,7 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     Raises
     ------
     InputError
-        When photometric stereo finds (nearly) no normal (:data:`MIN_DETERMINED_FRACTION`).
+        When (nearly) no normal is determined (:data:`MIN_DETERMINED_FRACTION`).
     """
     opt = options or RunOptions()
     if capture.near is not None:
@@ -180,17 +183,21 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
                                            threads=opt.threads, progress=progress)
         return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture),
                              ps.lobe.summary() if ps.lobe else None)
+    valid = np.empty(stack.shape, bool)
     if opt.fit == "plain":
         coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
         if opt.normals == "ptm":
-            normals = normals_from_ptm(coefficients, threads=opt.threads)
+            normals = normals_from_ptm(coefficients, threads=opt.threads, valid=valid)
         else:
-            normals = debiased_normals(coefficients, hemisphere_coefficients(directions))
+            normals = debiased_normals(coefficients, hemisphere_coefficients(directions), valid=valid)
     else:
         fitted = robust_ptm(stack, directions, method=_robust_method(opt.fit), threads=opt.threads, progress=progress)
-        normals = (normals_from_ptm(fitted.ptm.coefficients, threads=opt.threads) if opt.normals == "ptm"
-                   else fitted.normals)
-    return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads))
+        if opt.normals == "ptm":
+            normals = normals_from_ptm(fitted.ptm.coefficients, threads=opt.threads, valid=valid)
+        else:
+            normals, valid = fitted.normals, fitted.valid
+    return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads),
+                         _undetermined(valid, capture))
 
 
 def resolve_mask(option: Path | str | None, known: np.ndarray | None,
