@@ -8,6 +8,7 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shlex
 import shutil
@@ -44,14 +45,19 @@ def _compare_summary(result) -> None:
 
 
 def _parse_spheres(texts: list[str] | None) -> list[tuple[float, float, float]] | None:
+    """The values of ``--sphere``, each ``X,Y,R`` in pixels; None when none is given. Their
+    fit to the photographs is checked once these are read
+    (:func:`reconstruct.calibration.spheres.check_sphere`)."""
     if not texts:
         return None
     spheres = []
     for text in texts:
         try:
             x, y, r = (float(v) for v in text.split(","))
+            if not all(map(math.isfinite, (x, y, r))):
+                raise ValueError
         except ValueError:
-            raise InputError(f"--sphere must be X,Y,R in pixels, got {text!r}") from None
+            raise InputError(f"--sphere must be three finite numbers X,Y,R in pixels, got {text!r}") from None
         if not r > 0:
             raise InputError(f"--sphere radius must be positive, got {text!r}")
         spheres.append((x, y, r))
@@ -73,11 +79,12 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     for output in (args.output, args.diagnostic):  # before the photographs are read
         if output is not None:
             resolve_output(output)
+    spheres = _parse_spheres(args.sphere)  # before the photographs are read
     paths = capture_images(args.capture)
     stack = load_stack(paths, min_photographs=1)
     camera = calibration_camera(paths[0], stack.shape, intrinsics=args.intrinsics, focal_mm=args.focal_mm,
                                 sensor_width_mm=args.sensor_width_mm, exif=args.exif)
-    found = sphere_lights(stack, spheres=_parse_spheres(args.sphere), intrinsics=camera)
+    found = sphere_lights(stack, spheres=spheres, intrinsics=camera)
     result = found.calibration
     if found.triangulation is None:
         count = write_calibration_lp(args.output, result)
@@ -240,36 +247,6 @@ def _parse_vector(text: str) -> list[float]:
     return values
 
 
-def _parse_size(text: str, smallest: int) -> tuple[int, int]:
-    """The value of ``--size``, ``WxH`` in pixels.
-
-    Parameters
-    ----------
-    text : str
-        The option as given, e.g. ``"480x360"`` (``X`` also accepted).
-    smallest : int
-        The least width and height the command accepts.
-
-    Returns
-    -------
-    tuple of int
-        ``(width, height)``.
-
-    Raises
-    ------
-    InputError
-        When ``text`` is not two whole numbers joined by an ``x``, or either is below
-        ``smallest``.
-    """
-    try:
-        width, height = (int(v) for v in text.lower().split("x"))
-        if width < smallest or height < smallest:
-            raise ValueError
-    except ValueError:
-        raise InputError(f"--size must be WxH with both at least {smallest}, got {text!r}") from None
-    return width, height
-
-
 #: The rendering parameters of each relighting mode; one given for another mode would do nothing.
 _MODE_PARAMETERS = {"specular": ("kd", "ks", "exponent"), "diffuse-gain": ("gain",)}
 
@@ -299,6 +276,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
     from reconstruct.report.figures import for_display
     from reconstruct.viewer.relighting import (
+        check_sweep,
         holds_linear_light,
         load_source,
         render,
@@ -324,6 +302,10 @@ def _cmd_relight(args: argparse.Namespace) -> int:
                 light = light_direction(azimuth_deg=args.azimuth, elevation_deg=args.elevation)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    else:
+        elevation = 30.0 if args.elevation is None else args.elevation
+        if not 0 < elevation <= 90:
+            raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
     resolve_output(args.output)
     ptm = load_source(args.source, args.basis)
     # Every image a person sees is display-encoded: a file of linear light is encoded here.
@@ -332,12 +314,9 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         if args.sweep is None:
             write_image(args.output, for_display(render(ptm, light, args.mode, **params), linear))
         else:
-            elevation = 30.0 if args.elevation is None else args.elevation
-            if not 0 < elevation <= 90:
-                raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
-            frames = [for_display(image, linear)
-                      for image in renders(ptm, sweep_lights(args.sweep, elevation), args.mode, **params)]
-            write_gif(args.output, frames)
+            check_sweep(args.sweep, ptm.width, ptm.height, args.source)
+            write_gif(args.output, (for_display(image, linear)
+                                    for image in renders(ptm, sweep_lights(args.sweep, elevation), args.mode, **params)))
     except ValueError as exc:
         raise InputError(str(exc)) from None
     print(f"Wrote {args.output}")
@@ -429,9 +408,11 @@ def _cmd_lights(args: argparse.Namespace) -> int:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from data_synthetic import write_capture
+    from data_synthetic.capture import check_capture_size
     from reconstruct.pipeline import RunOptions, run_capture
 
-    w, h = _parse_size(args.size, 16)
+    w, h = args.size
+    check_capture_size((h, w), args.lights)
     resolve_output(args.output / "result", folder=True)
     capture_dir = args.output / "capture"
     print(f"Rendering a synthetic clay tablet ({w}×{h}, {args.lights} lights, {args.encoding}) in {capture_dir}/ ...")
@@ -454,8 +435,6 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _cmd_preview(args: argparse.Namespace) -> int:
-    import math
-
     from ptmcore.relight import light_direction
     from reconstruct.viewer.preview import (
         DEFAULT_AZIMUTH,
@@ -466,18 +445,19 @@ def _cmd_preview(args: argparse.Namespace) -> int:
     )
     from reconstruct.viewer.scene import load_scene
 
-    width, height = _parse_size(args.size, 64)
-    # The angles are checked where they are used (a ValueError, made an InputError below).
+    width, height = args.size
     azimuth = DEFAULT_AZIMUTH if args.azimuth is None else args.azimuth
     elevation = DEFAULT_ELEVATION if args.elevation is None else args.elevation
-    if args.light is not None:
-        if args.azimuth is not None or args.elevation is not None:
-            raise InputError("give either --light X,Y,Z or --azimuth/--elevation")
-        try:
+    if args.light is not None and (args.azimuth is not None or args.elevation is not None):
+        raise InputError("give either --light X,Y,Z or --azimuth/--elevation")
+    try:  # before the scene is read
+        if args.light is not None:
             x, y, z = light_direction(light=_parse_vector(args.light))
-        except ValueError as exc:
-            raise InputError(str(exc)) from None
-        azimuth, elevation = math.degrees(math.atan2(y, x)) % 360, math.degrees(math.asin(z))
+            azimuth, elevation = math.degrees(math.atan2(y, x)) % 360, math.degrees(math.asin(z))
+        else:
+            light_direction(azimuth_deg=azimuth, elevation_deg=elevation)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     if args.screenshot is None and not has_display():
         raise InputError("no display to open a window on (DISPLAY is not set): render to a file with --screenshot FILE")
     scene = load_scene(args.source, comparison=args.comparison)

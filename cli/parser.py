@@ -8,20 +8,25 @@ Choices and defaults of the run and comparison options come from
 from __future__ import annotations
 
 import argparse
+import math
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import NoReturn
 
 from ptmcore import __version__
 from ptmcore.relight import DEFAULT_EXPONENT, DEFAULT_GAIN, DEFAULT_KD, DEFAULT_KS
 from reconstruct.pipeline.options import BOUNDS, STACK_FILE_MB, CompareOptions, RunOptions, choices, default
-from reconstruct.viewer.relighting import MODES as RELIGHT_MODES
+from reconstruct.viewer.preview import MAX_PIXELS as PREVIEW_PIXELS, MAX_SIDE as PREVIEW_SIDE
+from reconstruct.viewer.relighting import MAX_SWEEP, MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
 from reconstruct.viewer.keys import help_text as preview_keys
 
 #: data_synthetic.capture.ENCODINGS' names (tests/test_cli.py checks): importing the renderer
 #: for them cost every command a quarter of a second.
 DEMO_ENCODINGS = ("tiff16", "jpeg8")
+#: data_synthetic.capture.MAX_LIGHTS, for the same reason (tests/test_hostile_values.py checks).
+DEMO_MAX_LIGHTS = 1000
 
 DESCRIPTION = """\
 Turn reflectance photographs (RTI captures) into surface normals, a height map and a
@@ -117,14 +122,52 @@ def _positive_float(text: str) -> float:
     return v
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {text!r}")
-    return v
+def _whole(low: int, high: int | None = None) -> Callable[[str], int]:
+    """An argument type: a whole number from ``low`` to ``high`` (no upper bound when None).
+
+    The upper bound, where there is one, is the most work or memory the value may ask for:
+    ``--sweep 1e8`` asked for a hundred million images.
+    """
+    def whole(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            # 1e8 is a whole number too, and is checked against the bound like 100000000.
+            try:
+                f = float(text)
+            except ValueError:
+                f = math.nan
+            if not f.is_integer():
+                raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+            v = int(f)
+        if v < low or (high is not None and v > high):
+            bound = f"at least {low}" if high is None else f"from {low} to {high}"
+            raise argparse.ArgumentTypeError(f"must be {bound}, got {text!r}")
+        return v
+
+    return whole
+
+
+_positive_int = _whole(1)
+
+
+def _size(smallest: int, largest: int | None = None, most_pixels: int | None = None) -> Callable[[str], tuple[int, int]]:
+    """An argument type: ``WxH`` in pixels (``X`` also), each side from ``smallest`` to
+    ``largest`` and ``W·H`` at most ``most_pixels`` (no bound when None); ``(W, H)``."""
+    def size(text: str) -> tuple[int, int]:
+        bound = f"at least {smallest}" if largest is None else f"from {smallest} to {largest}"
+        try:
+            width, height = (int(v) for v in text.lower().split("x"))
+            if min(width, height) < smallest or (largest is not None and max(width, height) > largest):
+                raise ValueError
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be WxH, both sides {bound} pixels, got {text!r}") from None
+        if most_pixels is not None and width * height > most_pixels:
+            side = math.isqrt(most_pixels)
+            raise argparse.ArgumentTypeError(f"must be WxH of at most {most_pixels:,} pixels ({side}x{side}), got {text!r}")
+        return width, height
+
+    return size
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -230,7 +273,8 @@ def _add_relight_command(sub: argparse._SubParsersAction) -> None:
     rel.add_argument("--gain", type=float, help=f"with --mode diffuse-gain: the gain (default {DEFAULT_GAIN:g})")
     rel.add_argument("--basis", choices=("ptm", "hsh"), default="ptm",
                      help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
-    rel.add_argument("--sweep", type=_positive_int, metavar="N", help="write an animated GIF of N frames with the light circling the object")
+    rel.add_argument("--sweep", type=_whole(1, MAX_SWEEP), metavar="N",
+                     help=f"write an animated GIF of N frames (at most {MAX_SWEEP}) with the light circling the object")
 
 
 def _add_calibrate_command(sub: argparse._SubParsersAction) -> None:
@@ -315,10 +359,12 @@ def _add_demo_command(sub: argparse._SubParsersAction) -> None:
         "where the results are and how accurate they are.",
     )
     demo.add_argument("-o", "--output", type=_path, default=Path("demo_output"), help="folder for the capture and results (default: demo_output)")
-    demo.add_argument("--size", default="480x360", help="image size WxH (default: 480x360)")
-    demo.add_argument("--lights", type=_positive_int, default=48, help="number of dome lights (default: 48)")
+    demo.add_argument("--size", type=_size(16), default="480x360",
+                      help="image size WxH, at least 16 per side (default: 480x360; with the lights, at most 4 GiB to render)")
+    demo.add_argument("--lights", type=_whole(3, DEMO_MAX_LIGHTS), default=48,
+                      help=f"number of dome lights, 3 to {DEMO_MAX_LIGHTS} (default: 48)")
     demo.add_argument("--encoding", choices=DEMO_ENCODINGS, default="tiff16", help="photographs as 16-bit TIFF or 8-bit sRGB JPEG")
-    demo.add_argument("--seed", type=int, default=0, help="random seed of the scene (default: 0)")
+    demo.add_argument("--seed", type=_whole(0), default=0, help="random seed of the scene, 0 or more (default: 0)")
     _choice(demo, RunOptions, "normals", help="normal method (default: ps)")
     _choice(demo, RunOptions, "integrator", help="integrator (default: auto)")
 
@@ -346,7 +392,9 @@ def _add_preview_command(sub: argparse._SubParsersAction) -> None:
     prev.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object, 0 to 90 (default 40)")
     prev.add_argument("--comparison", type=_path, metavar="DIR", help="folder of `reconstruct compare` for the distance view")
     prev.add_argument("--screenshot", type=_path, metavar="PNG", help="render off-screen to this file and exit")
-    prev.add_argument("--size", default="1280x900", help="window or image size WxH (default 1280x900)")
+    prev.add_argument("--size", type=_size(64, PREVIEW_SIDE, PREVIEW_PIXELS), default="1280x900",
+                      help=f"window or image size WxH, 64 to {PREVIEW_SIDE} per side and at most "
+                      f"{PREVIEW_PIXELS / 2**20:g} megapixels (default 1280x900)")
 
 
 def _add_compare_options(p: argparse.ArgumentParser) -> None:

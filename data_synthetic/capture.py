@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,52 @@ ENCODINGS = {"tiff16": (write_tiff16, ".tif"), "jpeg8": (write_jpeg8, ".jpg")}
 
 FRAME = ("x right, y up, z towards the camera; pixel (row, col) lies at "
          "(col*pixel_size, -row*pixel_size, height) in mm")
+
+#: The most lights a capture is rendered under: more than any dome has (a few hundred at most).
+MAX_LIGHTS = 1000
+#: The longest side of a photograph, in pixels (JPEG's own limit is 65535).
+MAX_SIDE = 16384
+#: What rendering holds per pixel besides the images: the scene's height, normals, albedo
+#: and mask, the shadow march's scratch arrays (measured: 175 bytes at 1 and 4 megapixels).
+SCENE_BYTES_PER_PIXEL = 176
+#: The images are rendered into one float32 RGB array before any is written.
+IMAGE_BYTES_PER_PIXEL = 12
+#: The most memory a capture may take to render: a synthetic capture larger than this is a
+#: slip (``--lights 100000000``), not a test anyone needs, and would fail deep inside NumPy.
+MAX_RENDER_BYTES = 4 * 2**30
+
+
+def render_bytes(shape: tuple[int, int], n_lights: int) -> int:
+    """Memory, in bytes, that rendering ``n_lights`` images of ``shape`` (H, W) takes."""
+    h, w = shape
+    return h * w * (SCENE_BYTES_PER_PIXEL + IMAGE_BYTES_PER_PIXEL * n_lights)
+
+
+def check_capture_size(shape: tuple[int, int], n_lights: int) -> None:
+    """Refuse a capture too large to render: more than :data:`MAX_LIGHTS` lights, a side
+    beyond :data:`MAX_SIDE`, or more than :data:`MAX_RENDER_BYTES` of memory.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        (H, W) of the photographs, each at least 8.
+    n_lights : int
+        Number of photographs.
+
+    Raises
+    ------
+    InputError
+        Naming the size asked for and the bound it passes.
+    """
+    h, w = shape
+    if n_lights > MAX_LIGHTS:
+        raise InputError(f"{n_lights} lights asked for; a synthetic capture has at most {MAX_LIGHTS}")
+    if max(h, w) > MAX_SIDE:
+        raise InputError(f"images of {w}×{h} pixels asked for; each side is at most {MAX_SIDE}")
+    need = render_bytes((h, w), n_lights)
+    if need > MAX_RENDER_BYTES:
+        raise InputError(f"{n_lights} images of {w}×{h} pixels would take {need / 2**30:.1f} GiB to render "
+                         f"(at most {MAX_RENDER_BYTES / 2**30:g} GiB); choose a smaller size or fewer lights")
 
 
 @dataclass(frozen=True)
@@ -61,6 +108,14 @@ class CaptureInfo:
     spheres: tuple[tuple[float, float, float], ...] = ()
 
 
+def _finite(value: float) -> bool:
+    """Whether ``value`` is a finite number; an integer too large for a float is not."""
+    try:
+        return math.isfinite(value)
+    except (OverflowError, TypeError):
+        return False
+
+
 def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, seed: int,
               lights: np.ndarray | None, numbers: dict[str, float | None],
               ) -> tuple[tuple[int, int], np.ndarray | None]:
@@ -78,19 +133,24 @@ def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, 
     if not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     for name, value in numbers.items():
-        if value is not None and not (np.isfinite(value) and value >= 0):
+        if value is not None and not (_finite(value) and value >= 0):
             raise InputError(f"{name} must be a non-negative number, got {value!r}")
     if numbers["pixel_size"] == 0 or numbers["shininess"] == 0:
         raise InputError("pixel_size and shininess must be positive")
+    if numbers["scan_points"] is not None and numbers["scan_points"] > h * w:
+        # Points are drawn on the height field: more than one per pixel adds no detail.
+        raise InputError(f"{numbers['scan_points']} scan points asked for; at most one per pixel ({h * w})")
     if lights is not None:
         lights = np.asarray(lights, dtype=np.float64)
         if lights.ndim != 2 or lights.shape[1] != 3 or len(lights) < 1:
             raise InputError(f"lights must be an (N, 3) array, got shape {lights.shape}")
         if np.any(lights[:, 2] <= 0):
             raise InputError("every light must be above the object plane (z > 0)")
+        check_capture_size((h, w), len(lights))
         return (h, w), lights
     if n_lights < 3:
         raise InputError(f"need at least 3 lights, got {n_lights}")
+    check_capture_size((h, w), n_lights)
     low, high = numbers["min_elevation_deg"], numbers["max_elevation_deg"]
     if not 0 < low <= high <= 90:
         raise InputError(f"dome elevations need 0 < min ≤ max ≤ 90 degrees, got {low}, {high}")

@@ -74,10 +74,14 @@ def mutate(good: bytes, rng: np.random.Generator, *, header_bytes: int, header_l
 
 
 def run_cli(argv, capsys):
-    """Run the ``reconstruct`` command in-process; return (status, stdout, stderr)."""
+    """Run the ``reconstruct`` command in-process; return (status, stdout, stderr), with the
+    status argparse exits with for a value its parser refuses."""
     from reconstruct.cli.main import main
 
-    code = main([str(a) for a in argv])
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exc:
+        code = exc.code
     out = capsys.readouterr()
     return code, out.out, out.err
 

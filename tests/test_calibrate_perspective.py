@@ -169,7 +169,7 @@ def test_intrinsics_from_exif(tmp_path):
     _exif_jpeg(tmp_path / "zero.jpg", {0x920A: 0.0, 0xA20E: 300.0, 0xA405: 0})
     assert intrinsics_from_exif(tmp_path / "zero.jpg") is None
     (tmp_path / "text.jpg").write_text("not an image")
-    with pytest.raises(InputError, match="EXIF"):
+    with pytest.raises(InputError, match="not a JPEG, PNG or TIFF image"):
         intrinsics_from_exif(tmp_path / "text.jpg")
     with pytest.raises(InputError, match="not found"):
         intrinsics_from_exif(tmp_path / "missing.jpg")

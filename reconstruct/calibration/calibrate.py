@@ -36,7 +36,7 @@ from ptmcore.lp import write_lp
 from reconstruct.calibration.camera import Intrinsics
 from reconstruct.calibration.highlights import PINHOLE_REACH, sphere_highlights
 from reconstruct.calibration.reflection import Sphere, light_from_highlight
-from reconstruct.calibration.spheres import detect_spheres, stack_statistics
+from reconstruct.calibration.spheres import check_sphere, detect_spheres, stack_statistics
 
 __all__ = [
     "Calibration",
@@ -258,14 +258,7 @@ def calibrate_stack(
     if spheres is None:
         spheres = _detect(stack, expected)
     else:
-        spheres = [tuple(float(v) for v in s) for s in spheres]
-        h, w = stack.shape
-        for s in spheres:
-            if len(s) != 3 or not np.isfinite(s).all() or s[2] <= 0:
-                raise InputError(f"a sphere must be (cx, cy, r) with r > 0, got {s!r}")
-            if not (0 <= s[0] < w and 0 <= s[1] < h):
-                raise InputError(f"sphere centre ({s[0]}, {s[1]}) lies outside the "
-                                 f"{w}×{h} image")
+        spheres = [check_sphere(s, stack.shape) for s in spheres]
         if not spheres:
             raise InputError("the list of spheres is empty")
     m = len(spheres)
@@ -374,13 +367,20 @@ def write_calibration_lp(path: str | os.PathLike, calibration: Calibration,
     -------
     int
         Number of photographs written.
+
+    Raises
+    ------
+    InputError
+        When no photograph has a usable highlight (nothing is written), naming the spheres.
     """
     names = calibration.names if names is None else list(names)
     if len(names) != len(calibration.directions):
         raise InputError(f"{len(names)} names for {len(calibration.directions)} photographs")
     ok = calibration.usable
     if not ok.any():
-        raise InputError("no photograph has a usable light direction", path)
+        spheres = ", ".join(f"({cx:g}, {cy:g}, {r:g})" for cx, cy, r in calibration.spheres)
+        raise InputError(f"none of the {len(names)} photographs has a usable highlight on the sphere(s) {spheres}; "
+                         "check where they are and their radius in pixels")
     write_lp(path, [nm for nm, u in zip(names, ok) if u], calibration.directions[ok])
     return int(ok.sum())
 

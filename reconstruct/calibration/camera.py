@@ -14,7 +14,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Intrinsics", "intrinsics_from_exif", "parse_intrinsics"]
+__all__ = ["FOCAL_RANGE", "MAX_PRINCIPAL", "Intrinsics", "intrinsics_from_exif", "parse_intrinsics"]
+
+#: Focal lengths accepted, in pixels: 1 sees 179.5° across a 400-pixel photograph, wider than
+#: any pinhole lens; 1e8 is a 10 m lens on 0.1 µm pixels. Beyond them the sphere's position
+#: and the rays lose their precision (1e12 and 1e-308 failed inside SciPy's solver).
+FOCAL_RANGE = (1.0, 1e8)
+#: The farthest the principal point may lie from the first pixel, in pixels: a shifted lens
+#: moves it by a fraction of the photograph, and none is 1e5 pixels across.
+MAX_PRINCIPAL = 1e6
 
 
 @dataclass(frozen=True)
@@ -29,6 +37,12 @@ class Intrinsics:
     cx, cy : float
         Principal point in column and row pixel coordinates, pixel centres at integers (the
         centre of a W × H image is ((W − 1)/2, (H − 1)/2)).
+
+    Raises
+    ------
+    ValueError
+        For a value that is not finite, a focal length outside :data:`FOCAL_RANGE`, or a
+        principal point farther than :data:`MAX_PRINCIPAL`.
     """
 
     fx: float
@@ -43,9 +57,15 @@ class Intrinsics:
                 value
             ):
                 raise ValueError(f"intrinsic {name} must be a finite number, not {value!r}")
-        if self.fx <= 0 or self.fy <= 0:
+        low, high = FOCAL_RANGE
+        if not (low <= self.fx <= high and low <= self.fy <= high):
             raise ValueError(
-                f"focal lengths must be positive, not fx={self.fx}, fy={self.fy}"
+                f"focal lengths must be positive, {low:g} to {high:g} pixels, not fx={self.fx:g}, fy={self.fy:g}"
+            )
+        if max(abs(self.cx), abs(self.cy)) > MAX_PRINCIPAL:
+            raise ValueError(
+                f"the principal point must lie within {MAX_PRINCIPAL:g} pixels of the image, "
+                f"not cx={self.cx:g}, cy={self.cy:g}"
             )
 
     def rays(self, x_img, y_img) -> np.ndarray:
@@ -100,7 +120,8 @@ class Intrinsics:
         Raises
         ------
         ValueError
-            If a length or a size is not positive.
+            If a length or a size is not positive, or the focal length in pixels is outside
+            :data:`FOCAL_RANGE`.
         """
         values = (focal_mm, sensor_width_mm, image_width_px, image_height_px)
         if not all(math.isfinite(v) and v > 0 for v in values):
@@ -165,7 +186,7 @@ def intrinsics_from_exif(path) -> Intrinsics | None:
     Raises
     ------
     InputError
-        If the file cannot be opened as an image.
+        If the file cannot be opened as an image, or its tags give a camera out of range.
     """
     from ptmcore.decoders import pillow_image
     from ptmcore.errors import InputError
@@ -184,15 +205,18 @@ def intrinsics_from_exif(path) -> Intrinsics | None:
         unit = _UNIT_MM.get(int(sub.get(_FOCAL_PLANE_UNIT, 2)))  # EXIF's default: the inch
     except (TypeError, ValueError):
         unit = None
-    if focal is not None and x_res is not None and unit is not None:
-        y_res = _positive_tag(sub, _FOCAL_PLANE_Y_RES) or x_res
-        native_width = _positive_tag(sub, _PIXEL_X_DIMENSION)
-        resized = width / native_width if native_width else 1.0
-        return Intrinsics(focal * x_res / unit * resized, focal * y_res / unit * resized, cx, cy)
-    f35 = _positive_tag(sub, _FOCAL_35MM)
-    if f35 is not None:
-        f = f35 * math.hypot(width, height) / _FULL_FRAME_DIAGONAL_MM
-        return Intrinsics(f, f, cx, cy)
+    try:
+        if focal is not None and x_res is not None and unit is not None:
+            y_res = _positive_tag(sub, _FOCAL_PLANE_Y_RES) or x_res
+            native_width = _positive_tag(sub, _PIXEL_X_DIMENSION)
+            resized = width / native_width if native_width else 1.0
+            return Intrinsics(focal * x_res / unit * resized, focal * y_res / unit * resized, cx, cy)
+        f35 = _positive_tag(sub, _FOCAL_35MM)
+        if f35 is not None:
+            f = f35 * math.hypot(width, height) / _FULL_FRAME_DIAGONAL_MM
+            return Intrinsics(f, f, cx, cy)
+    except ValueError as exc:
+        raise InputError(f"the EXIF's focal length gives no usable camera: {exc}", path) from None
     return None
 
 
@@ -211,8 +235,8 @@ def parse_intrinsics(text: str) -> Intrinsics:
     Raises
     ------
     ValueError
-        If there are not exactly four numbers, one does not parse or is not finite, or a
-        focal length is not positive.
+        If there are not exactly four numbers, one does not parse or is not finite, or the
+        camera is out of range (:class:`Intrinsics`).
     """
     parts = [s.strip() for s in str(text).split(",")]
     if len(parts) != 4:

@@ -16,7 +16,59 @@ from ptmcore.errors import InputError
 from ptmcore.images import ImageStack
 from reconstruct.calibration.reflection import Sphere
 
-__all__ = ["detect_spheres", "fit_circle", "refine_circle", "stack_statistics"]
+__all__ = ["MIN_RADIUS", "check_sphere", "detect_spheres", "fit_circle", "largest_radius", "refine_circle",
+           "stack_statistics"]
+
+#: The smallest radius, in pixels, of a sphere whose highlight can be placed: its disc less
+#: the anti-aliased limb must hold the highlight and the dark body around it
+#: (:mod:`reconstruct.calibration.highlights` looks at no disc of fewer than 10 pixels).
+MIN_RADIUS = 4.0
+
+
+def largest_radius(shape: tuple[int, int]) -> float:
+    """The largest radius, in pixels, of a sphere in photographs of ``shape`` (H, W): half
+    the shorter side, the largest disc the frame holds."""
+    return 0.5 * min(shape)
+
+
+def check_sphere(sphere: Sphere, shape: tuple[int, int]) -> Sphere:
+    """A sphere given by hand, checked against the photographs it is in.
+
+    Parameters
+    ----------
+    sphere : (cx, cy, r)
+        Centre (column, row) and radius in pixels.
+    shape : (H, W)
+        Size of the photographs.
+
+    Returns
+    -------
+    (cx, cy, r)
+        As floats.
+
+    Raises
+    ------
+    InputError
+        When the values are not three finite numbers, the centre lies outside the
+        photographs, or the radius is below :data:`MIN_RADIUS` or above
+        :func:`largest_radius`: a highlight looked for on such a disc is some other bright
+        spot, or none, and its light would be made up (a radius of 1e9 gave every light as
+        0 0 1).
+    """
+    h, w = shape
+    try:
+        cx, cy, r = (float(v) for v in sphere)
+    except (TypeError, ValueError):
+        raise InputError(f"a sphere is three numbers (centre column, row and radius in pixels), got {sphere!r}") from None
+    shown = f"({cx:g}, {cy:g}, {r:g})"
+    if not np.isfinite([cx, cy, r]).all():
+        raise InputError(f"sphere {shown} is not three finite numbers")
+    if not (0 <= cx < w and 0 <= cy < h):
+        raise InputError(f"sphere {shown}: its centre lies outside the {w}×{h} photographs")
+    if not MIN_RADIUS <= r <= largest_radius(shape):
+        raise InputError(f"sphere {shown} does not fit the {w}×{h} photographs: its radius must be "
+                         f"{MIN_RADIUS:g} to {largest_radius(shape):g} pixels (half the shorter side)")
+    return cx, cy, r
 
 
 def fit_circle(x: np.ndarray, y: np.ndarray) -> Sphere:
@@ -174,7 +226,7 @@ def detect_spheres(
     h, w = median.shape
     side = min(h, w)
     rmin = max(6.0, 0.02 * side) if min_radius is None else float(min_radius)
-    rmax = 0.5 * side if max_radius is None else float(max_radius)
+    rmax = largest_radius((h, w)) if max_radius is None else float(max_radius)
     if np.ptp(median) <= 0:
         raise InputError("no spheres found in the photographs: they have no contrast")
 

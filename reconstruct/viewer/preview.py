@@ -62,6 +62,12 @@ EXPONENT_RANGE = (1.0, 150.0)
 PARAMETER_STEP = 1.25
 #: Size of an exported profile figure, pixels.
 PROFILE_PNG = (1200, 500)
+#: The widest or tallest window or figure, pixels: OpenGL's viewport limit on common GPUs.
+MAX_SIDE = 16384
+#: The most pixels a window or figure has: rendering one takes about 70 bytes per pixel (Mesa's
+#: software rasteriser: 4.7 GB at 8192×8192, 9.5 GB at 16384×16384); 100000×100000 aborted the
+#: process inside VTK.
+MAX_PIXELS = 8192 * 8192
 
 _BACKGROUND = (0.16, 0.16, 0.18)
 # Colour bars stand on the right edge; the light disk is in the lower left corner, the scale
@@ -564,12 +570,17 @@ def build_plotter(
     Raises
     ------
     ValueError
-        For a mode the scene does not have or a light below the horizon.
+        For a mode the scene does not have, a light below the horizon, or a size beyond
+        :data:`MAX_SIDE` or :data:`MAX_PIXELS`.
     RuntimeError
         If rendering is not available.
     """
     if mode is not None and mode not in scene.modes:
         raise ValueError(f"{scene.name} has no {mode} view; it has {', '.join(scene.modes)}")
+    width, height = size
+    if not (1 <= width <= MAX_SIDE and 1 <= height <= MAX_SIDE and width * height <= MAX_PIXELS):
+        raise ValueError(f"a window or figure of {width}×{height} pixels is too large: at most {MAX_SIDE} "
+                         f"per side and {MAX_PIXELS / 2**20:g} megapixels")
     folder = Path(output) if output is not None else scene.folder
     return PreviewWindow(scene, off_screen=off_screen, size=size, mode=mode, azimuth=azimuth,
                          elevation=elevation, output=folder)
@@ -590,7 +601,8 @@ def render_screenshot(
     Raises
     ------
     InputError
-        For a mode the scene lacks, or when this machine cannot render off-screen.
+        For a mode the scene lacks, a size too large (:func:`build_plotter`), or when this
+        machine cannot render off-screen.
     """
     try:
         window = build_plotter(scene, off_screen=True, size=size, mode=mode, azimuth=azimuth,

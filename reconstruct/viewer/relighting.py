@@ -10,7 +10,7 @@ from __future__ import annotations
 import io
 import json
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -33,6 +33,14 @@ from ptmcore.relight import (
 from ptmcore.rtifile import RTIFile, read_rti_hsh
 
 MODES = ("default", "specular", "diffuse-gain")
+#: The most frames of a sweep: one per degree, a turn of 29 s at :func:`write_gif`'s pace.
+#: Every frame is a full rendering, and the GIF holds them all.
+MAX_SWEEP = 360
+#: The most pixels a sweep's frames hold together (one byte each once reduced to a palette):
+#: 360 frames of 6 megapixels.
+MAX_SWEEP_PIXELS = 2**31
+#: A GIF's width and height are 16-bit numbers.
+MAX_GIF_SIDE = 65535
 
 
 def holds_linear_light(source: str | os.PathLike) -> bool:
@@ -160,8 +168,34 @@ def renders(
     return (relight(coef, rgb, light) for light in lights)
 
 
+def check_sweep(count: int, width: int, height: int, source: str | os.PathLike | None = None) -> None:
+    """Refuse a sweep of ``count`` frames of ``width`` × ``height`` that a GIF cannot hold, or
+    whose frames would be more than :data:`MAX_SWEEP_PIXELS`.
+
+    Raises
+    ------
+    InputError
+        Naming ``source``, the bound, and how many frames would fit.
+    """
+    if max(width, height) > MAX_GIF_SIDE:
+        raise InputError(f"{width}×{height} pixels: a GIF is at most {MAX_GIF_SIDE} pixels wide and high; "
+                         "relight it under single lights instead", source)
+    if count * width * height > MAX_SWEEP_PIXELS:
+        fit = max(1, MAX_SWEEP_PIXELS // (width * height))
+        raise InputError(f"{count} frames of {width}×{height} pixels are more than a sweep holds "
+                         f"({MAX_SWEEP_PIXELS / 2**30:g} gigapixels): give --sweep {fit} or fewer", source)
+
+
 def sweep_lights(count: int, elevation_deg: float = 30.0) -> np.ndarray:
-    """``count`` unit light vectors circling the object at one elevation, from the right."""
+    """``count`` unit light vectors circling the object at one elevation, from the right.
+
+    Raises
+    ------
+    ValueError
+        For a ``count`` outside 1 to :data:`MAX_SWEEP`.
+    """
+    if not 1 <= count <= MAX_SWEEP:
+        raise ValueError(f"a sweep has 1 to {MAX_SWEEP} frames, not {count}")
     az = np.radians(np.arange(count) * 360.0 / count)
     el = np.radians(elevation_deg)
     return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(count, np.sin(el))], axis=1)
@@ -181,8 +215,12 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
         f.write(buf.getbuffer())
 
 
-def write_gif(path: str | os.PathLike, frames: list[np.ndarray], *, frame_ms: int = 80) -> None:
-    """Write frames as a looping animated GIF (adaptive palette per frame)."""
+def write_gif(path: str | os.PathLike, frames: Iterable[np.ndarray], *, frame_ms: int = 80) -> None:
+    """Write frames as a looping animated GIF (adaptive palette per frame).
+
+    Each RGB frame is reduced to its palette as it comes, so a sweep holds one byte per
+    pixel of each frame, not four (the RGB frames beside their palettes).
+    """
     from PIL import Image
 
     images = [Image.fromarray(f).quantize(colors=256, method=Image.Quantize.MEDIANCUT) for f in frames]
