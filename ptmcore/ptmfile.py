@@ -49,13 +49,13 @@ import math
 import mmap
 import os
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .atomic import atomic_write
-from .errors import InputError, read_input_file
+from .errors import InputError, open_input_file
 from .fit import light_matrix
 from .ptmheader import HeaderCursor
 from .ptmjpeg import read_jpeg_planes
@@ -134,6 +134,9 @@ class PTMFile:
         The colour block of the LRGB formats; None for the RGB formats.
     jpeg_quality : int or None
         The quality recorded in a JPEG-compressed file.
+    warnings : list of str
+        What the reader found that makes the PTM of little use (one line each, naming the
+        file): light-dependent coefficients the same at every pixel, an all-black colour block.
     """
 
     format: str
@@ -145,6 +148,7 @@ class PTMFile:
     coefficients: np.ndarray
     rgb: np.ndarray | None
     jpeg_quality: int | None = None
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def is_lrgb(self) -> bool:
@@ -213,12 +217,68 @@ def _decode_block(
 
 def _map_file(path: Path) -> bytes | mmap.mmap:
     """The file mapped read-only (only the pages read are loaded), or its bytes when it cannot
-    be mapped; :func:`read_input_file` says why a file cannot be read (missing, a folder)."""
-    try:
-        with open(path, "rb") as f:
+    be mapped (an empty file); only a regular file is opened (:func:`open_input_file`)."""
+    with open_input_file(path, "PTM file") as f:
+        try:
             return mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-    except (OSError, ValueError):  # ValueError: an empty file cannot be mapped
-        return read_input_file(path, "PTM file")
+        except (OSError, ValueError):  # ValueError: an empty file cannot be mapped
+            return f.read()
+
+
+def _sample(raw: np.ndarray) -> np.ndarray:
+    """About 64×64 pixels of ``(..., H, W, k)`` bytes, a strided view."""
+    h, w = raw.shape[-3:-1]
+    return raw[..., :: max(1, h // 64), :: max(1, w // 64), :]
+
+
+def _spread(raw: np.ndarray) -> np.ndarray:
+    """Whether each of the last axis's planes of ``raw`` holds more than one value: ``(k,)`` bool."""
+    axes = tuple(range(raw.ndim - 1))
+    return raw.min(axis=axes) != raw.max(axis=axes)
+
+
+def _information(coef: np.ndarray, rgb: np.ndarray | None, scale: np.ndarray, path: Path) -> list[str]:
+    """Refuse a payload that holds no image; the warnings of one that holds little.
+
+    A PTM whose pixels all have the same polynomial (an all-zero or constant payload, or scales
+    of 0: a coefficient with scale 0 decodes to 0 everywhere) relights as one flat colour: that
+    is a damaged file, not an image. Light-dependent coefficients (a0–a4) the same at every
+    pixel give one normal everywhere, and an all-black colour block relights as black: those
+    are warned of. A sample of the pixels settles a real image at once; the whole payload is
+    read only when the sample cannot tell.
+
+    Parameters
+    ----------
+    coef : ndarray, shape (..., H, W, 6), uint8
+        The coefficient bytes, whole (not a subsample).
+    rgb : ndarray, shape (H, W, 3), uint8, or None
+        The colour block of the LRGB formats.
+    scale : ndarray, shape (6,)
+    path : Path
+        The file, for the messages.
+
+    Returns
+    -------
+    list of str
+        Warnings, one line each, naming the file.
+    """
+    if coef.shape[-3] * coef.shape[-2] < 2:
+        return []
+    useful = scale != 0
+    varies = _spread(_sample(coef)) & useful
+    if not varies[:5].any():
+        varies = _spread(coef) & useful
+    if not varies.any():
+        raise InputError("every pixel holds the same polynomial (an all-zero or constant payload, or scales "
+                         "of 0): the PTM holds no image; the file is damaged", path)
+    found = []
+    if not varies[:5].any():
+        found.append("the light-dependent coefficients (a0–a4) are the same at every pixel: its normals point "
+                     "one way everywhere")
+    if rgb is not None and not _sample(rgb).any() and not rgb.any():
+        found.append("the colour block is black at every pixel: it relights as black")
+    # Each as an error's line would be: the file's name first, its control characters escaped.
+    return [str(InputError(problem, path)) for problem in found]
 
 
 def _every(raw: np.ndarray, stride: int) -> np.ndarray:
@@ -255,8 +315,10 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     InputError
         If the file is missing or unreadable, not a PTM, of an unsupported version or format,
         has a malformed header (non-numeric fields, non-positive or impossible sizes), is
-        truncated, or holds a JPEG plane that cannot be decoded. Sizes are checked against the
-        file's length before anything is allocated.
+        truncated or longer than its header's size (a raw format), holds a JPEG plane that
+        cannot be decoded, or holds no image (every pixel the same polynomial: an all-zero or
+        constant payload). Sizes are checked against the file's length before anything is
+        allocated. What makes a PTM of little use is in :attr:`PTMFile.warnings`.
     """
     path = Path(path)
     if max_side is not None and max_side < 1:
@@ -285,8 +347,6 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     scale = np.array(cur.floats(6, "scales"), dtype=np.float64)
     if not np.all(np.isfinite(scale)) or np.any(np.abs(scale) > 1e30):
         raise InputError(f"scales {scale.tolist()} are not usable numbers", path)
-    if not np.any(scale):
-        raise InputError("all six scales are 0: every coefficient would be 0 (a black image); the file is damaged", path)
     bias_tokens = cur.floats(6, "biases")
     if any(not math.isfinite(b) or b != int(b) for b in bias_tokens):
         raise InputError(f"biases must be integers, got {bias_tokens}", path)
@@ -299,6 +359,10 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     quality = None
     if fmt in _JPEG_PLANES:
         planes, quality = read_jpeg_planes(cur, _JPEG_PLANES[fmt], width, height)
+        if fmt == FORMAT_JPEG_LRGB:
+            found = _information(np.moveaxis(planes[:6], 0, -1), np.moveaxis(planes[6:9], 0, -1), scale, path)
+        else:
+            found = _information(np.moveaxis(planes.reshape(3, 6, height, width), 1, -1), None, scale, path)
         planes = np.moveaxis(_every(np.moveaxis(planes, 0, -1), stride), -1, 0)
         if fmt == FORMAT_JPEG_LRGB:
             coefficients = _decode_block(np.moveaxis(planes[:6], 0, -1), scale, bias)
@@ -319,23 +383,35 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
                 f"{have} are there",
                 path,
             )
+        if have > need:
+            # HP's PTMfitter writes nothing after the payload: more bytes mean the header's size
+            # is not the payload's, and reading it so would scramble the image.
+            raise InputError(
+                f"the header's size {width}×{height} does not match the payload: {have - need} bytes "
+                f"follow the {need} a {width}×{height} {fmt} has; the file is damaged",
+                path,
+            )
         if fmt == FORMAT_RGB:
             raw = np.frombuffer(data, np.uint8, need, start).reshape(3, height, width, 6)
+            found = _information(raw, None, scale, path)
             channels = [_every(raw[c], stride) for c in range(3)]
             coefficients = np.empty(channels[0].shape[:2] + (3, 6), dtype=np.float32)
             for c in range(3):
                 _decode_block(channels[c], scale, bias, coefficients[:, :, c])
             rgb = None
         elif version in _INTERLEAVED_VERSIONS:
-            raw = _every(np.frombuffer(data, np.uint8, need, start).reshape(height, width, 9), stride)
+            raw = np.frombuffer(data, np.uint8, need, start).reshape(height, width, 9)
+            found = _information(raw[..., :6], raw[..., 6:], scale, path)
+            raw = _every(raw, stride)
             coefficients = _decode_block(raw[..., :6], scale, bias)
             rgb = np.ascontiguousarray(raw[::-1, :, 6:])
         else:
             coef_raw = np.frombuffer(data, np.uint8, 6 * npix, start).reshape(height, width, 6)
             rgb_raw = np.frombuffer(data, np.uint8, 3 * npix, start + 6 * npix).reshape(height, width, 3)
+            found = _information(coef_raw, rgb_raw, scale, path)
             coefficients = _decode_block(_every(coef_raw, stride), scale, bias)
             rgb = np.ascontiguousarray(_every(rgb_raw, stride)[::-1])
-    return PTMFile(fmt, version, width, height, scale, bias, coefficients, rgb, quality)
+    return PTMFile(fmt, version, width, height, scale, bias, coefficients, rgb, quality, found)
 
 
 # ---------------------------------------------------------------------------------------------

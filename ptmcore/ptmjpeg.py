@@ -48,9 +48,9 @@ def _decode_gray_jpeg(stream: bytes, width: int, height: int, plane: int, path: 
         if simplejpeg is not None:
             h, w = simplejpeg.decode_jpeg_header(stream)[:2]
         else:  # pragma: no cover
-            from PIL import Image
+            from PIL import Image  # JPEG only: other Pillow plugins (EPS) would start programs
 
-            with Image.open(io.BytesIO(stream)) as im:
+            with Image.open(io.BytesIO(stream), formats=["JPEG"]) as im:
                 w, h = im.size
     except Exception as exc:
         raise InputError(f"{where} is not a readable JPEG stream ({exc})", path) from None
@@ -59,7 +59,7 @@ def _decode_gray_jpeg(stream: bytes, width: int, height: int, plane: int, path: 
     try:
         if simplejpeg is not None:
             return simplejpeg.decode_jpeg(stream, colorspace="GRAY").reshape(height, width)
-        with Image.open(io.BytesIO(stream)) as im:  # pragma: no cover
+        with Image.open(io.BytesIO(stream), formats=["JPEG"]) as im:  # pragma: no cover
             return np.asarray(im.convert("L"))
     except Exception as exc:
         raise InputError(f"{where} cannot be decoded ({exc})", path) from None

@@ -265,8 +265,8 @@ def read_rti_hsh(path: str | os.PathLike) -> RTIFile:
     InputError
         If the file is missing, not an ``.rti``, not of type 3 (HSH), not 3 bands of 1-byte
         elements with 4 or 9 terms, has non-numeric or impossible header fields or non-finite
-        scales and biases, or is truncated. Sizes are checked against the file's length before
-        anything is allocated.
+        scales and biases, or is truncated or longer than its header's size. Sizes are checked
+        against the file's length before anything is allocated.
     """
     path = Path(path)
     data = read_input_file(path, "RTI file")
@@ -305,6 +305,14 @@ def read_rti_hsh(path: str | os.PathLike) -> RTIFile:
         raise InputError(
             f"file is truncated: a {width}×{height} HSH of {terms} terms needs {need} bytes "
             f"after the header, {have} are there",
+            path,
+        )
+    if have > need:
+        # RTIBuilder writes nothing after the payload: more bytes mean the header's size is not
+        # the payload's, and reading it so would scramble the image.
+        raise InputError(
+            f"the header's size {width}×{height} does not match the payload: {have - need} bytes follow "
+            f"the {need} an HSH of that size and {terms} terms has; the file is damaged",
             path,
         )
     scale = np.frombuffer(data, "<f4", terms, pos).astype(np.float32)
