@@ -38,6 +38,9 @@ IMAGE_BYTES_PER_PIXEL = 12
 #: The most memory a capture may take to render: a synthetic capture larger than this is a
 #: slip (``--lights 100000000``), not a test anyone needs, and would fail deep inside NumPy.
 MAX_RENDER_BYTES = 4 * 2**30
+#: The largest rendering parameter (specular peak and exponent, ambient, noise, scan noise):
+#: 1e308 overflowed the float32 radiance to infinity.
+MAX_PARAMETER = 1e6
 
 
 def render_bytes(shape: tuple[int, int], n_lights: int) -> int:
@@ -135,8 +138,17 @@ def _validate(scene: str, shape: tuple[int, int], n_lights: int, encoding: str, 
     for name, value in numbers.items():
         if value is not None and not (_finite(value) and value >= 0):
             raise InputError(f"{name} must be a non-negative number, got {value!r}")
+        if name not in ("pixel_size", "scan_points") and value is not None and value > MAX_PARAMETER:
+            raise InputError(f"{name} must be at most {MAX_PARAMETER:g}, got {value!r}")
     if numbers["pixel_size"] == 0 or numbers["shininess"] == 0:
         raise InputError("pixel_size and shininess must be positive")
+    # Imported here: rendering needs nothing else of the reconstruction.
+    from reconstruct.pipeline.options import BOUNDS
+
+    low, high = BOUNDS["pixel_size"]
+    if numbers["pixel_size"] is not None and not low <= numbers["pixel_size"] <= high:
+        # The range a reconstruction takes; 1e300 made the heights NaN.
+        raise InputError(f"pixel_size must be {low:g} to {high:g} mm, got {numbers['pixel_size']!r}")
     if numbers["scan_points"] is not None and numbers["scan_points"] > h * w:
         # Points are drawn on the height field: more than one per pixel adds no detail.
         raise InputError(f"{numbers['scan_points']} scan points asked for; at most one per pixel ({h * w})")

@@ -357,3 +357,29 @@ def test_numeric_options_are_bounded(tmp_path, capsys, template, bound, value):
     taken = str(missing) in lines[0] or str(afile) in lines[0]
     assert taken == bound(value), (argv, lines[0])
     assert _tree(tmp_path) == before
+
+
+
+SYNTHETIC = ["--pixel-size", "--specular", "--shininess", "--ambient", "--noise", "--scan-noise", "--min-elevation",
+             "--max-elevation", "--ring-elevation"]
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(option=st.sampled_from(SYNTHETIC + ["--lights", "--scan-points", "--seed"]),
+       number=st.floats(allow_nan=True, allow_infinity=True) | st.sampled_from([1e300, 1e-300, 1e7, 1e6]),
+       whole=st.integers(-10, 10**12) | st.integers(min_value=10**12))
+def test_synthetic_capture_values(tmp_path, capsys, option, number, whole):
+    # python -m data_synthetic: a capture written without a warning, or one line and nothing.
+    import tempfile
+
+    from data_synthetic.__main__ import main as synthetic
+
+    value = repr(number) if option in SYNTHETIC else str(whole)
+    folder = Path(tempfile.mkdtemp(dir=tmp_path)) / "cap"
+    code = synthetic([str(folder), "--size", "16x16", "--lights", "3", "--scan-points", "0", f"{option}={value}"])
+    err = capsys.readouterr().err
+    if code == 0:
+        assert err == "" and len(list(folder.glob("img_*.tif"))) >= 1, err
+    else:
+        assert code == 2 and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert not folder.exists()
