@@ -8,6 +8,7 @@ this module reads the inputs, writes ``comparison.json``, ``distances.ply``, ``h
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import os
 from dataclasses import dataclass
@@ -15,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, read_input_text
 from reconstruct.pipeline.options import CompareOptions
 from reconstruct.pipeline.profiling import ProgressFn, Stages
 from reconstruct.pipeline.report import AlignmentSummary, CompareReport, ToleranceTest
@@ -42,10 +43,19 @@ class CompareResult:
         return self.report.passed
 
 
+#: The most bytes read of an initial transform: sixteen numbers and comments fit in far less.
+TRANSFORM_MAX_BYTES = 64 << 10
+
+
 def _read_initial(path: Path) -> np.ndarray:
+    """The 4×4 initial transform of a text file: four lines of four numbers, ``#`` comments."""
+    text = read_input_text(path, "initial transform", max_bytes=TRANSFORM_MAX_BYTES)
+    if not any(line.split("#")[0].strip() for line in text.splitlines()):
+        # numpy would warn on stderr and return an empty array.
+        raise InputError("the initial transform holds no numbers (a 4×4 matrix is expected)", path)
     try:
-        m = np.loadtxt(path, dtype=np.float64)
-    except (OSError, ValueError) as exc:
+        m = np.loadtxt(io.StringIO(text), dtype=np.float64)
+    except ValueError as exc:
         raise InputError(f"cannot read the initial transform ({exc})", path) from None
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise InputError(f"the initial transform must be a 4×4 matrix of numbers, got shape {m.shape}", path)
@@ -58,7 +68,10 @@ def _reconstruction_mesh(path: Path) -> Path:
         return path
     report_file = path / "report.json"
     if report_file.exists():
-        unit = json.loads(report_file.read_text()).get("height_unit")
+        try:
+            unit = json.loads(read_input_text(report_file, "report.json")).get("height_unit")
+        except (ValueError, AttributeError):  # not JSON, or not an object
+            raise InputError("not a report.json of reconstruct run (damaged?)", report_file) from None
         if unit != "mm":
             from reconstruct.report.summary import unit_words
 

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.errors import InputError, open_input_file
 from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
 from ptmcore.png import encode_png
 from ptmcore.ptmfile import PTMFile
@@ -290,18 +291,67 @@ def relit_lambertian(
             for label, az, el in RELIGHT_LIGHTS]
 
 
+#: The most decoded bytes per stored byte believed of a TIFF that cannot be mapped: LZW and
+#: Deflate reach a few thousand on constant data; a header that claims more describes data the
+#: file cannot hold, and is refused before memory is allocated for it.
+TIFF_MAX_RATIO = 4096
+
+
 def map_array(path: str | os.PathLike) -> np.ndarray:
     """A ``.npy`` or uncompressed TIFF array as a read-only memory map (nothing is read until
-    it is sliced); a file that cannot be mapped (a compressed or tiled TIFF) is read whole."""
-    import tifffile
+    it is sliced); a file that cannot be mapped (a compressed or tiled TIFF) is read whole.
+
+    Only a regular file is opened, and its header's size is checked against the file's
+    before anything is allocated (:func:`reconstruct.surface.normalmaps.read_npy` for
+    ``.npy``: never pickled objects).
+
+    Raises
+    ------
+    InputError
+        If the file is missing, not a regular file, not a readable array of numbers, or
+        shorter than its header says.
+    """
+    from reconstruct.surface.normalmaps import read_npy
 
     path = Path(path)
     if path.suffix == ".npy":
-        return np.load(path, mmap_mode="r")
+        return read_npy(path, "map", mmap=True)
+    with open_input_file(path, "TIFF map") as f:
+        stored = os.fstat(f.fileno()).st_size
+        array, problem = _tiff_array(f, stored, path.name)
+    if problem:
+        raise InputError(problem, path)
+    return array
+
+
+def _tiff_array(f, stored: int, name: str) -> tuple[np.ndarray | None, str | None]:
+    """The first image of the TIFF ``name`` open as ``f`` (``stored`` bytes long), mapped or
+    read, or None and what is wrong with it."""
+    import logging
+
+    import tifffile
+
+    # tifffile's exceptions on a damaged file are its own business: each is the user's one line.
+    # It also logs what it finds damaged, lines that would print beside that one.
+    log = logging.getLogger("tifffile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
     try:
-        return tifffile.memmap(path, mode="r")
-    except ValueError:  # compressed or tiled: tifffile cannot map it
-        return tifffile.imread(path)
+        with tifffile.TiffFile(f, name=name) as tif:
+            series = tif.series[0].levels[0]
+            shape, dtype = tuple(series.shape), np.dtype(tif.byteorder + series.dtype.char)
+            if series.dataoffset is not None and math.prod(shape):
+                # A mapping longer than the file is refused by mmap: a lying header allocates nothing.
+                return np.memmap(f, dtype, "r", series.dataoffset, shape, "C"), None
+            claimed = math.prod(shape) * dtype.itemsize
+            if claimed > TIFF_MAX_RATIO * stored:
+                return None, (f"its header claims a {'×'.join(map(str, shape))} image of {dtype} "
+                              f"({claimed:,} bytes) that {stored:,} bytes cannot hold")
+            return tif.asarray(), None
+    except Exception as exc:  # noqa: BLE001 - see above
+        return None, f"not a readable TIFF map ({str(exc) or type(exc).__name__})"
+    finally:
+        log.setLevel(level)
 
 
 def read_subsampled(path: str | os.PathLike, max_side: int) -> tuple[np.ndarray, int]:

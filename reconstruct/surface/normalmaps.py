@@ -26,11 +26,12 @@ _NPY_MAGIC = b"\x93NUMPY"
 MIN_SIDE = 2
 
 
-def read_npy(path: str | os.PathLike, what: str) -> np.ndarray:
+def read_npy(path: str | os.PathLike, what: str, *, mmap: bool = False) -> np.ndarray:
     """A numeric array from a user's ``.npy`` file, or an :class:`InputError` that says why not.
 
     The header is checked before any data is read: pickled Python objects are never loaded,
     and a file shorter than its header promises is refused before memory is allocated for it.
+    Only a regular file is opened (a FIFO or a device is refused without blocking).
 
     Parameters
     ----------
@@ -38,11 +39,15 @@ def read_npy(path: str | os.PathLike, what: str) -> np.ndarray:
         The ``.npy`` file.
     what : str
         What it holds, for messages ("normal map", "ground-truth normals").
+    mmap : bool
+        Map the file read-only instead of reading it: nothing is read until the array is
+        sliced (a subsample of a large map).
 
     Returns
     -------
     ndarray
-        Of a boolean, integer or floating-point dtype, any shape.
+        Of a boolean, integer or floating-point dtype, any shape; a read-only
+        :class:`numpy.memmap` with ``mmap`` (a plain array when it holds no values).
 
     Raises
     ------
@@ -56,7 +61,7 @@ def read_npy(path: str | os.PathLike, what: str) -> np.ndarray:
         if f.read(len(_NPY_MAGIC)) != _NPY_MAGIC:
             raise InputError(f"not a NumPy .npy array file (a {what} saved with numpy.save was expected)", path)
         f.seek(0)
-        shape, dtype = _npy_header(f, path)
+        shape, fortran, dtype = _npy_header(f, path)
         if dtype.hasobject:
             raise InputError(f"holds Python objects, not numbers: a {what} must be an array of numbers "
                              "(objects are not loaded, they could run code)", path)
@@ -67,6 +72,8 @@ def read_npy(path: str | os.PathLike, what: str) -> np.ndarray:
         if held < promised:
             raise InputError(f"is truncated: its header promises a {'×'.join(map(str, shape))} array of "
                              f"{dtype} ({promised:,} bytes) but the file holds {held:,}", path)
+        if mmap and promised:
+            return np.memmap(f, dtype, "r", f.tell(), shape, "F" if fortran else "C")
         f.seek(0)
         try:
             return np.load(f, allow_pickle=False)
@@ -74,8 +81,9 @@ def read_npy(path: str | os.PathLike, what: str) -> np.ndarray:
             raise InputError(f"cannot read {what} ({exc})", path) from None
 
 
-def _npy_header(f, path: Path) -> tuple[tuple[int, ...], np.dtype]:
-    """Shape and dtype from an ``.npy`` header; numpy's own checks, reported as input errors."""
+def _npy_header(f, path: Path) -> tuple[tuple[int, ...], bool, np.dtype]:
+    """Shape, Fortran order and dtype from an ``.npy`` header, the file left at the data; numpy's
+    own checks, reported as input errors."""
     fmt = np.lib.format
     try:
         # numpy parses the header as a Python literal: a damaged one may warn of escapes.
@@ -83,9 +91,9 @@ def _npy_header(f, path: Path) -> tuple[tuple[int, ...], np.dtype]:
             warnings.simplefilter("ignore")
             version = fmt.read_magic(f)
             if version == (1, 0):
-                shape, _, dtype = fmt.read_array_header_1_0(f)
+                shape, fortran, dtype = fmt.read_array_header_1_0(f)
             elif version == (2, 0):
-                shape, _, dtype = fmt.read_array_header_2_0(f)
+                shape, fortran, dtype = fmt.read_array_header_2_0(f)
             else:  # 3.0 only adds UTF-8 field names, of records this reader refuses anyway
                 raise ValueError(f"format version {version[0]}.{version[1]} is not supported")
     except (ValueError, TypeError, SyntaxError, TokenError, EOFError, OverflowError, RecursionError,
@@ -93,7 +101,7 @@ def _npy_header(f, path: Path) -> tuple[tuple[int, ...], np.dtype]:
         raise InputError(f"not a readable NumPy .npy array file: its header is damaged ({exc})", path) from None
     if any(n < 0 for n in shape):
         raise InputError(f"not a readable NumPy .npy array file: its header gives shape {shape}", path)
-    return shape, dtype
+    return shape, fortran, dtype
 
 
 def read_normal_map(path: str | os.PathLike) -> np.ndarray:

@@ -28,6 +28,7 @@ Textured scenes (output folders and ``.ptm`` files) carry their colours as image
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -37,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ptmcore.errors import InputError
+from ptmcore.errors import InputError, read_input_file, read_input_text
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
     DEFAULT_GAIN,
@@ -50,6 +51,7 @@ from reconstruct.report.figures import (
     display_pixel_size,
     for_display,
     linear_ptm,
+    map_array,
     normal_colors,
     ply_header,
     shade_lambertian,
@@ -407,8 +409,9 @@ def _read_distances(ply: Path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and signed distances (the ``quality`` property) of a ``distances.ply``."""
     import trimesh
 
+    raw = read_input_file(ply, "distances.ply")
     try:
-        loaded = trimesh.load(ply, process=False)
+        loaded = trimesh.load(io.BytesIO(raw), file_type="ply", process=False, skip_materials=True)
         data = loaded.metadata["_ply_raw"]["vertex"]["data"]
         points = np.column_stack([data["x"], data["y"], data["z"]]).astype(np.float64)
         return points, np.asarray(data["quality"], dtype=np.float64)
@@ -443,7 +446,7 @@ def _comparison(folder: Path, vertices: np.ndarray, spacing: float) -> tuple[np.
     report = folder / "comparison.json"
     if report.is_file():
         try:
-            limit = float(json.loads(report.read_text())["colour_range_mm"][1])
+            limit = float(json.loads(read_input_text(report, "comparison.json"))["colour_range_mm"][1])
         except (KeyError, IndexError, TypeError, ValueError):
             limit = None
     if limit is None or not limit > 0:
@@ -454,21 +457,16 @@ def _comparison(folder: Path, vertices: np.ndarray, spacing: float) -> tuple[np.
 
 
 def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_texture: int) -> PreviewScene:
-    import tifffile
-
     height_file = folder / "height.tif"
     if not height_file.is_file():
         raise InputError("not an output folder of reconstruct run (no height.tif)", folder)
     report: dict = {}
     if (folder / "report.json").is_file():
         try:
-            report = json.loads((folder / "report.json").read_text())
+            report = json.loads(read_input_text(folder / "report.json", "report.json"))
         except ValueError as exc:
             raise InputError(f"corrupt report.json ({exc})", folder / "report.json") from None
-    try:
-        height = np.asarray(tifffile.imread(height_file), dtype=np.float32)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read the height map ({exc})", height_file) from None
+    height = np.asarray(map_array(height_file), dtype=np.float32)
     if height.ndim != 2:
         raise InputError(f"the height map must be one 2-D plane, not {height.shape}", height_file)
     unit = report.get("height_unit", "pixel")
@@ -490,7 +488,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         del coef, colour
     normals = None
     if (folder / "normals.npy").is_file():
-        full = np.load(folder / "normals.npy", mmap_mode="r")
+        full = map_array(folder / "normals.npy")
         if full.shape != height.shape + (3,):
             raise InputError(f"normals.npy is {full.shape}, expected {height.shape + (3,)}", folder)
         normals = _texture_normals(full, tex, max_texture)
@@ -560,17 +558,36 @@ def _mesh_unit(path: Path) -> str:
     return next((w[2] for w in ply_header(path) if w[:2] == ["comment", "unit"] and len(w) > 2), "unknown")
 
 
+def _vertex_colours(mesh) -> np.ndarray | None:
+    """A trimesh mesh's colours at its vertices, or None when it has none: a texture it names
+    that was not read (refused, missing) leaves a material without an image, which trimesh
+    cannot sample."""
+    if not mesh.visual.defined:
+        return None
+    try:
+        return mesh.visual.to_color().vertex_colors[:, :3]
+    except (TypeError, ValueError, AttributeError):
+        return None
+
+
 def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:
     """A mesh file with its colours (vertex colours, or its texture sampled at the vertices)
     and normals (the file's, else from the faces), relit per vertex."""
     import trimesh
 
+    from reconstruct.compare.geometry import mesh_files
+
+    data = read_input_file(path, "mesh")
     # A PLY whose texture coordinates belong to the vertices (ours) needs no splitting at
     # seams; trimesh's search for them took 2 of the 12 s a 24-megapixel run's mesh.ply took.
     per_vertex = path.suffix.lower() == ".ply" and not any(
         w[:2] == ["property", "list"] and w[-1:] == ["texcoord"] for w in ply_header(path))
+    # A glTF's images, embedded or named, reach Pillow without passing the resolver's check.
+    gltf = path.suffix.lower() in (".glb", ".gltf")
     try:
-        mesh = trimesh.load(path, process=False, **({"fix_texture": False} if per_vertex else {}))
+        mesh = trimesh.load(io.BytesIO(data), file_type=path.suffix.lower()[1:], process=False,
+                            resolver=mesh_files(path, textures=not gltf), skip_materials=gltf,
+                            **({"fix_texture": False} if per_vertex else {}))
         if isinstance(mesh, trimesh.Scene):
             # force="mesh" on every file dropped a PLY's own normals with the copy it made
             # (computing them again took 6 s).
@@ -579,7 +596,7 @@ def _load_mesh(path: Path, max_vertices: int) -> PreviewScene:
         raise InputError(f"cannot read the mesh ({exc})", path) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("no triangles in this file", path)
-    colors = mesh.visual.to_color().vertex_colors[:, :3] if mesh.visual.defined else None
+    colors = _vertex_colours(mesh)
     vertices = np.asarray(mesh.vertices, dtype=np.float32)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     normals = np.asarray(mesh.vertex_normals, dtype=np.float32)
