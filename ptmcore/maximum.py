@@ -175,12 +175,11 @@ def maximum_rows(a, tables, lu, lv, nz, interior, valid=None):  # pragma: no cov
         Out: the light direction of the maximum.
     nz : ndarray, shape (R, W), float32, or None
         Out: the normal's third component, √(1 − lu² − lv²) in float32 as
-        :func:`ptmcore.normals.normals_from_ptm` had it. With it, a flat PTM
-        (:data:`ptmcore.normals.FLAT`) has the normal (0, 0, 1) in (lu, lv, nz).
+        :func:`ptmcore.normals.normals_from_ptm` had it.
     interior : ndarray, shape (R, W), bool, or None
         Out: where the maximum is the interior closed-form one.
     valid : ndarray, shape (R, W), bool, or None
-        Out, with ``nz``: where a normal was read (not flat, finite).
+        Out: where a maximum was read (the PTM not flat, lu and lv finite).
     """
     w = a.shape[1]
     n = a.shape[0] * w
@@ -189,6 +188,7 @@ def maximum_rows(a, tables, lu, lv, nz, interior, valid=None):  # pragma: no cov
     best = np.empty(_CHUNK, np.int64)
     moving = np.empty(_CHUNK, np.bool_)
     inside = np.empty(_CHUNK, np.bool_)
+    flat = np.empty(_CHUNK, np.bool_)
     listed = np.empty(_CHUNK, np.int64)
     one = np.float32(1.0)
     zero = np.float32(0.0)
@@ -204,18 +204,21 @@ def maximum_rows(a, tables, lu, lv, nz, interior, valid=None):  # pragma: no cov
             if col == w:
                 r, col = r + 1, 0
         for j in range(m):
-            a0, a1, a2, a3, a4 = chunk[0, j], chunk[1, j], chunk[2, j], chunk[3, j], chunk[4, j]
+            a0, a1, a2, a3, a4, a5 = chunk[0, j], chunk[1, j], chunk[2, j], chunk[3, j], chunk[4, j], chunk[5, j]
+            # Flat (ptmcore.normals.FLAT): the maximum would be the rounding's, which differs
+            # between CPUs; (0, 0) instead. NaN and inf are never flat.
+            flat[j] = (abs(a0) + abs(a1) + abs(a2) + abs(a3) + abs(a4) <= FLAT * abs(a5)) & (abs(a5) < math.inf)
             # Strictly concave with the stationary point inside the disk: Malzbender et al.'s
             # closed form. Computed everywhere, as NumPy did, and kept only there.
             den = 4 * a0 * a1 - a2 * a2
             u = (a2 * a4 - 2 * a1 * a3) / den
             v = (a2 * a3 - 2 * a0 * a4) / den
-            chunk[_U, j] = u
-            chunk[_V, j] = v
-            inside[j] = (a0 < 0) & (den > 0) & (u * u + v * v < 1.0)
+            chunk[_U, j] = 0.0 if flat[j] else u
+            chunk[_V, j] = 0.0 if flat[j] else v
+            inside[j] = (a0 < 0) & (den > 0) & (u * u + v * v < 1.0) & (not flat[j])
         on_circle = 0
         for j in range(m):
-            if not inside[j]:
+            if not (inside[j] or flat[j]):
                 listed[on_circle] = j
                 on_circle += 1
         if on_circle:
@@ -229,24 +232,15 @@ def maximum_rows(a, tables, lu, lv, nz, interior, valid=None):  # pragma: no cov
             if interior is not None:
                 interior[r, col] = inside[j]
             if nz is not None:
-                a0, a1, a2, a3, a4, a5 = chunk[0, j], chunk[1, j], chunk[2, j], chunk[3, j], chunk[4, j], chunk[5, j]
-                finite = (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(a2) and math.isfinite(a3)
-                          and math.isfinite(a4) and math.isfinite(a5))
-                if finite and max(abs(a0), abs(a1), abs(a2), abs(a3), abs(a4)) <= FLAT * abs(a5):
-                    # Flat: the maximum is the rounding's, and differs between CPUs.
-                    lu[r, col], lv[r, col], nz[r, col] = zero, zero, one
-                    if valid is not None:
-                        valid[r, col] = False
-                else:
-                    # float32, NaN kept: np.clip and np.sqrt on the float32 results.
-                    z = one - u32 * u32 - v32 * v32
-                    if z < zero:
-                        z = zero
-                    elif z > one:
-                        z = one
-                    nz[r, col] = np.sqrt(z)
-                    if valid is not None:
-                        valid[r, col] = math.isfinite(u32) and math.isfinite(v32)
+                # float32, NaN kept: np.clip and np.sqrt on the float32 results.
+                z = one - u32 * u32 - v32 * v32
+                if z < zero:
+                    z = zero
+                elif z > one:
+                    z = one
+                nz[r, col] = np.sqrt(z)
+            if valid is not None:
+                valid[r, col] = not flat[j] and math.isfinite(u32) and math.isfinite(v32)
             col += 1
             if col == w:
                 r, col = r + 1, 0
@@ -273,8 +267,8 @@ def maximum_bands(
     """Run :func:`maximum_rows` over bands of rows of ``coefficients`` (H, W, 6) in threads.
 
     ``lu``, ``lv`` and ``nz`` (float32) and ``interior`` and ``valid`` (bool) are (H, W)
-    outputs, or views of them; ``nz``, ``interior`` and ``valid`` may be None (``valid`` is
-    written only with ``nz``). ``threads``: default, the number of CPUs.
+    outputs, or views of them; ``nz``, ``interior`` and ``valid`` may be None. ``threads``:
+    default, the number of CPUs.
 
     Raises
     ------

@@ -17,13 +17,14 @@ from .images import ImageStack
 from .lp import as_directions
 from .pixelfit import SINGULAR
 
-#: A PTM is flat where its coefficients are finite and its five shape coefficients are all at
-#: most this × |a5| (an all-zero PTM too): the pixel's samples carry no direction (all clipped,
-#: all black, or one value under every light), and what shape the fit has is the float32 sums'
-#: rounding, about 1e-7 of the level, which differs between CPUs and BLAS libraries. Real
-#: shading varies by more than 1e-2 of the level over a dome's lights, and one 16-bit code of a
-#: bright pixel is 1.5e-5 of it. No normal is read from a flat PTM (:func:`normals_from_ptm`,
-#: :func:`ptmcore.robustptm.debiased_normals`, the robust PTM's kernel): it is (0, 0, 1), flagged.
+#: A PTM is flat where |a0| + … + |a4| ≤ this × |a5|, a5 finite (an all-zero PTM too): the
+#: pixel's samples carry no direction (all clipped, all black, or one value under every light),
+#: and what shape the fit has is the float32 sums' rounding, about 1e-7 of the level, which
+#: differs between CPUs and BLAS libraries. Real shading varies by more than 1e-2 of the level
+#: over a dome's lights, and one 16-bit code of a bright pixel is 1.5e-5 of it. A flat PTM's
+#: maximum is taken at (0, 0) (:func:`ptm_maximum`) and no normal is read from it
+#: (:func:`normals_from_ptm`, :func:`ptmcore.robustptm.debiased_normals`, the robust PTM's
+#: kernel): it is (0, 0, 1), flagged.
 FLAT = 1e-4
 
 
@@ -41,7 +42,8 @@ def ptm_maximum(
     Elsewhere (not concave, or the stationary point outside the disk) the maximum over the
     disk is on its boundary and is found there, rather than by clamping the stationary point:
     L(θ) is sampled every 5° on the unit circle and the best sample refined by Newton's method
-    on L'(θ). The arithmetic is float64 (compiled: :mod:`ptmcore.maximum`).
+    on L'(θ). The arithmetic is float64 (compiled: :mod:`ptmcore.maximum`). A flat PTM
+    (:data:`FLAT`) has no maximum but its rounding's: it is taken at (0, 0), not interior.
 
     Parameters
     ----------
@@ -74,7 +76,7 @@ def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None,
     """Normals ``(lu0, lv0, √(1 − lu0² − lv0²))`` from each PTM's maximum (:func:`ptm_maximum`).
 
     A flat PTM (:data:`FLAT`: an all-zero one, or the fit of samples all clipped or all one
-    value) has no maximum but its rounding's: its normal is (0, 0, 1).
+    value) has no maximum but its rounding's: its normal is (0, 0, 1), not read.
 
     Parameters
     ----------
@@ -82,7 +84,7 @@ def normals_from_ptm(coefficients: np.ndarray, *, threads: int | None = None,
     threads : int, optional
         Threads working on bands of rows (default: all CPUs).
     valid : ndarray, shape (H, W), bool, optional
-        Out: where a normal was read (False where the PTM is flat or not finite).
+        Out: where a normal was read (False where the PTM is flat or its maximum not finite).
 
     Returns
     -------

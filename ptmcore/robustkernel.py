@@ -228,11 +228,12 @@ def _median_scale(res, cand, m, out):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always", **_JIT)
-def _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat):  # pragma: no cover - compiled
+def _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat, same):  # pragma: no cover - compiled
     """The debiased normal (float32 x, y, z) of a PTM ``a`` and its hemisphere PTM ``q``
     (float64; ``q``'s constant term plays no part), and whether it was read:
-    :func:`ptmcore.robustptm._debiased` for one pixel. (0, 0, 1), not read, where the PTM is
-    flat (shape coefficients all at most ``flat`` × |a5|) or gives no normal facing the camera."""
+    :func:`ptmcore.robustptm._debiased` for one pixel. (0, 0, 1), not read, where the samples
+    are all the ``same``, the PTM is flat (|a0| + … + |a4| ≤ ``flat`` × |a5|) or it gives no
+    normal facing the camera."""
     det = 4 * a0 * a1 - a2 * a2
     concave = (a0 < 0) and (det > 0)
     if not concave:
@@ -248,8 +249,8 @@ def _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat):  # pragm
     length = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
     norm = length if length > 0 else 1.0
     x, y, z = np.float32(g0 / norm), np.float32(g1 / norm), np.float32(g2 / norm)
-    shape = max(abs(a0), abs(a1), abs(a2), abs(a3), abs(a4))
-    if not (shape > flat * abs(a5) and length > 0 and math.isfinite(length) and z > 0):
+    shape = abs(a0) + abs(a1) + abs(a2) + abs(a3) + abs(a4)
+    if same or not (shape > flat * abs(a5) and length > 0 and math.isfinite(length) and z > 0):
         return np.float32(0.0), np.float32(0.0), np.float32(1.0), False
     return x, y, z, True
 
@@ -270,11 +271,11 @@ def _divided(out, row, acc, low, e, m):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, total):  # pragma: no cover - compiled
+def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, total, same):  # pragma: no cover - compiled
     """The PTM and hemisphere PTM of the chunk's pixels with weights ``w``, as
     :func:`ptmcore.robustptm.robust_ptm` fits them (:func:`ptmcore.pixelfit.weighted_fit` with
-    the plain fits as prior and fallback), written with the debiased normals and the weights'
-    sums ``total`` (chunk,) into ``ptm``'s result arrays (:class:`ptmcore.robustptm.KernelPTM`)
+    the plain fits as prior and fallback), written with the debiased normals (none where the
+    samples are all the ``same``, (chunk,) bool) and the weights' sums ``total`` (chunk,) into ``ptm``'s result arrays (:class:`ptmcore.robustptm.KernelPTM`)
     at ``row``, columns ``c0:c0 + inside``.
 
     Work arrays: ``sums`` (K, chunk) and ``rhs`` (2r, chunk) float32;
@@ -371,8 +372,9 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
             _divided(sol, x + i, acc, low, _packed(i, i, r), m)
     for j in range(inside):
         # Where the weights leave too few samples, or samples too close together, the plain
-        # fit (a matrix product in the NumPy steps) stands in.
-        off = 0 if det[j] > bound[j] else 2 * r
+        # fit (a matrix product in the NumPy steps) stands in; and where the samples are all
+        # the same, whose weighted fit would have a shape of rounding only.
+        off = 0 if det[j] > bound[j] and not same[j] else 2 * r
         # Back to the PTM's coefficients (sol[off:off + r]) and the hemisphere PTM's (the r rows
         # after), written out: twelve accumulators in registers. A loop over the six through a
         # work array gave the same bits 4–6 % slower (robust_ptm, 400×600 pixels, one thread).
@@ -397,7 +399,7 @@ def _ptm_fit(ptm, v, w, m, inside, row, c0, sums, rhs, gram, low, sol, work, tot
         coef[row, col, 3], coef[row, col, 4], coef[row, col, 5] = a3, a4, a5
         hemi[row, col, 0], hemi[row, col, 1], hemi[row, col, 2] = q0, q1, q2
         hemi[row, col, 3], hemi[row, col, 4], hemi[row, col, 5] = q3, q4, q5
-        x, y, z, read = _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat)
+        x, y, z, read = _debiased_normal(a0, a1, a2, a3, a4, a5, q0, q1, q2, q3, q4, flat, same[j])
         nout[row, col, 0], nout[row, col, 1], nout[row, col, 2] = x, y, z
         valid[row, col] = read
         used[row, col] = total[j]
@@ -479,6 +481,8 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
     ok2 = np.empty(chunk, np.bool_)
     take = np.empty(chunk, np.bool_)
     vmax = np.empty(chunk, np.float32)
+    vmin = np.empty(chunk, np.float32)
+    same = np.empty(chunk, np.bool_)
     scale = np.empty(chunk)
     hi = np.empty(chunk, np.float32)
     floor = np.empty(chunk, np.float32)
@@ -504,6 +508,7 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
             m = min(chunk, -(-inside // _LANES) * _LANES)
             for j in range(m):
                 vmax[j] = 0.0
+                vmin[j] = np.float32(math.inf)
             if prior is not None:
                 for j in range(inside):
                     pn[0, j], pn[1, j], pn[2, j] = prior[row, c0 + j, 0], prior[row, c0 + j, 1], prior[row, c0 + j, 2]
@@ -524,9 +529,15 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                 for j in range(inside):
                     usable[k, j] = line[j] != sat
                     vmax[j] = max(vmax[j], v[k, j])
+                    vmin[j] = min(vmin[j], v[k, j])
                 for j in range(inside, m):
                     v[k, j] = 0.0
                     usable[k, j] = False
+            if ptm is not None:
+                # Samples all within ptm.flat of the brightest carry no direction (all clipped,
+                # all black, one value): as ptmcore.robustptm.robust_ptm decides it.
+                for j in range(m):
+                    same[j] = np.float64(vmax[j]) - np.float64(vmin[j]) <= ptm.flat * np.float64(vmax[j])
             # Step 1: without dark (shadowed) and clipped samples.
             for j in range(m):
                 vmax[j] = max(dark * vmax[j], np.float32(1e-4))
@@ -656,4 +667,4 @@ def robust_ps_rows(codes, table, r0, r1, outer_t, u_t, back, dirs, halves, par, 
                 for j in range(inside):
                     samples[row, c0 + j] = np.uint16(round(total[j]))
             if ptm is not None:
-                _ptm_fit(ptm, v, w, m, inside, row, c0, p_sums, p_rhs, p_gram, p_low, p_sol, p_work, total)
+                _ptm_fit(ptm, v, w, m, inside, row, c0, p_sums, p_rhs, p_gram, p_low, p_sol, p_work, total, same)

@@ -13,11 +13,11 @@ where ``q`` is the same fit (same weights) of ``lz = √(1 − lu² − lv²)`` 
 maximum through ``q``. On a Lambertian surface the result is exact; the plain maximum
 (:func:`ptmcore.normals.normals_from_ptm`) is not. See ``benchmarks/normals_table.py``.
 
-Degenerate pixels. Where every sample is clipped or black, or has one value under every light,
-the PTM is flat (:data:`ptmcore.normals.FLAT`) and no normal is read from it: the direction of
-its rounding noise would differ between CPUs and between the kernel and the NumPy steps. Its
-normal is (0, 0, 1) and ``RobustPTM.valid`` is False there, in both; the PTM is kept for
-relighting.
+Degenerate pixels. Where a pixel's samples are all within :data:`ptmcore.normals.FLAT` of
+its brightest (all clipped, all black, or one value under every light), or its PTM is flat, no
+normal is read: the direction of its fit's rounding noise would differ between CPUs and between
+the kernel and the NumPy steps. Its normal is (0, 0, 1) and ``RobustPTM.valid`` is False there,
+in both; the PTM is kept for relighting.
 """
 
 from __future__ import annotations
@@ -53,10 +53,11 @@ def hemisphere_coefficients(directions: np.ndarray) -> np.ndarray:
     return fit_matrix(d) @ d[:, 2]
 
 
-def _debiased(a: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _debiased(a: np.ndarray, q: np.ndarray, same: np.ndarray | bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Normals (3, P) float32 from PTM coefficients ``a`` and hemisphere PTMs ``q`` (6, P),
-    and where they were read (P,): not where the PTM is flat (:data:`ptmcore.normals.FLAT`) or
-    gives no normal facing the camera, where they are (0, 0, 1)."""
+    and where they were read (P,): not where the samples are all the ``same`` (P,), the PTM is
+    flat (:data:`ptmcore.normals.FLAT`) or it gives no normal facing the camera, where they
+    are (0, 0, 1)."""
     a0, a1, a2, a3, a4, a5 = a[:6]
     q0, q1, q2, q3, q4 = q[:5]
     det = 4 * a0 * a1 - a2 * a2
@@ -76,9 +77,21 @@ def _debiased(a: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         np.where(concave, 1.0, rho_z),
     ])
     unit, length = unit_columns(g)
-    shape = np.max(np.abs(a[:5]), axis=0)
-    good = (shape > FLAT * np.abs(a5)) & (length > 0) & np.isfinite(length) & (unit[2] > 0)
+    shape = np.abs(a0) + np.abs(a1) + np.abs(a2) + np.abs(a3) + np.abs(a4)
+    good = ~same & (shape > FLAT * np.abs(a5)) & (length > 0) & np.isfinite(length) & (unit[2] > 0)
     return np.where(good, unit, _UP).astype(np.float32), good
+
+
+def _same_samples(v: np.ndarray) -> np.ndarray:
+    """Where a pixel's samples (N, P) are all within :data:`ptmcore.normals.FLAT` of the
+    brightest: all clipped, all black or one value, with no direction in them (P,).
+
+    The samples decide it, not the fit: a weighted fit of one value with few samples (a
+    condition number of 10⁴) has a shape of rounding well above FLAT. The plain fit stands in
+    there.
+    """
+    top = v.max(axis=0).astype(np.float64)
+    return top - v.min(axis=0) <= FLAT * top
 
 
 def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray, *,
@@ -91,10 +104,10 @@ def debiased_normals(coefficients: np.ndarray, hemisphere: np.ndarray, *,
     ``ρ·nz`` is read from its quadratic part and ``ρ·(nx, ny)`` from what remains of its
     linear part.
 
-    No normal is read from a flat PTM, whose five shape coefficients are all at most
-    :data:`ptmcore.normals.FLAT` × |a5| (an all-zero PTM too): its samples carry no direction,
-    and the direction of what shape it has is rounding, which differs between CPUs. Nor where
-    the reading gives no finite normal facing the camera. Those pixels' normals are (0, 0, 1).
+    No normal is read from a flat PTM, where |a0| + … + |a4| ≤ :data:`ptmcore.normals.FLAT` ×
+    |a5| (an all-zero PTM too): its samples carry no direction, and the direction of what shape
+    it has is rounding, which differs between CPUs. Nor where the reading gives no finite
+    normal facing the camera. Those pixels' normals are (0, 0, 1).
 
     Parameters
     ----------
@@ -167,9 +180,10 @@ class RobustPTM:
     samples : ndarray, shape (H, W), float32
         Sum of the final weights (how many photographs count).
     valid : ndarray, shape (H, W), bool
-        Where a normal was read: False where the PTM is flat (:data:`ptmcore.normals.FLAT`:
-        all samples clipped or black, or one value under every light) or gives no normal
-        facing the camera, and the normal is (0, 0, 1).
+        Where a normal was read: False where the samples are all within
+        :data:`ptmcore.normals.FLAT` of the brightest (all clipped or black, or one value under
+        every light), the PTM is flat or it gives no normal facing the camera, and the normal
+        is (0, 0, 1).
     """
 
     ptm: PTM
@@ -278,6 +292,10 @@ def robust_ptm(
         plain = [blocked_matmul(basis.u.T, v).astype(np.float64),
                  np.broadcast_to(plain_z, (basis.rank, v.shape[1]))]
         (c, cz), ok = weighted_fit(basis, v, weights, plain, _PTM_SINGULAR)
+        # And where the samples are all the same, whose weighted fit would have a shape of
+        # rounding only (the plain fit's is the sums' rounding, flat).
+        same = _same_samples(v)
+        ok &= ~same
         c = np.where(ok, c, plain[0])
         cz = np.where(ok, cz, plain[1])
         shading = blocked_matmul(lights.dirs, unit)
@@ -299,7 +317,7 @@ def robust_ptm(
         q = blocked_matmul(basis.back, cz)
         coef[r0:r1] = a.T.reshape(r1 - r0, w, 6)
         hemi[r0:r1] = q.T.reshape(r1 - r0, w, 6)
-        unit, good = _debiased(a, q)
+        unit, good = _debiased(a, q, same)
         nout[r0:r1] = unit.T.reshape(r1 - r0, w, 3)
         valid[r0:r1] = good.reshape(r1 - r0, w)
         used[r0:r1] = weights.sum(axis=0).reshape(r1 - r0, w)

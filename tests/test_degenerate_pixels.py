@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from ptmcore.normals import FLAT
+from ptmcore.normals import FLAT, normals_from_ptm, ptm_maximum
 from ptmcore.robustptm import debiased_normals, robust_ptm
 
 from helpers import dome, stack_from_luminance
@@ -40,6 +40,10 @@ def test_no_direction_no_normal_in_both_paths(n, seed, level, kind, method):
         outside[box] = False
         assert fit.valid[outside].all()
         assert np.isfinite(fit.ptm.coefficients).all()  # the PTM is kept, for relighting
+        # The plain fit stands in there: flat, so its plain maximum gives no normal either.
+        valid = np.ones(fit.valid.shape, bool)
+        assert (normals_from_ptm(fit.ptm.coefficients, valid=valid)[box] == _UP).all()
+        assert not valid[box].any()
 
 
 _level = st.floats(1e-6, 1e6)
@@ -49,14 +53,19 @@ _level = st.floats(1e-6, 1e6)
 @given(level=_level, sign=st.sampled_from([1.0, -1.0]), shape=st.lists(st.floats(-1.0, 1.0), min_size=5, max_size=5),
        relative=st.floats(0.0, 0.99))
 def test_a_flat_ptm_at_any_scale_gives_no_normal(level, sign, shape, relative):
-    # Shape coefficients at most FLAT × |a5|: rounding's, whatever their signs (the kernel and
+    # |a0| + … + |a4| at most FLAT × |a5|: rounding's, whatever their signs (the kernel and
     # the NumPy steps had read opposite normals from such noise).
-    a = np.array([*(np.array(shape) * relative * FLAT * level), sign * level])
+    a = np.array([*(np.array(shape) * relative * FLAT * level / 5), sign * level])
     q = np.array([-0.3, -0.3, 0.0, 0.0, 0.0, 0.9])
     valid = np.empty((1,), bool)
     normal = debiased_normals(a[None], q, valid=valid)
     assert not valid[0]
     assert (normal[0] == _UP).all()
+    # The plain maximum too: at (0, 0), where rounding had put it anywhere on the rim.
+    valid = np.empty((1, 1), bool)
+    assert (normals_from_ptm(a[None, None], valid=valid) == _UP).all() and not valid.any()
+    lu, lv, interior = ptm_maximum(a)
+    assert lu == 0 and lv == 0 and not interior
 
 
 @settings(max_examples=40, deadline=None)
@@ -76,6 +85,10 @@ def test_the_rule_is_relative_to_the_level(level, tilt, scale):
 def test_an_all_zero_ptm_gives_no_normal():
     valid = np.ones((2, 3), bool)
     normals = debiased_normals(np.zeros((2, 3, 6), np.float32), np.zeros(6), valid=valid)
+    assert not valid.any()
+    assert (normals == _UP).all()
+    valid[:] = True
+    normals = normals_from_ptm(np.zeros((2, 3, 6), np.float32), valid=valid)  # was (1, 0, 0)
     assert not valid.any()
     assert (normals == _UP).all()
 
