@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 from ptm_samples import jpeg_ptm, lrgb_bytes, rgb_bytes, sample_files, smooth_codes
 from ptmcore.errors import InputError
 from ptmcore.ptmfile import read_ptm
+from ptmcore.ptmheader import HeaderCursor
 from ptmcore.rtifile import read_rti_hsh
 
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -309,11 +310,19 @@ def forged_rti(draw) -> bytes:
     return f"#HSH1.2\n3\n{width} {height} 3\n{terms} 2 1\n".encode() + draw(st.binary(max_size=2000))
 
 
-def _payload_start(data: bytes, lines: int) -> int:
-    at = 0
-    for _ in range(lines):
-        at = data.index(b"\n", at) + 1
-    return at
+def _ptm_payload_start(data: bytes) -> int:
+    """Where a raw PTM's payload starts, its header read as the reader reads it (its numbers
+    may be spread over lines)."""
+    cur = HeaderCursor(data, Path("x.ptm"))
+    cur.line("version"), cur.line("format"), cur.ints(2, "size"), cur.floats(12, "scales and biases")
+    return cur.end_header()
+
+
+def _rti_payload_start(data: bytes) -> int:
+    """Where an RTI's scales start: after its comment lines and three lines of numbers."""
+    lines = data.split(b"\n")
+    comments = next(i for i, line in enumerate(lines) if not line.startswith(b"#"))
+    return sum(len(line) + 1 for line in lines[: comments + 3])
 
 
 def _check_ptm(ptm, data: bytes) -> None:
@@ -324,14 +333,13 @@ def _check_ptm(ptm, data: bytes) -> None:
     assert (ptm.rgb is None) == (ptm.coefficients.ndim == 4)
     assert ptm.coefficients.dtype == np.float32
     if "JPEG" not in ptm.format:
-        assert len(data) == _payload_start(data, 6) + h * w * (18 if ptm.format == "PTM_FORMAT_RGB" else 9)
+        assert len(data) == _ptm_payload_start(data) + h * w * (18 if ptm.format == "PTM_FORMAT_RGB" else 9)
 
 
 def _check_rti(rti, data: bytes) -> None:
     k = rti.order ** 2
     assert rti.coefficients.shape == (rti.height, rti.width, 3, k)
-    start = _payload_start(data, data.count(b"#", 0, data.index(b"\n3\n") + 1) + 3)
-    assert len(data) == start + 8 * k + rti.width * rti.height * 3 * k
+    assert len(data) == _rti_payload_start(data) + 8 * k + rti.width * rti.height * 3 * k
 
 
 @FUZZ
