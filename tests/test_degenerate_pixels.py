@@ -94,7 +94,7 @@ def test_an_all_zero_ptm_gives_no_normal():
 
 
 @pytest.mark.parametrize("compiled", [True, False])
-def test_samples_on_the_edge_of_flat_are_read(compiled):
+def test_a_dim_shaded_pixel_is_read(compiled):
     # One 16-bit code of variation in a pixel's shading is 1.5e-5 of full scale, and real
     # shading varies by far more: a dim but shaded pixel keeps its normal.
     stack, dirs, box = _capture(24, 3, 0.5, "constant")
