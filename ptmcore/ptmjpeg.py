@@ -23,16 +23,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .decoders import JPEG_PIXELS_PER_BYTE
 from .errors import InputError
 from .ptmheader import HeaderCursor
 
 __all__ = ["read_jpeg_planes"]
-
-#: Largest plausible decompressed/compressed size ratio of one JPEG plane. A baseline JPEG needs
-#: at least ~2 bits per 8×8 block (a DC code and an end-of-block code), i.e. a ratio of 256 at
-#: most; the slack leaves room for arithmetic coding while still refusing, before anything is
-#: allocated, a header that claims a gigapixel plane for a few bytes.
-_JPEG_MAX_RATIO = 1024
 
 
 def _decode_gray_jpeg(stream: bytes, width: int, height: int, plane: int, path: Path) -> np.ndarray:
@@ -118,7 +113,9 @@ def read_jpeg_planes(cur: HeaderCursor, n: int, width: int, height: int) -> tupl
             raise InputError(
                 f"plane {p}: side-information size {side[p]} is not a multiple of 5 bytes", path
             )
-        if width * height > max(1 << 20, _JPEG_MAX_RATIO * sizes[p]):
+        # A plane's pixels the photographs' rule for JPEG allows its compressed bytes: a header
+        # claiming a gigapixel plane for a few bytes is refused before anything is allocated.
+        if width * height > JPEG_PIXELS_PER_BYTE * sizes[p]:
             raise InputError(
                 f"plane {p}: {width}×{height} pixels cannot come from {sizes[p]} compressed bytes",
                 path,

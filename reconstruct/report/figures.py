@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.decoders import MAX_EXPANSION
 from ptmcore.errors import InputError, open_input_file
 from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
 from ptmcore.png import encode_png
@@ -291,12 +292,6 @@ def relit_lambertian(
             for label, az, el in RELIGHT_LIGHTS]
 
 
-#: The most decoded bytes per stored byte believed of a TIFF that cannot be mapped: LZW and
-#: Deflate reach a few thousand on constant data; a header that claims more describes data the
-#: file cannot hold, and is refused before memory is allocated for it.
-TIFF_MAX_RATIO = 4096
-
-
 def map_array(path: str | os.PathLike) -> np.ndarray:
     """A ``.npy`` or uncompressed TIFF array as a read-only memory map (nothing is read until
     it is sliced); a file that cannot be mapped (a compressed or tiled TIFF) is read whole.
@@ -344,7 +339,8 @@ def _tiff_array(f, stored: int, name: str) -> tuple[np.ndarray | None, str | Non
                 # A mapping longer than the file is refused by mmap: a lying header allocates nothing.
                 return np.memmap(f, dtype, "r", series.dataoffset, shape, "C"), None
             claimed = math.prod(shape) * dtype.itemsize
-            if claimed > TIFF_MAX_RATIO * stored:
+            # A compressed TIFF expands at most MAX_EXPANSION times, as a photograph's does.
+            if claimed > MAX_EXPANSION * stored:
                 return None, (f"its header claims a {'×'.join(map(str, shape))} image of {dtype} "
                               f"({claimed:,} bytes) that {stored:,} bytes cannot hold")
             return tif.asarray(), None
