@@ -208,7 +208,8 @@ def _ply_claim(data: bytes) -> tuple[str, int] | None:
             kind = words[2] if words[1] == b"list" else words[1]
             elements[-1][2] += _PLY_SIZES.get(kind.decode("ascii", "replace"), 1) if binary else 2
     need = start + sum(count * size for _, count, size in elements)
-    return ", ".join(f"{count:,} {name}" for name, count, _ in elements), need
+    plural = {"vertex": "vertices", "face": "faces", "edge": "edges"}
+    return ", ".join(f"{count:,} {plural.get(name, repr(name) + ' elements')}" for name, count, _ in elements), need
 
 
 def _stl_claim(data: bytes) -> tuple[str, int] | None:
