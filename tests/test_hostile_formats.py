@@ -426,6 +426,13 @@ def test_scan_headers_claiming_more_than_the_file_holds_are_refused(tmp_path):
         with pytest.raises(InputError, match="its header claims .* but the file holds") as info:
             load_geometry(path)
         assert info.value.path == str(path), name
+    # Files at the edge of what their headers need are read: one-digit values without a last
+    # line end, a text STL after white space (no binary triangle count).
+    (tmp_path / "edge.ply").write_bytes(_ply(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 1]]))[:-1])
+    (tmp_path / "edge.stl").write_bytes(b"  solid t\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\n"
+                                        b"vertex 1 0 0\nvertex 0 1 1\nendloop\nendfacet\nendsolid t\n" + b" " * 40)
+    for name in ("edge.ply", "edge.stl"):
+        assert len(load_geometry(tmp_path / name).points) == 3, name
 
 
 def test_special_scan_files_are_refused_without_blocking(tmp_path):

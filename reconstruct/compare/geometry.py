@@ -193,7 +193,7 @@ def _header_lines(data: bytes, end: bytes) -> tuple[list[list[bytes]], int] | No
 
 def _ply_claim(data: bytes) -> tuple[str, int] | None:
     """What a PLY header's elements need at the least: a binary property's bytes (a list's
-    count), 2 bytes a text one ("0 ")."""
+    count), 2 bytes a text one ("0 ", the last one's line end optional)."""
     header = _header_lines(data, b"end_header")
     if header is None:
         return None
@@ -207,14 +207,15 @@ def _ply_claim(data: bytes) -> tuple[str, int] | None:
         elif words[:1] == [b"property"] and len(words) > 2 and elements:
             kind = words[2] if words[1] == b"list" else words[1]
             elements[-1][2] += _PLY_SIZES.get(kind.decode("ascii", "replace"), 1) if binary else 2
-    need = start + sum(count * size for _, count, size in elements)
+    # A text file's last value may lack its line end.
+    need = start + sum(count * size for _, count, size in elements) - (not binary)
     plural = {"vertex": "vertices", "face": "faces", "edge": "edges"}
     return ", ".join(f"{count:,} {plural.get(name, repr(name) + ' elements')}" for name, count, _ in elements), need
 
 
 def _stl_claim(data: bytes) -> tuple[str, int] | None:
     """A binary STL's triangles, 50 bytes each after an 84-byte header (a text STL has no count)."""
-    if data[:5].lower() == b"solid" or len(data) < 84:
+    if data.lstrip()[:5].lower() == b"solid" or len(data) < 84:
         return None
     (count,) = struct.unpack_from("<I", data, 80)
     return f"{count:,} triangles", 84 + 50 * count
