@@ -67,6 +67,7 @@ __all__ = [
     "FORMAT_RGB",
     "PTMFile",
     "check_coefficient_values",
+    "check_memory",
     "quantization_parameters",
     "quantize",
     "read_ptm",
@@ -281,6 +282,31 @@ def _information(coef: np.ndarray, rgb: np.ndarray | None, scale: np.ndarray, pa
     return [str(InputError(problem, path)) for problem in found]
 
 
+#: Reads that allocate more than this ask how much memory is left first (smaller ones always fit
+#: beside a run's own bound), as a photograph's decoding does (:mod:`ptmcore.decoders`).
+ASK_MEMORY_BYTES = 256 << 20
+
+
+def check_memory(nbytes: int, width: int, height: int, path: Path) -> None:
+    """Refuse, before allocating, a read of ``nbytes`` that the memory left cannot hold.
+
+    Shared with :mod:`ptmcore.rtifile`.
+
+    Raises
+    ------
+    InputError
+        If ``nbytes`` is more than :func:`ptmcore.resources.available_memory_mb`.
+    """
+    if nbytes <= ASK_MEMORY_BYTES:
+        return
+    from .resources import available_memory_mb
+
+    free = available_memory_mb()
+    if nbytes > free * 2**20:
+        raise InputError(f"reading its {width}×{height} pixels takes {nbytes / 2**20:,.0f} MiB, more than the "
+                         f"{free:,.0f} MiB of memory available", path)
+
+
 def _every(raw: np.ndarray, stride: int) -> np.ndarray:
     """A view of every ``stride``-th row and column of ``(H, W, ...)`` bytes stored bottom row
     first, counted from the top row (``image[::stride, ::stride]`` of the top-first image), still
@@ -356,8 +382,13 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
 
     npix = width * height
     stride = 1 if max_side is None else max(1, math.ceil(max(width, height) / max_side))
+    # The decoded arrays: float32 coefficients (three sets for the RGB formats) and the colours
+    # of the subsample; a JPEG PTM's planes are decoded whole first, one more for the plane in hand.
+    rgb_formats = fmt in (FORMAT_RGB, FORMAT_JPEG_RGB)
+    decoded = math.ceil(height / stride) * math.ceil(width / stride) * (72 if rgb_formats else 27)
     quality = None
     if fmt in _JPEG_PLANES:
+        check_memory(decoded + (_JPEG_PLANES[fmt] + 1) * npix, width, height, path)
         planes, quality = read_jpeg_planes(cur, _JPEG_PLANES[fmt], width, height)
         if fmt == FORMAT_JPEG_LRGB:
             found = _information(np.moveaxis(planes[:6], 0, -1), np.moveaxis(planes[6:9], 0, -1), scale, path)
@@ -391,6 +422,7 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
                 f"follow the {need} a {width}×{height} {fmt} has; the file is damaged",
                 path,
             )
+        check_memory(decoded, width, height, path)
         if fmt == FORMAT_RGB:
             raw = np.frombuffer(data, np.uint8, need, start).reshape(3, height, width, 6)
             found = _information(raw, None, scale, path)

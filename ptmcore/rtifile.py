@@ -51,7 +51,7 @@ from .atomic import atomic_write
 from .errors import InputError, read_input_file
 from .hsh import ORDERS, hsh_basis
 from .ptmencoded import EncodedFit
-from .ptmfile import check_coefficient_values
+from .ptmfile import check_coefficient_values, check_memory
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -315,6 +315,7 @@ def read_rti_hsh(path: str | os.PathLike) -> RTIFile:
             f"the {need} an HSH of that size and {terms} terms has; the file is damaged",
             path,
         )
+    check_memory(width * height * 3 * terms * 4, width, height, path)
     scale = np.frombuffer(data, "<f4", terms, pos).astype(np.float32)
     bias = np.frombuffer(data, "<f4", terms, pos + 4 * terms).astype(np.float32)
     if not (np.all(np.isfinite(scale)) and np.all(np.isfinite(bias))):

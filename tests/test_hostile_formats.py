@@ -215,6 +215,21 @@ def _at_once(call, fifos=()):
     return outcome[0]
 
 
+def test_a_ptm_or_rti_larger_than_the_memory_left_is_refused_before_allocating(tmp_path, monkeypatch):
+    """As a photograph's decoding does: the decoded arrays are weighed against the memory left
+    (every read asks, here, and one byte is left)."""
+    import ptmcore.ptmfile
+    import ptmcore.resources
+
+    monkeypatch.setattr(ptmcore.ptmfile, "ASK_MEMORY_BYTES", 0, raising=False)
+    monkeypatch.setattr(ptmcore.resources, "available_memory_mb", lambda: 2.0**-20)
+    for name, data in (("a.ptm", _PTM_SEEDS["lrgb"]), ("b.ptm", _PTM_SEEDS["jpeg_rgb"]), ("c.rti", _RTI_SEED)):
+        path = tmp_path / name
+        path.write_bytes(data)
+        with pytest.raises(InputError, match=r"takes 0 MiB, more than the 0 MiB of memory available"):
+            (read_rti_hsh if name.endswith(".rti") else read_ptm)(path)
+
+
 def _refused_at_once(read, path, match: str) -> None:
     """``read(path)`` raises an InputError naming ``path`` and matching ``match``, at once."""
     with pytest.raises(InputError, match=match) as info:
