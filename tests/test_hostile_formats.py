@@ -473,6 +473,24 @@ def test_a_scan_names_no_file_that_is_opened(tmp_path):
     assert geometry.is_mesh and len(geometry.points) == 3
 
 
+def test_a_text_scan_is_read_within_a_few_times_its_size(tmp_path):
+    """x y z text is parsed into one array, not a Python object per number (ten times the
+    file's size): what reading allocates stays within four times the file."""
+    from reconstruct.compare import load_geometry
+
+    points = np.random.default_rng(6).uniform(0, 50, (40000, 3))
+    path = tmp_path / "scan.csv"
+    path.write_text("x,y,z,intensity\r\n" + "".join(f"{x:.4f},{y:.4f},{z:.4f},7\r\n" for x, y, z in points))
+    tracemalloc.start()
+    try:
+        geometry = load_geometry(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    np.testing.assert_allclose(geometry.points, points, atol=1e-4)
+    assert peak <= 4 * path.stat().st_size, peak / path.stat().st_size
+
+
 def _reconstruction_mesh(tmp_path) -> Path:
     import trimesh
 

@@ -261,34 +261,50 @@ def _pcd_claim(data: bytes) -> tuple[str, int] | None:
 _NUMBER = re.compile(rb"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*$")
 
 
+#: A text cloud's separators, read as spaces; a lone CR (old Mac OS line ends) ends a line.
+_TEXT_SEPARATORS = bytes.maketrans(b",;\t\r", b"   \n")
+_BLANK_LINE = re.compile(rb"^ *$", re.MULTILINE)
+
+
 def _read_text_points(data: bytes, path: Path, *, skip_count_line: bool) -> np.ndarray:
-    """x, y, z of a whitespace- or comma-separated text file's bytes, skipping header lines."""
-    lines = data.splitlines()
-    start = 0
-    if skip_count_line:
-        first = lines[0].strip() if lines else b""
-        if not _NUMBER.match(first):
-            raise InputError("a PTS file must start with the number of points", path)
-        start = 1
-    # Header lines are whatever precedes the first line that starts with three numbers.
-    while start < len(lines) and not _starts_with_xyz(lines[start]):
-        if lines[start].strip() and start > 50:
-            raise InputError("no lines of x y z numbers found", path)
-        start += 1
-    body = b"\n".join(line for line in lines[start:] if line.strip())
-    if not body:
-        raise InputError("contains no points", path)
-    # One parse of the whole body: commas become spaces, so both layouts read alike.
-    text = body.replace(b",", b" ").replace(b";", b" ").replace(b"\t", b" ")
-    rows = text.split(b"\n")
-    n_cols = len(rows[0].split())
+    """x, y, z of a whitespace- or comma-separated text file's bytes, skipping header lines.
+
+    The numbers are parsed in one pass into one array: a list of every field as a Python
+    object took ten times the file's size.
+    """
+    text = data.translate(_TEXT_SEPARATORS)
+    start = _first_xyz_line(text, path, skip_count_line=skip_count_line)
+    end = text.find(b"\n", start)
+    n_cols = len(text[start : end if end >= 0 else len(text)].split())
+    rows = text.count(b"\n", start) + 1 - sum(1 for _ in _BLANK_LINE.finditer(text, start))
+    body = text[start:]
+    del text
     try:
-        values = np.array(text.split(), dtype=np.float64)
+        values = np.fromstring(body, sep=" ")
     except ValueError:
         raise InputError("contains a line that is not numbers", path) from None
-    if values.size != n_cols * len(rows):
+    if values.size != n_cols * rows:
         raise InputError("lines have different numbers of columns", path)
-    return values.reshape(len(rows), n_cols)[:, :3]
+    return values.reshape(rows, n_cols)[:, :3]
+
+
+def _first_xyz_line(text: bytes, path: Path, *, skip_count_line: bool) -> int:
+    """Where the first line that starts with three numbers begins: the lines before it are a
+    header (after a PTS file's count of points)."""
+    pos = index = 0
+    while pos < len(text):
+        end = text.find(b"\n", pos)
+        end = len(text) if end < 0 else end
+        line = text[pos:end]
+        if index == 0 and skip_count_line:
+            if not _NUMBER.match(line.strip()):
+                raise InputError("a PTS file must start with the number of points", path)
+        elif _starts_with_xyz(line):
+            return pos
+        elif line.strip() and index > 50:
+            raise InputError("no lines of x y z numbers found", path)
+        pos, index = end + 1, index + 1
+    raise InputError("contains no points", path)
 
 
 def _starts_with_xyz(line: bytes) -> bool:
