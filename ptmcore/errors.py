@@ -83,6 +83,8 @@ def open_input_file(path: str | os.PathLike, what: str) -> BinaryIO:
     try:
         fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
     except FileNotFoundError:
+        if os.path.islink(path):
+            raise InputError(f"is a symbolic link to {os.readlink(path)!r}, which does not exist", path) from None
         raise InputError(f"{what} not found", path) from None
     except IsADirectoryError:
         raise InputError(f"is a folder, not a {what}", path) from None

@@ -359,10 +359,10 @@ def check_content(stack: ImageStack, grid: int = 256) -> None:
     same = []
     for p, s in zip(stack.paths, sample):
         key = s.tobytes()
-        if key in seen:
+        # A photograph the .lp lists twice is the same file, not a copy (the .lp reader warns).
+        if key in seen and seen[key] != p:
             same.append(f"{p.name} = {seen[key].name}")
-        else:
-            seen[key] = p
+        seen.setdefault(key, p)
     if len(seen) == 1:
         raise InputError(f"all {n} photographs are identical: the light must move between them", where)
     if same:
