@@ -308,6 +308,8 @@ def _cmd_relight(args: argparse.Namespace) -> int:
             raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
     resolve_output(args.output)
     ptm = load_source(args.source, args.basis)
+    for w in getattr(ptm, "warnings", ()):  # a .ptm of little use (PTMFile.warnings); an .rti has none
+        print(f"  warning: {w}", file=sys.stderr)
     # Every image a person sees is display-encoded: a file of linear light is encoded here.
     linear = holds_linear_light(args.source)
     try:

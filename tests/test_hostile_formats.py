@@ -665,3 +665,21 @@ def test_the_viewer_reads_a_meshs_textures_only_as_png_or_jpeg(tmp_path, monkeyp
     texture.unlink()
     Image.fromarray(np.full((4, 4, 3), 200, np.uint8)).save(texture)
     assert np.all(load_scene(tmp_path / "m.obj").albedo == 200)
+
+
+def test_a_dull_ptms_warnings_reach_the_run_and_relight(tmp_path):
+    """PTMFile.warnings are shown where a person reads a .ptm: run's report and relight's stderr."""
+    import json
+
+    from reconstruct.pipeline.run import run_ptm
+
+    codes, rgb = _codes()
+    codes[..., :5] = 77
+    path = tmp_path / "dull.ptm"
+    path.write_bytes(lrgb_bytes(codes, rgb, SCALE, BIAS))
+    run_ptm(path, tmp_path / "out")
+    warnings = json.loads((tmp_path / "out" / "report.json").read_text())["warnings"]
+    assert any("a0–a4" in w and str(path) in w for w in warnings)
+    proc = _cli("relight", str(path), "-o", str(tmp_path / "r.png"), "--light", "0.3,0.2,0.93")
+    assert proc.returncode == 0, proc.stderr
+    assert "warning:" in proc.stderr and "a0–a4" in proc.stderr

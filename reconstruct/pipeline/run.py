@@ -341,6 +341,7 @@ def run_ptm(
     with Stages(progress) as stages, staged_output(output) as staged, FileWriter(opt.threads) as writer:
         with stages("decode"):
             ptm = read_ptm(ptm_path)
+        warnings += ptm.warnings
         h, w = ptm.coefficients.shape[:2]
         mask = read_mask(opt.mask, (h, w), "the PTM") if opt.mask is not None and opt.mask != "auto" else None
         with stages("normals", h):
