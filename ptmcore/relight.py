@@ -226,6 +226,11 @@ def display_srgb(image: np.ndarray) -> np.ndarray:
     return table[np.asarray(image, dtype=np.uint8)]
 
 
+#: The largest value of each relighting parameter: far past RTIViewer's sliders (kd, ks up to
+#: 1, exponent 150, gain 10), where the image is already white or one highlight.
+PARAMETER_BOUNDS = {"kd": 100.0, "ks": 100.0, "exponent": 10_000.0, "gain": 1000.0}
+
+
 def check_parameters(*, kd: float | None = None, ks: float | None = None, exponent: float | None = None,
                      gain: float | None = None) -> None:
     """Check the parameters of :func:`specular_enhancement` and :func:`diffuse_gain` given.
@@ -236,13 +241,18 @@ def check_parameters(*, kd: float | None = None, ks: float | None = None, expone
     Raises
     ------
     ValueError
-        For the first one that is not a finite number ≥ 0 (``gain``: > 0).
+        For the first one that is not a number from 0 to its bound (:data:`PARAMETER_BOUNDS`;
+        ``gain`` above 0): beyond them every pixel saturates, or the arithmetic overflows.
     """
-    for name, value in (("kd", kd), ("ks", ks), ("exponent", exponent)):
-        if value is not None and not (math.isfinite(float(value)) and float(value) >= 0.0):
-            raise ValueError(f"{name} must be a non-negative number, not {value}")
-    if gain is not None and not (math.isfinite(float(gain)) and float(gain) > 0.0):
-        raise ValueError(f"gain must be a positive number, not {gain}")
+    for name, value in (("kd", kd), ("ks", ks), ("exponent", exponent), ("gain", gain)):
+        if value is None:
+            continue
+        top = PARAMETER_BOUNDS[name]
+        value = float(value)
+        low_ok = value > 0.0 if name == "gain" else value >= 0.0
+        if not (math.isfinite(value) and low_ok and value <= top):
+            low = "above 0" if name == "gain" else "from 0"
+            raise ValueError(f"{name} must be a number {low} to {top:g}, not {value:g}")
 
 
 def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN, *,
