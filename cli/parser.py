@@ -485,7 +485,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="with --flatten highpass (needs it): the wavelength in pixels that keeps half its height, "
                    "%g to %g (default 200)" % BOUNDS["flatten_cutoff"])
     p.add_argument("--no-linearize", dest="linearize", action="store_false", help="take 8-bit photographs as linear instead of sRGB")
-    p.add_argument("--threads", type=_positive_int,
+    p.add_argument("--threads", type=_whole(1, 1024),
                    help="threads for decoding, the per-pixel fits, the integration and writing files (default: every CPU "
                         "this process may use: its affinity and its container's CPU quota)")
     p.add_argument("--memory-limit", type=_positive_float, metavar="MB",

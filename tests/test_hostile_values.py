@@ -304,7 +304,7 @@ OPTIONS = [
     ("run {missing} -o {out} --intrinsics 100,100,{v},12", _real_in(-1e6, 1e6)),
     ("run {missing} -o {out} --decimate {v}", _whole_in(1)),
     ("run {missing} -o {out} --max-error {v}", _real_in(0, math.inf, open_low=True)),
-    ("run {missing} -o {out} --threads {v}", _whole_in(1)),
+    ("run {missing} -o {out} --threads {v}", _whole_in(1, 1024)),
     ("run {missing} -o {out} --memory-limit {v}", _real_in(0, math.inf, open_low=True)),
     ("integrate {missing} -o {out} --pixel-size {v}", _real_in(1e-6, 1e4)),
     ("integrate {missing} -o {out} --step {v}", _whole_in(1, 100_000)),

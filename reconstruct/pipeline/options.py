@@ -77,6 +77,9 @@ BOUNDS: dict[str, tuple[float, float]] = {
     # side nothing is removed, and the Gaussian's kernel grows with it (1e300 cannot be
     # allocated).
     "flatten_cutoff": (2, 100_000),
+    # Threads: a thread pool of 1e12 cannot be started; a thousand is more than any machine's
+    # cores that one run would use.
+    "threads": (1, 1024),
     # Comparison distances, mm: a nanometre (below any scanner's resolution) to a kilometre.
     "tolerance": (1e-6, 1e6),
     "max_distance": (1e-6, 1e6),
@@ -320,6 +323,7 @@ class RunOptions:
         _within(self, "solid", "height units")
         _within(self, "step", "pixels")
         _within(self, "flatten_cutoff", "pixels")
+        _within(self, "threads", "threads")
         _positive(self, "max_error", "memory_limit")
         if self.decimate is not None and self.max_error is not None:
             raise InputError("give either a triangle count to decimate to or a maximum error, not both")
