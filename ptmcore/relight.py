@@ -251,8 +251,8 @@ def check_parameters(*, kd: float | None = None, ks: float | None = None, expone
         value = float(value)
         low_ok = value > 0.0 if name == "gain" else value >= 0.0
         if not (math.isfinite(value) and low_ok and value <= top):
-            low = "above 0" if name == "gain" else "from 0"
-            raise ValueError(f"{name} must be a number {low} to {top:g}, not {value:g}")
+            within = f"above 0, at most {top:g}" if name == "gain" else f"from 0 to {top:g}"
+            raise ValueError(f"{name} must be a number {within}, not {value:g}")
 
 
 def diffuse_gain(coefficients: np.ndarray, gain: float = DEFAULT_GAIN, *,

@@ -113,3 +113,8 @@ def bmp_header(path, width: int, height: int) -> None:
 
     info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
     path.write_bytes(b"BM" + struct.pack("<IHHI", 54 + 16, 0, 0, 54) + info + b"\0" * 16)
+
+
+def tree(*folders) -> list[tuple[str, int, int]]:
+    """Every path under ``folders`` with its size and modification time."""
+    return sorted((str(p), p.stat().st_size, p.stat().st_mtime_ns) for f in folders for p in f.rglob("*"))

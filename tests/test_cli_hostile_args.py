@@ -14,7 +14,7 @@ from reconstruct.cli.main import main
 from reconstruct.cli.parser import build_parser
 from reconstruct.pipeline.options import BOUNDS, CompareOptions, RunOptions
 
-from helpers import dome, sphere_normals
+from helpers import dome, run_cli as _call, sphere_normals, tree as _tree
 
 H, W = 24, 32
 
@@ -38,21 +38,6 @@ def shared(tmp_path_factory) -> dict[str, Path]:
     result = root / "result"
     assert main(["run", str(cap), "-o", str(result), "-q"]) == 0
     return {"cap": cap, "lp": cap / "lights.lp", "npy": root / "normals.npy", "res": result, "root": root}
-
-
-def _call(argv: list, capsys) -> tuple[int, str, str]:
-    """The command in-process; argparse's errors (SystemExit) give their status too."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _tree(*folders: Path) -> list[tuple[str, int, int]]:
-    """Every path under ``folders`` with its size and modification time."""
-    return sorted((str(p), p.stat().st_size, p.stat().st_mtime_ns) for f in folders for p in f.rglob("*"))
 
 
 # {cap}: capture folder, {lp}: its .lp, {npy}: a normal map, {res}: a run's result, {out}: a
@@ -99,11 +84,11 @@ BAD = [
     (["relight", "{res}", "--sweep", "4", "--light", "0,0,1", "-o", "{out}"], ["--sweep", "--light"]),
     # rendering parameters are checked before the source is read (an .lp is no source)
     (["relight", "{lp}", "--light", "0,0,1", "--mode", "specular", "--kd", "-1", "-o", "{out}"],
-     ["--kd must be a non-negative number, not -1"]),
+     ["--kd must be a number from 0 to 100, not -1"]),
     (["relight", "{lp}", "--sweep", "4", "--mode", "specular", "--exponent", "nan", "-o", "{out}"],
-     ["--exponent must be a non-negative number, not nan"]),
+     ["--exponent must be a number from 0 to 10000, not nan"]),
     (["relight", "{lp}", "--light", "0,0,1", "--mode", "diffuse-gain", "--gain", "0", "-o", "{out}"],
-     ["--gain must be a positive number, not 0"]),
+     ["--gain must be a number above 0, at most 1000, not 0"]),
     (["relight", "{res}", "--sweep", "4", "--azimuth", "-30", "-o", "{out}"], ["--sweep", "--azimuth"]),
     # negative numbers reach the option's own check, which names it
     (["relight", "{res}", "--light", "-0.7,0,0.71,1", "-o", "{out}"], ["--light must be three numbers"]),

@@ -27,6 +27,8 @@ from ptmcore.ptmfile import read_ptm
 from ptmcore.ptmheader import HeaderCursor
 from ptmcore.rtifile import read_rti_hsh
 
+from test_fuzz_readers import mutated
+
 FUZZ = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 SCALE = [0.5, 0.5, 0.25, 0.5, 0.25, 1.0]
 BIAS = [167, 97, 0, 0, 0, 0]
@@ -281,24 +283,9 @@ _RTI_SEED = _rti_seed()
 
 
 def damaged(good: bytes, header: int = 200) -> st.SearchStrategy[bytes]:
-    """A valid file truncated, with single bytes changed (mostly in its header), or with bytes
-    inserted or appended."""
-    n = len(good)
-
-    def changed(edits: list[tuple[int, int]]) -> bytes:
-        data = bytearray(good)
-        for pos, value in edits:
-            data[pos % n] = value
-        return bytes(data)
-
-    position = st.one_of(st.integers(0, min(n, header) - 1), st.integers(0, n - 1))
-    return st.one_of(
-        st.integers(0, n - 1).map(lambda k: good[:k]),
-        st.lists(st.tuples(position, st.integers(0, 255)), min_size=1, max_size=3).map(changed),
-        st.tuples(st.integers(0, n), st.binary(min_size=1, max_size=24)).map(
-            lambda t: good[: t[0]] + t[1] + good[t[0]:]),
-        st.binary(min_size=1, max_size=64).map(lambda tail: good + tail),
-    )
+    """A valid file truncated, with single bytes changed (mostly in its header), with bytes
+    inserted (test_fuzz_readers.mutated), or with bytes appended."""
+    return st.one_of(mutated(good, header), st.binary(min_size=1, max_size=64).map(lambda tail: good + tail))
 
 
 @st.composite

@@ -16,7 +16,7 @@ from ptmcore.errors import InputError
 from ptmcore.lp import write_lp
 from reconstruct.cli.main import main
 
-from helpers import dome, sphere_normals
+from helpers import dome, run_cli as _call, sphere_normals, tree as _tree
 
 H, W = 24, 32
 #: The sphere capture: one black glossy sphere in a 160×120 frame.
@@ -47,21 +47,6 @@ def shared(tmp_path_factory) -> dict[str, Path]:
     render_sphere_capture(spheres, shape=SPHERE_SHAPE, n_lights=8, spheres=(SPHERE,), seed=0)
     (spheres / "truth.lp").unlink()  # the photographs only
     return {"res": result, "spheres": spheres, "root": root}
-
-
-def _call(argv: list, capsys) -> tuple[int, str, str]:
-    """The command in-process; argparse's errors (SystemExit) give their status too."""
-    try:
-        code = main([str(a) for a in argv])
-    except SystemExit as exc:
-        code = exc.code
-    out = capsys.readouterr()
-    return code, out.out, out.err
-
-
-def _tree(*folders: Path) -> list[tuple[str, int, int]]:
-    """Every path under ``folders`` with its size and modification time."""
-    return sorted((str(p), p.stat().st_size, p.stat().st_mtime_ns) for f in folders for p in f.rglob("*"))
 
 
 def _refused(argv: list, capsys, needles: list[str], *watched: Path) -> None:
