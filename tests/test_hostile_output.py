@@ -10,9 +10,9 @@ import fnmatch
 import importlib
 import os
 import re
-import resource
 import shutil
-import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -150,27 +150,32 @@ def test_demo_on_a_full_disk_leaves_no_half_capture(tmp_path, monkeypatch, capsy
     assert list(tmp_path.iterdir()) == []
 
 
-@pytest.fixture
-def file_size_limit():
-    """Files of this process may grow to 4096 bytes (the kernel's EFBIG, a real write failure
-    wherever it happens: NumPy's ``tofile`` under tifffile reports none of its own)."""
-    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
-    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))
-    try:
-        yield
-    finally:
-        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
-        signal.signal(signal.SIGXFSZ, handler)
+_CUT_SHORT = """
+import resource, signal, sys
+import numpy as np, tifffile
+from ptmcore.atomic import atomic_write
+from ptmcore.errors import InputError
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.getrlimit(resource.RLIMIT_FSIZE)[1]))
+try:
+    with atomic_write(sys.argv[1]) as f:
+        tifffile.imwrite(f, np.zeros((64, 64), np.float32))  # 16 KB through ndarray.tofile
+except InputError as exc:
+    print(exc.path, exc.problem, sep="|")
+"""
 
 
-def test_a_write_the_kernel_cuts_short_is_an_input_error(tmp_path, file_size_limit):
+def test_a_write_the_kernel_cuts_short_is_an_input_error(tmp_path):
+    """Files may grow to 4096 bytes (the kernel's EFBIG, a real write failure wherever it
+    happens: NumPy's ``tofile`` under tifffile reports none of its own). In a child process:
+    the limit would cut the test runner's own output to a file short as well."""
     target = tmp_path / "height.tif"
     target.write_bytes(b"old")
-    with pytest.raises(InputError, match="file too large") as info:
-        with atomic_write(target) as f:
-            tifffile.imwrite(f, np.zeros((64, 64), np.float32))  # 16 KB through ndarray.tofile
-    assert info.value.path == str(target)
+    proc = subprocess.run([sys.executable, "-c", _CUT_SHORT, str(target)], capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    path, problem = proc.stdout.strip().split("|")
+    assert path == str(target) and "file too large" in problem
     assert os.listdir(tmp_path) == ["height.tif"] and target.read_bytes() == b"old"
 
 
