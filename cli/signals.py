@@ -41,12 +41,23 @@ def _quiet(signum: int, frame) -> None:
     os._exit(EXIT_INTERRUPTED)
 
 
+#: Set by the first :func:`_terminate`: the process is removing what it staged and will end.
+_stopping = False
+
+
 def _terminate(signum: int, frame) -> None:
     """SIGTERM (a scheduler's or ``kill``'s stop), or a second Ctrl-C: remove what the runs in
     progress staged and end at once. Not an exception unwinding the stack, as a first Ctrl-C is:
     one raised wherever the main thread happens to be (inside an import, say) can leave a lock
     held and the process hung. Output folders keep their earlier results: they only change by
     one rename."""
+    global _stopping
+    if _stopping:
+        # A further signal while the first one's clean-up runs (two Ctrl-C's at once, or one
+        # landing in the import system that ends the command at once): ending here would leave
+        # that clean-up half-done, a staging folder half-removed. It finishes, then ends.
+        return
+    _stopping = True
     # Looked up, not imported: nothing is staged before the module that stages is imported, and
     # a signal that lands while the main thread imports it would meet it half-made.
     staging = sys.modules.get("reconstruct.pipeline.staging")

@@ -373,6 +373,8 @@ def read_ptm(path: str | os.PathLike, *, max_side: int | None = None) -> PTMFile
     scale = np.array(cur.floats(6, "scales"), dtype=np.float64)
     if not np.all(np.isfinite(scale)) or np.any(np.abs(scale) > 1e30):
         raise InputError(f"scales {scale.tolist()} are not usable numbers", path)
+    if not np.any(scale):  # said from the header, before a payload is read
+        raise InputError("all six scales are 0: every coefficient would be 0 (a black image); the file is damaged", path)
     bias_tokens = cur.floats(6, "biases")
     if any(not math.isfinite(b) or b != int(b) for b in bias_tokens):
         raise InputError(f"biases must be integers, got {bias_tokens}", path)

@@ -125,3 +125,40 @@ def test_two_runs_on_one_folder(capture, tmp_path):
     assert second.returncode == 2, err
     assert len(err.strip().splitlines()) == 1 and "another reconstruct run" in err
     assert _state(out)[1] is False  # the first run's result
+
+
+def test_a_signal_during_the_stop_lets_its_clean_up_finish(tmp_path, monkeypatch):
+    """A second signal that lands while the first one's handler removes the staging folder (two
+    Ctrl-C's at once; CI saw a ``.partial-….abandoned`` folder left behind) returns at once: the
+    first handler's removal is not cut short by the second one ending the process."""
+    from cli import signals
+    from reconstruct.pipeline import staging
+
+    folder = tmp_path / ".out.partial-0123abcd"
+    (folder / "web").mkdir(parents=True)
+    for i in range(20):
+        (folder / "web" / f"plane_{i}.jpg").write_bytes(b"x" * 100)
+    monkeypatch.setattr(staging, "_LIVE", {folder})
+    monkeypatch.setattr(signals, "_stopping", False)
+    monkeypatch.setattr(signals, "interrupted", lambda: signals.EXIT_INTERRUPTED)
+    exits = []
+
+    def fake_exit(status):
+        exits.append(status)
+        raise SystemExit(status)
+
+    monkeypatch.setattr(os, "_exit", fake_exit)
+    real_rmtree = staging.shutil.rmtree
+    nested = []
+
+    def rmtree_hit_by_a_signal(path, *args, **kwargs):
+        if not nested:  # the second Ctrl-C arrives in the middle of the first one's removal
+            nested.append(path)
+            signals._terminate(signal.SIGINT, None)
+        real_rmtree(path, *args, **kwargs)
+
+    monkeypatch.setattr(staging.shutil, "rmtree", rmtree_hit_by_a_signal)
+    with pytest.raises(SystemExit):
+        signals._terminate(signal.SIGINT, None)
+    assert nested and exits == [signals.EXIT_INTERRUPTED]
+    assert list(tmp_path.iterdir()) == []

@@ -117,7 +117,7 @@ def test_varying_bytes_under_zero_scales_are_refused(tmp_path):
     codes, rgb = _codes()
     path = tmp_path / "zero.ptm"
     path.write_bytes(lrgb_bytes(codes, rgb, [0.0] * 6, BIAS))
-    with pytest.raises(InputError, match="every pixel holds the same polynomial"):
+    with pytest.raises(InputError, match="all six scales are 0"):
         read_ptm(path)
 
 
