@@ -8,6 +8,7 @@ on stderr and exit status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import shlex
@@ -408,6 +409,20 @@ def _cmd_lights(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_check(args: argparse.Namespace) -> int:
+    from reconstruct.pipeline.check import check_capture, check_text
+
+    found = check_capture(args.capture, lp=args.lp)
+    print(check_text(found))
+    if args.json is not None:
+        from ptmcore.atomic import atomic_write
+
+        with atomic_write(args.json, "w") as f:
+            json.dump(found.to_dict(), f, indent=2)
+        print(f"Findings: {args.json}")
+    return 0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from data_synthetic import write_capture
     from data_synthetic.capture import check_capture_size
@@ -487,7 +502,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     allow_large_images()
     commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                 "calibrate": _cmd_calibrate, "preview": _cmd_preview,
-                "lights": _cmd_lights, "demo": _cmd_demo}
+                "lights": _cmd_lights, "check": _cmd_check, "demo": _cmd_demo}
     with handlers():
         try:
             return commands[args.command](args)

@@ -183,6 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_compare_command(sub)
     _add_integrate_command(sub)
     _add_lights_command(sub)
+    _add_check_command(sub)
     _add_demo_command(sub)
     _add_preview_command(sub)
     return parser
@@ -351,6 +352,20 @@ def _add_lights_command(sub: argparse._SubParsersAction) -> None:
     lights.add_argument("-o", "--output", type=_path, help="write a polar plot of the lights (PNG)")
 
 
+def _add_check_command(sub: argparse._SubParsersAction) -> None:
+    check = sub.add_parser(
+        "check",
+        help="in seconds, before a long run: what is wrong with a capture (drift, exposure, lights, ...)",
+        description="Look at a capture in a few seconds, from reduced photographs, before a long run: camera "
+        "drift, stray light, clipped or black photographs, exposure differences between photographs, the colour profile and "
+        "the light layout's weak directions. A run's report holds the same findings (drift measured on the full "
+        "photographs). Exit status 0 whatever is found, 2 for a capture that cannot be read.",
+    )
+    check.add_argument("capture", type=_path, help="capture folder (photographs and one .lp file) or an .lp file")
+    check.add_argument("--lp", type=_path, metavar="FILE", help="the light file (default: the one .lp in the folder)")
+    check.add_argument("--json", type=_path, metavar="FILE", help="also write the findings as JSON")
+
+
 def _add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo = sub.add_parser(
         "demo",
@@ -499,6 +514,13 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                    help="near lights: a CSV of light positions (name,x,y,z in pixels) giving every pixel its own "
                         "light direction; auto (default): light_positions.csv beside the .lp, or lights triangulated "
                         "from two or more spheres when they are near; none: distant lights")
+    _choice(p, RunOptions, "align",
+            help="auto: measure the camera's drift (a bumped tripod) and resample photographs displaced by more "
+                 "than a pixel onto the others' frame before fitting (experimental: see BENCHMARKS.md); off "
+                 "(default): neither. `reconstruct check` measures the drift in seconds")
+    p.add_argument("--ambient", type=_path, metavar="FILE",
+                   help="a photograph with the lamps off (the room's light alone, same exposure), subtracted from "
+                        "every photograph")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress display")
 
 

@@ -34,6 +34,8 @@ from .errors import InputError, first_few
 from .lp import MIN_PHOTOGRAPHS
 
 if TYPE_CHECKING:
+    from .align import DriftProbe
+    from .corrections import Corrections
     from .ptmencoded import EncodedFit, EncodedFits
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
@@ -278,6 +280,8 @@ def load_stack(
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",
     on_disk: str | os.PathLike | None = None,
+    corrections: Corrections | None = None,
+    probe: DriftProbe | None = None,
 ) -> ImageStack:
     """Decode a capture's photographs into an :class:`ImageStack`.
 
@@ -305,6 +309,10 @@ def load_stack(
         A folder with room for the stack (N·H·W bytes, twice that as uint16): the stack is then
         a memory-mapped file there, for captures larger than memory
         (:func:`ptmcore.diskstack.disk_array`; the file is never visible in the folder).
+    corrections : Corrections, optional
+        Done to each photograph before it is reduced (:mod:`ptmcore.corrections`).
+    probe : DriftProbe, optional
+        Sees each photograph, to measure the camera's drift (:mod:`ptmcore.align`).
 
     Returns
     -------
@@ -317,7 +325,7 @@ def load_stack(
     """
     return load_stack_and_fits(paths, linearize=linearize, channel_gains=channel_gains,
                                min_photographs=min_photographs, threads=threads, progress=progress,
-                               storage=storage, on_disk=on_disk)[0]
+                               storage=storage, on_disk=on_disk, corrections=corrections, probe=probe)[0]
 
 
 def _check_depths(paths: list[Path], depths: np.ndarray) -> None:
@@ -381,6 +389,8 @@ def load_stack_and_fits(
     progress: Callable[[int], None] | None = None,
     storage: Storage = "uint16",
     on_disk: str | os.PathLike | None = None,
+    corrections: Corrections | None = None,
+    probe: DriftProbe | None = None,
 ) -> tuple[ImageStack, EncodedFits | None]:
     """:func:`load_stack`, and in the same decoding pass the fits viewers' files need.
 
@@ -394,7 +404,7 @@ def load_stack_and_fits(
         and these fits: the results equal :func:`ptmcore.ptmencoded.fit_ptm_encoded`,
         :func:`~ptmcore.ptmencoded.fit_ptm_rgb_encoded` and :func:`ptmcore.rtifile.fit_rti_hsh`
         of the files, bit for bit.
-    linearize, channel_gains, min_photographs, threads, progress, storage, on_disk
+    linearize, channel_gains, min_photographs, threads, progress, storage, on_disk, corrections, probe
         As :func:`load_stack`.
 
     Returns
@@ -427,7 +437,8 @@ def load_stack_and_fits(
     if fit is not None:
         fit.matrices(len(paths))  # bad directions fail before any photograph is decoded
     done = reduce_photographs(paths, linearize=linearize, channel_gains=channel_gains, storage=storage,
-                              fit=fit, threads=threads, progress=progress, on_disk=on_disk)
+                              fit=fit, threads=threads, progress=progress, on_disk=on_disk,
+                              corrections=corrections, probe=probe)
     _check_depths(paths, done.depths)
     stack = ImageStack(done.luminance, done.chroma, paths, int(done.depths.max()), linearize, done.saturated,
                        done.table)

@@ -34,6 +34,7 @@ from .fit import fit_matrix
 from .lp import as_directions
 
 if TYPE_CHECKING:  # reduce imports this module
+    from .corrections import Corrections
     from .reduce import Reduced
 
 __all__ = ["ENCODINGS", "HP_LUMA_WEIGHTS", "EncodedFit", "EncodedFits", "finish_lrgb", "fit_ptm_encoded", "fit_ptm_rgb_encoded"]
@@ -206,12 +207,13 @@ def _reduce_encoded(
     linearize: bool,
     threads: int | None,
     progress: Callable[[int], None] | None,
+    corrections: Corrections | None = None,
 ) -> Reduced:
     """Stream the photographs into the sums of one encoded PTM fit, with no stack.
 
     Parameters
     ----------
-    images, directions, solver, encoding, linearize, threads, progress
+    images, directions, solver, encoding, linearize, threads, progress, corrections
         As :func:`fit_ptm_encoded`.
     ptm_format : {"lrgb", "rgb"}
         The PTM whose sums are made (:class:`EncodedFit`).
@@ -234,7 +236,8 @@ def _reduce_encoded(
         raise InputError("no photographs given")
     fit = EncodedFit(directions, ptm_format, solver, encoding=encoding)
     fit.matrices(len(images))  # bad directions fail before any photograph is decoded
-    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads, progress=progress)
+    return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads, progress=progress,
+                              corrections=corrections)
 
 
 def fit_ptm_encoded(
@@ -246,6 +249,7 @@ def fit_ptm_encoded(
     linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    corrections: Corrections | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit an LRGB PTM to photographs as HP's PTMfitter does, in their own encoding.
 
@@ -278,6 +282,8 @@ def fit_ptm_encoded(
         Decoding threads (default: all CPUs).
     progress : callable, optional
         Called with 1 after each photograph.
+    corrections : Corrections, optional
+        Done to each photograph before the fit (:mod:`ptmcore.corrections`).
 
     Returns
     -------
@@ -292,7 +298,7 @@ def fit_ptm_encoded(
         If no photograph is given, one cannot be read, or sizes differ.
     """
     done = _reduce_encoded(images, directions, "lrgb", solver=solver, encoding=encoding, linearize=linearize,
-                           threads=threads, progress=progress)
+                           threads=threads, progress=progress, corrections=corrections)
     return finish_lrgb(done.ptm_sums, done.ptm_aux, threads=threads)
 
 
@@ -305,6 +311,7 @@ def fit_ptm_rgb_encoded(
     linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    corrections: Corrections | None = None,
 ) -> np.ndarray:
     """Fit an RGB-format PTM (one polynomial per channel) to photographs in their own encoding.
 
@@ -314,7 +321,7 @@ def fit_ptm_rgb_encoded(
 
     Parameters
     ----------
-    images, directions, solver, encoding, linearize, threads, progress
+    images, directions, solver, encoding, linearize, threads, progress, corrections
         As :func:`fit_ptm_encoded`.
 
     Returns
@@ -328,4 +335,4 @@ def fit_ptm_rgb_encoded(
         As :func:`fit_ptm_encoded`.
     """
     return _reduce_encoded(images, directions, "rgb", solver=solver, encoding=encoding, linearize=linearize,
-                           threads=threads, progress=progress).channel_sums
+                           threads=threads, progress=progress, corrections=corrections).channel_sums

@@ -37,6 +37,7 @@ import os
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numba
 import numpy as np
@@ -50,6 +51,10 @@ from .images import _LUM_SCALE, LUMA_WEIGHTS, UINT16_TABLE, _chroma_in_place, de
 from .ptmencoded import HP_LUMA_WEIGHTS, EncodedFit
 from .resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, thread_count
 from .streaming import Photographs, check_same_size, run_in_groups
+
+if TYPE_CHECKING:
+    from .align import DriftProbe
+    from .corrections import Corrections
 
 __all__ = ["Reduced", "reduce_photographs", "srgb8_tables"]
 
@@ -538,6 +543,8 @@ def reduce_photographs(
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
     on_disk: str | os.PathLike | None = None,
+    corrections: Corrections | None = None,
+    probe: DriftProbe | None = None,
 ) -> Reduced:
     """Decode each photograph once and reduce it to the stack and the encoded fits' sums.
 
@@ -566,6 +573,12 @@ def reduce_photographs(
         A folder: the stack is then a memory-mapped file there
         (:func:`ptmcore.diskstack.disk_array`) instead of an array in memory, each band's
         pages released from the process once written.
+    corrections : Corrections, optional
+        What is done to each photograph after decoding (:mod:`ptmcore.corrections`: ambient
+        light, alignment). A corrected photograph is reduced as float32 linear RGB.
+    probe : DriftProbe, optional
+        Given each photograph (as reduced, before any alignment) to measure the camera's drift
+        afterwards (:func:`ptmcore.align.measure_drift`).
 
     Returns
     -------
@@ -580,8 +593,12 @@ def reduce_photographs(
     n = len(photos)
     if n < 1:
         raise InputError("no photographs given")
+    correct = corrections is not None and corrections.active
     first = photos.load(0)
     h, w = first.shape[:2]
+    first_depth = first.dtype.itemsize * 8
+    if correct:
+        first = corrections.apply(0, first, linearize)
     workers = thread_count(threads)
     counting = threading.Lock()  # threads add the clipped counts of their bands
     # 8-bit codes keep an 8-bit sRGB photograph's precision (a code per input level, finer in
@@ -639,8 +656,16 @@ def reduce_photographs(
             buffers.give(buf)  # not a JPEG: decoded into an array of its own
             buf = None
         check_same_size(img, (h, w), k, photos.path(k), first_path)
-        depths[k] = img.dtype.itemsize * 8
-        return k, _kernel_view(img), buf
+        depths[k] = first_depth if k == 0 else img.dtype.itemsize * 8
+        if correct and k > 0:
+            img = corrections.apply(k, img, linearize)
+            if buf is not None:  # the corrected photograph is a new array
+                buffers.give(buf)
+                buf = None
+        view = _kernel_view(img)
+        if probe is not None:
+            probe.take(k, view, view.dtype == np.uint8 and linearize)
+        return k, view, buf
 
     def release(prepared: list[tuple[int, np.ndarray, np.ndarray | None]]) -> None:
         for _, _, buf in prepared:

@@ -44,6 +44,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -52,6 +53,9 @@ from .errors import InputError, read_input_file
 from .hsh import ORDERS, hsh_basis
 from .ptmencoded import EncodedFit
 from .ptmfile import check_coefficient_values, check_memory
+
+if TYPE_CHECKING:
+    from .corrections import Corrections
 
 __all__ = [
     "FILE_TYPE_HSH",
@@ -346,6 +350,7 @@ def fit_rti_hsh(
     linearize: bool = True,
     threads: int | None = None,
     progress: Callable[[int], None] | None = None,
+    corrections: Corrections | None = None,
 ) -> np.ndarray:
     """Fit per-channel HSH coefficients to photographs in their own encoding, as RTIBuilder does.
 
@@ -372,6 +377,8 @@ def fit_rti_hsh(
         Decoding and summing threads (default: all CPUs).
     progress : callable, optional
         Called with 1 after each photograph.
+    corrections : Corrections, optional
+        Done to each photograph before the fit (:mod:`ptmcore.corrections`).
 
     Returns
     -------
@@ -393,4 +400,4 @@ def fit_rti_hsh(
     fit = EncodedFit(directions, None, hsh_order=order, encoding=encoding)
     fit.matrices(n)  # bad directions fail before any photograph is decoded
     return reduce_photographs(images, stack=False, linearize=linearize, fit=fit, threads=threads,
-                              progress=progress).hsh
+                              progress=progress, corrections=corrections).hsh

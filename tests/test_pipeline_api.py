@@ -228,7 +228,7 @@ def test_stages_reproduce_run_capture(capture, tmp_path):
 def test_report_json_keys(capture, tmp_path):
     run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert list(report) == ["inputs", "parameters", "height_unit", "albedo_scale", "lights", "light_model",
+    assert list(report) == ["inputs", "parameters", "height_unit", "capture_checks", "albedo_scale", "lights", "light_model",
                             "intensities", "reflectance_lobe", "ptm", "leave_one_out", "accuracy", "mesh", "seconds",
                             "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
     # The whole run's peak: the largest stage's, so no stage can hide it.

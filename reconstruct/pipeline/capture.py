@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.corrections import Corrections
 from ptmcore.errors import InputError, first_few
 from ptmcore.images import ImageStack, check_content, image_size, load_stack, load_stack_and_fits, read_image
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
@@ -29,6 +30,7 @@ from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, available_memory_mb
 from ptmcore.solvers import RankInfo, analyse_lights
+from reconstruct.pipeline.defects import capture_corrections, drift_finding, new_probe, stray_light_finding
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
 from reconstruct.surface.accuracy import GroundTruth, load_ground_truth
@@ -100,6 +102,13 @@ class Capture:
         the photographs and their lights were known before it (a capture with an ``.lp``);
         :func:`reconstruct.pipeline.fit_relighting` uses them, and fits from the files
         otherwise (or if photographs or lights changed since).
+    corrections : Corrections or None
+        What was done to each photograph after decoding (the ambient frame subtracted, the
+        camera's drift undone): a later pass over the files does the same
+        (:mod:`reconstruct.pipeline.defects`).
+    checks : dict
+        What was found about the capture (colour profile, drift, ambient frame, stray light):
+        ``report.json``'s ``capture_checks``.
     """
 
     source: Path
@@ -115,6 +124,8 @@ class Capture:
     intensities: dict | None = None
     warnings: list[str] = field(default_factory=list)
     fits: EncodedFits | None = None
+    corrections: Corrections | None = None
+    checks: dict = field(default_factory=dict)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -275,6 +286,9 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         if opt.light_positions not in ("auto", "none"):
             raise InputError("light positions apply to captures with an .lp file or spheres, "
                              "not to a photometric-stereo dataset", capture)
+        if opt.ambient is not None:
+            raise InputError("--ambient applies to captures with an .lp file or spheres, not to a "
+                             "photometric-stereo dataset", capture)
         with stages("decode"):
             # Intensities asked for replace the dataset's own (estimated ones are estimated on
             # the photographs as stored).
@@ -290,11 +304,15 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         except InputError as exc:
             raise InputError(f"no .lp light file, and {exc.problem}", capture) from None
         on_disk, warnings = _stack_place(photographs, opt, scratch)
+        # The lights are read from the decoded photographs: the ambient frame is subtracted,
+        # the drift (measured against the lights) is not.
+        corrections, checks = capture_corrections(photographs, ambient=opt.ambient)
         with stages("decode", len(photographs)) as advance:
             stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance,
-                               storage=_storage(opt), on_disk=on_disk)
+                               storage=_storage(opt), on_disk=on_disk, corrections=corrections)
         loaded = _calibrate_from_spheres(stack, capture, opt)
         loaded.warnings[:0] = warnings
+        loaded.corrections, loaded.checks = corrections, checks
         return loaded
     lp_path = find_lp(capture, opt.lp)
     lights = read_lp(lp_path)
@@ -303,11 +321,29 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
     # are fitted in the same pass (with near lights too: they use one direction per photograph).
     fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None, opt.ptm_encoding)
     on_disk, warnings = _stack_place(lights.paths, opt, scratch)
+    corrections, checks = capture_corrections(lights.paths, ambient=opt.ambient)
+    probe = new_probe(lights.paths, opt.align == "auto")
+    kw = {"fit": fit, "linearize": opt.linearize, "threads": opt.threads, "storage": _storage(opt), "on_disk": on_disk,
+          "corrections": corrections}
     with stages("decode", len(lights)) as advance:
-        stack, fits = load_stack_and_fits(lights.paths, fit=fit, linearize=opt.linearize, threads=opt.threads,
-                                          progress=advance, storage=_storage(opt), on_disk=on_disk)
-    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits,
-                   warnings=[*lights.warnings, *warnings])
+        stack, fits = load_stack_and_fits(lights.paths, progress=advance, probe=probe, **kw)
+    warnings = [*lights.warnings, *warnings]
+    if probe is not None:
+        from ptmcore.align import measure_drift
+
+        drift = measure_drift(probe, lights.directions)
+        del probe
+        checks["drift"], said, resample = drift_finding(drift, [p.name for p in lights.paths], opt.align)
+        warnings += said
+        if resample:
+            # Decoded again, each photograph resampled onto the common frame: only a capture
+            # that moved pays a second pass; a steady one paid the measurement alone.
+            corrections.transforms = drift.transforms
+            del stack, fits
+            with stages("align", len(lights)) as advance:
+                stack, fits = load_stack_and_fits(lights.paths, progress=advance, **kw)
+    return Capture(capture, layout, stack, lights, lp_path=lp_path, near=near, fits=fits, warnings=warnings,
+                   corrections=corrections, checks=checks)
 
 
 def _storage(opt: RunOptions) -> str:
@@ -469,4 +505,8 @@ def load_capture(
         loaded.stack = apply_intensities(loaded.stack, factors, relative=True, in_place=True)
         loaded.intensities = {"source": opt.intensities, "factors": factors}
     _check_exposure(loaded)
+    if len(loaded.lights) >= 6:
+        loaded.checks["stray_light"], said = stray_light_finding(loaded.stack, loaded.lights.directions,
+                                                                 opt.ambient is not None)
+        loaded.warnings += said
     return loaded

@@ -31,6 +31,7 @@ __all__ = [
     "BOUNDS",
     "STACK_FILE_MB",
     "CompareOptions",
+    "Align",
     "Fit",
     "Flattening",
     "Integrator",
@@ -55,6 +56,8 @@ PtmFormat = Literal["lrgb", "rgb"]
 PtmEncoding = Literal["srgb", "linear"]
 Solver = Literal["pinv", "lstsq", "rohde"]
 Flattening = Literal["plane", "poly2", "poly3", "highpass"]
+#: Whether photographs displaced by the camera's drift are resampled onto one frame.
+Align = Literal["auto", "off"]
 ScanUnit = Literal["mm", "cm", "m", "in"]
 
 #: The range, inclusive, of each length (and grid spacing) a run or comparison accepts. Values
@@ -274,6 +277,14 @@ class RunOptions:
         calibrated from two or more spheres, the lights triangulated from their highlights
         when they are near (:func:`reconstruct.calibration.lights_are_near`). ``"none"``:
         distant lights, one direction per photograph.
+    align : {"auto", "off"}
+        ``"auto"``: the camera's drift is measured (:mod:`ptmcore.align`) and the photographs
+        resampled onto one frame when one is displaced by more than
+        :data:`ptmcore.align.ALIGN_THRESHOLD_PX`. ``"off"`` (default, until the measurement is
+        reliable on every capture: BENCHMARKS.md, "Camera drift"): neither.
+    ambient : Path or None
+        A photograph of the object with the lamps off (the room's light alone, same exposure),
+        subtracted from every photograph in linear light.
 
     Raises
     ------
@@ -311,6 +322,8 @@ class RunOptions:
     memory_limit: float | None = None
     ground_truth: Path | None = None
     light_positions: Path | Literal["auto", "none"] = "auto"
+    align: Align = "off"
+    ambient: Path | None = None
 
     def __post_init__(self) -> None:
         _check_choices(self)
@@ -341,6 +354,7 @@ class RunOptions:
         self.ground_truth = _path_or_word(self.ground_truth, (), "ground_truth")
         self.mask = _path_or_word(self.mask, ("auto",), "mask")
         self.light_positions = _path_or_word(self.light_positions, ("auto", "none"), "light_positions")
+        self.ambient = _path_or_word(self.ambient, (), "ambient")
 
 
 @dataclass

@@ -193,7 +193,7 @@ class Accuracy:
 class RunReport:
     """Everything ``report.json`` says of a run.
 
-    The capture-only sections (``albedo_scale`` … ``leave_one_out``) are written for runs from
+    The capture-only sections (``capture_checks`` … ``leave_one_out``) are written for runs from
     photographs; runs from a ``.ptm`` file or a normal map have no such sections.
     ``peak_rss_mb`` is the whole run's peak: the largest of the stages' peaks, as sampled.
     ``seconds`` is the run's wall-clock time up to ``report.json``: the stages' times add up to
@@ -216,6 +216,7 @@ class RunReport:
     reflectance_lobe: dict | None = None
     ptm: PtmSummary | None = None
     leave_one_out: dict | None = None
+    capture_checks: dict | None = None
     versions: dict[str, str] = field(default_factory=versions)
     fingerprint: str | None = None
     seconds: float | None = None
@@ -228,7 +229,8 @@ class RunReport:
         """
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
-            keys += ["albedo_scale", "lights", "light_model", "intensities", "reflectance_lobe", "ptm", "leave_one_out"]
+            keys += ["capture_checks", "albedo_scale", "lights", "light_model", "intensities", "reflectance_lobe", "ptm",
+                     "leave_one_out"]
         keys += ["accuracy", "mesh", "seconds", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
         if self.fingerprint is not None:
             keys.append("fingerprint")

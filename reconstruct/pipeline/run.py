@@ -277,7 +277,8 @@ def run_capture(
         loaded.stack = None  # by far the largest array; no later stage needs it
         if relit is None:  # a second pass over the files, once the stack is released
             with stages("ptm", len(loaded.lights)) as advance:
-                relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance)
+                relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance,
+                                       corrections=loaded.corrections)
         warnings += relit.warnings
         height, mesh, names, end_write = _surface_and_files(found.normals, texture, mask, opt, staged, stages, writer)
         report = RunReport(
@@ -285,7 +286,7 @@ def run_capture(
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
             lights=LightLayout.from_rank(loaded.rank), light_model=light_model(loaded.near, (h, w), opt),
             intensities=json_safe(loaded.intensities), reflectance_lobe=found.lobe, ptm=relit.summary, leave_one_out=loo,
-            fingerprint=fingerprint,
+            capture_checks=json_safe(loaded.checks), fingerprint=fingerprint,
         )
         if loaded.near is not None:
             write_light_positions(staged / "light_positions.csv", [p.name for p in loaded.lights.paths],

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.corrections import Corrections
 from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm
 from ptmcore.lp import LightSet
@@ -229,7 +230,8 @@ class Relighting:
 
 
 def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathLike, *,
-                   progress: Advance | None = None, fits: EncodedFits | None = None) -> Relighting:
+                   progress: Advance | None = None, fits: EncodedFits | None = None,
+                   corrections: Corrections | None = None) -> Relighting:
     """Write ``coefficients.ptm``, ``web/`` (LRGB only) and, with ``options.hsh``, ``coefficients.rti``.
 
     The fits are HP's PTMfitter's (its files are reproduced byte for byte) of the photographs
@@ -253,10 +255,13 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     fits : EncodedFits, optional
         Fits made while decoding (``Capture.fits``). The coefficients used are taken out of it,
         so their memory goes as soon as the files are written.
+    corrections : Corrections, optional
+        What the decoding pass did to each photograph (``Capture.corrections``), done again
+        when the files are read a second time.
     """
     folder = Path(folder)
     paths, directions = lights.paths, lights.directions
-    kw = {"solver": options.solver, "threads": options.threads, "progress": progress}
+    kw = {"solver": options.solver, "threads": options.threads, "progress": progress, "corrections": corrections}
     coded = {"encoding": options.ptm_encoding, "linearize": options.linearize}
     # Fits of other photographs or lights (some dropped after decoding) are not these files'.
     usable = fits is not None and fits.matches(paths, directions, options.solver, options.ptm_encoding)
@@ -280,7 +285,7 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     if options.hsh:
         hsh = fits.take_hsh(3) if usable else None
         if hsh is None:
-            hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads, **coded)
+            hsh = fit_rti_hsh(paths, directions, order=3, threads=options.threads, corrections=corrections, **coded)
         result.summary = PtmSummary.from_written(
             written, options.ptm_encoding, hsh=write_rti_hsh(folder / "coefficients.rti", hsh, order=3))
         result.names.append("coefficients.rti")

@@ -443,6 +443,48 @@ def _files(folder: Path, written_after: Sequence[str], also: Sequence[Path]) -> 
             + elsewhere)
 
 
+def capture_check_rows(checks: dict) -> list[tuple[str, str]]:
+    """The findings of ``report.json``'s ``capture_checks`` (and of ``reconstruct check``) in
+    words, one row each: colour, drift, stray light, the ambient frame."""
+    rows = []
+    if checks.get("colour"):
+        rows.append(("Colour", str(checks["colour"])))
+    drift = checks.get("drift")
+    if drift:
+        moved = f"largest displacement {drift['largest_px']:.2f} px ({drift['largest_photograph']})"
+        if drift.get("aligned"):
+            state = "aligned onto one frame before fitting"
+        elif drift["largest_px"] > drift["threshold_px"]:
+            state = "not aligned (--align off)"
+        else:
+            state = f"steady (under {drift['threshold_px']:g} px)"
+        rows.append(("Camera drift", f"{moved}: {state}"))
+    stray = checks.get("stray_light")
+    if stray:
+        if stray.get("level") is None:
+            rows.append(("Stray light", stray.get("note", "not measured")))
+        else:
+            verdict = "raised: room light or a reflection" if stray.get("warned") else "dark room"
+            rows.append(("Stray light", f"{stray['level']:.1%} of the lamps' light in attached shadows ({verdict})"))
+    if checks.get("ambient"):
+        rows.append(("Ambient frame", f"{checks['ambient']['frame']} subtracted"))
+    return rows
+
+
+def _capture_checks(report: dict | None) -> str | None:
+    """The section on the capture's defects: the findings, and each photograph's offset."""
+    checks = (report or {}).get("capture_checks")
+    if not checks:
+        return None
+    html = _table(capture_check_rows(checks), ("check", "found"))
+    drift = checks.get("drift")
+    if drift and drift.get("photographs"):
+        offsets = _table([(p["name"], p["dx"], p["dy"], p["rotation_deg"], p["confidence"]) for p in drift["photographs"]],
+                         ("photograph", "dx (px, right)", "dy (px, up)", "rotation (°)", "confidence"))
+        html += f"<details><summary>Each photograph's offset</summary>{offsets}</details>"
+    return html
+
+
 def _summary(rows: Sequence[tuple[str, str]], warnings: Sequence[str]) -> str:
     if warnings:
         items = "".join(f"<li>{_esc(w)}</li>" for w in warnings)
@@ -563,7 +605,9 @@ def report_html(
     rows = summary.summary_rows(report, comparison, extent, object_name=name)
     pictures_body = "".join(f'<section id="{key}"><h3>{_esc(heading)}</h3>{content}</section>'
                             for key, heading, content in pictures) or _note("no pictures: the folder holds no run")
-    sections = [("summary", "Summary", _summary(rows, warnings)),
+    checks = _capture_checks(report)
+    capture = f'<h3 id="capture">The capture</h3>{checks}' if checks else ""
+    sections = [("summary", "Summary", _summary(rows, warnings) + capture),
                 ("pictures", "Pictures", pictures_body),
                 ("files", "Files", _files(Path(folder), written_after, places)),
                 ("parameters", "Technical parameters", _parameters(report, comparison))]

@@ -1,0 +1,159 @@
+"""A capture's defects: found, said, and undone before fitting where the photographs allow.
+
+What a museum capture brings besides the object (issue 37): a camera that moved between
+photographs (a bumped tripod), light in the room, lamps that do not light the frame evenly, a
+colour profile, RAW files. :func:`capture_corrections` gathers what is known before decoding
+(the ambient frame) into a :class:`ptmcore.corrections.Corrections`; the decoding pass
+measures the camera's drift (:class:`ptmcore.align.DriftProbe`), and :func:`drift_finding`
+says whether the photographs were resampled onto one frame; :func:`stray_light_finding` looks
+for room light in the decoded stack's attached shadows. Each finding is a dict for
+``report.json``'s ``capture_checks`` and, when the user should act, a warning line.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ptmcore.corrections import Corrections
+from ptmcore.images import ImageStack, image_size, read_image
+
+__all__ = [
+    "ALIGN_MIN_SIDE",
+    "capture_corrections",
+    "drift_finding",
+    "frame_shape",
+    "colour_of",
+    "new_probe",
+    "stray_light_finding",
+]
+
+#: Pixels sampled for the stray-light estimate (a grid over the frame).
+_STRAY_SAMPLES = 20000
+#: Frames smaller than this on either side are not measured for drift: the probe's tiles would
+#: hold too few pixels for a sub-pixel offset (and such captures are test fixtures, not photographs).
+ALIGN_MIN_SIDE = 64
+
+
+def frame_shape(paths: Sequence[Path]) -> tuple[int, int]:
+    """``(H, W)`` of the capture's photographs, from the first one's header (decoded only when
+    its header does not say, as for a RAW file)."""
+    size = image_size(paths[0])
+    if size is not None:
+        return int(size[1]), int(size[0])
+    return read_image(paths[0]).shape[:2]
+
+
+def capture_corrections(paths: Sequence[Path], *, ambient: Path | None) -> tuple[Corrections, dict]:
+    """What is known before decoding: the ambient frame (``--ambient``, a photograph with the
+    lamps off), checked against the photographs' size and brightness.
+
+    Returns
+    -------
+    corrections : Corrections
+    checks : dict
+        What ``report.json``'s ``capture_checks`` says of them (and of the colour profile).
+    """
+    checks: dict = {"colour": colour_of(paths[0])}
+    corrections = Corrections()
+    if ambient is None:
+        return corrections, checks
+    from ptmcore.illumination import check_ambient, read_ambient
+
+    corrections.ambient = read_ambient(ambient, frame_shape(paths))
+    check_ambient(corrections.ambient, paths, ambient)
+    checks["ambient"] = {"frame": str(ambient), "mean_level": float(corrections.ambient.mean())}
+    return corrections, checks
+
+
+def colour_of(path: Path) -> str:
+    """The colour profile of a photograph in words (:func:`ptmcore.decoders.colour_description`)."""
+    from ptmcore import decoders
+
+    describe = getattr(decoders, "colour_description", None)
+    return describe(path) if describe is not None else "taken as sRGB (8-bit) or linear (16-bit, float)"
+
+
+def new_probe(paths: Sequence[Path], enabled: bool = True):
+    """A :class:`ptmcore.align.DriftProbe` for these photographs, or None when the frame is
+    too small to measure (or its size cannot be read before decoding)."""
+    if not enabled or len(paths) < 3:
+        return None
+    size = image_size(paths[0])
+    if size is None or min(size) < ALIGN_MIN_SIDE:
+        return None
+    from ptmcore.align import DriftProbe
+
+    return DriftProbe((int(size[1]), int(size[0])), len(paths))
+
+
+def drift_finding(drift, names: Sequence[str], align: str) -> tuple[dict, list[str], bool]:
+    """What the measured drift means for the run.
+
+    Parameters
+    ----------
+    drift : ptmcore.align.Drift
+    names : sequence of str
+        The photographs' file names.
+    align : {"auto", "off"}
+        ``--align``.
+
+    Returns
+    -------
+    finding : dict
+        For ``capture_checks["drift"]``: the threshold, the largest displacement, whether the
+        photographs were aligned, and each photograph's offset (x right, y up, pixels),
+        rotation (degrees, counter-clockwise) and the measurement's confidence.
+    warnings : list of str
+    resample : bool
+        Whether the photographs are to be resampled onto the common frame.
+    """
+    from ptmcore.align import ALIGN_THRESHOLD_PX
+
+    k, largest = drift.largest()
+    needed = bool(drift.needs_alignment())
+    resample = needed and align == "auto"
+    finding = {
+        "threshold_px": float(ALIGN_THRESHOLD_PX),
+        "largest_px": float(largest),
+        "largest_photograph": names[k],
+        "aligned": resample,
+        "photographs": [
+            {"name": name, "dx": round(float(dx), 3), "dy": round(float(dy), 3),
+             "rotation_deg": round(float(rot), 4), "confidence": round(float(conf), 3)}
+            for name, (dx, dy), rot, conf in zip(names, drift.offsets, drift.rotation_deg, drift.confidence)
+        ],
+    }
+    warnings = []
+    if needed:
+        moved = int(np.count_nonzero(np.hypot(*np.asarray(drift.offsets).T) > ALIGN_THRESHOLD_PX))
+        what = (f"the camera moved during the capture: {moved} photograph(s) are displaced, up to {largest:.1f} px "
+                f"({names[k]})")
+        warnings.append(f"{what}; they were aligned onto the other photographs' frame before fitting" if resample
+                        else f"{what}; not aligned: expect blurred normals and height")
+    return finding, warnings, resample
+
+
+def stray_light_finding(stack: ImageStack, directions: np.ndarray, ambient_given: bool
+                        ) -> tuple[dict, list[str]]:
+    """Room light seen in the attached shadows of a grid of pixels
+    (:func:`ptmcore.illumination.estimate_stray_light`), and the warning when it is raised."""
+    from ptmcore.illumination import estimate_stray_light
+
+    h, w = stack.shape
+    step = max(1, int(np.sqrt(h * w / _STRAY_SAMPLES)))
+    samples = stack.table[stack.grid(step)].reshape(len(stack), -1).astype(np.float32)
+    found = estimate_stray_light(samples, np.asarray(directions, np.float64))
+    if found.level is None:
+        return {"level": None, "pixels": int(found.pixels),
+                "note": "too few samples in attached shadow to tell (no low lights, or a flat object)"}, []
+    finding = {"level": round(float(found.level), 4), "pixels": int(found.pixels), "warned": bool(found.warn)}
+    if not found.warn:
+        return finding, []
+    after = " after the ambient frame was subtracted" if ambient_given else ""
+    advice = ("check that the ambient frame was taken with the same exposure" if ambient_given
+              else "give --ambient FILE (a photograph with the lamps off) to subtract it")
+    return finding, [f"stray light: the shadows receive about {found.level:.0%} of the lamps' light{after} "
+                     f"(room light or a reflection), which flattens the normals; {advice}"]

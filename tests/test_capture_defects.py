@@ -1,0 +1,175 @@
+"""Issue 37 (part): captures as they come — the ambient frame, the camera's drift, `reconstruct check`."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import shift as ndshift
+
+from data_synthetic import write_capture
+from data_synthetic.encoding import write_tiff16
+from data_synthetic.lights import dome_lights
+from data_synthetic.render import render
+from data_synthetic.surfaces import SCENES
+from ptmcore.align import ALIGN_THRESHOLD_PX, DriftProbe, measure_drift, warp_photograph
+from ptmcore.corrections import Corrections, to_linear_rgb
+from ptmcore.images import srgb_to_linear
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "reconstruct", *args], capture_output=True, text=True)
+
+
+def test_to_linear_rgb_takes_every_sample_type():
+    u8 = np.array([[0, 128, 255]], np.uint8)
+    assert np.allclose(to_linear_rgb(u8)[..., 0], srgb_to_linear(u8 / 255.0), atol=1e-6)
+    assert np.allclose(to_linear_rgb(u8, linearize=False)[..., 1], u8 / 255.0, atol=1e-6)
+    u16 = np.full((2, 3, 3), 65535, np.uint16)
+    assert np.allclose(to_linear_rgb(u16), 1.0)
+    f = np.random.default_rng(0).random((4, 5, 3)).astype(np.float32)
+    out = to_linear_rgb(f)
+    assert np.array_equal(out, f) and not np.shares_memory(out, f)
+
+
+def test_no_correction_leaves_the_photograph_as_decoded():
+    img = np.zeros((4, 4, 3), np.uint8)
+    assert Corrections().apply(0, img) is img
+
+
+@pytest.fixture(scope="module")
+def ambient_capture(tmp_path_factory) -> tuple[Path, Path, Path]:
+    root = tmp_path_factory.mktemp("ambient")
+    write_capture(root / "clean", shape=(96, 128), n_lights=24, seed=2, scan_points=0)
+    write_capture(root / "room", shape=(96, 128), n_lights=24, seed=2, scan_points=0, ambient=0.1)
+    albedo = np.load(root / "room" / "ground_truth" / "albedo.npy")
+    write_tiff16(root / "lamps_off.tif", (0.1 * albedo).astype(np.float32))
+    return root / "clean", root / "room", root / "lamps_off.tif"
+
+
+def _mean_error(out: Path) -> float:
+    return json.loads((out / "report.json").read_text())["accuracy"]["normals"]["mean_deg"]
+
+
+def test_the_ambient_frame_is_subtracted(ambient_capture, tmp_path):
+    clean, room, lamps_off = ambient_capture
+    for name, capture, extra in [("clean", clean, ()), ("room", room, ()), ("fixed", room, ("--ambient", str(lamps_off)))]:
+        assert _cli("run", str(capture), "-o", str(tmp_path / name), "-q", *extra).returncode == 0
+    clean_err, room_err, fixed_err = (_mean_error(tmp_path / n) for n in ("clean", "room", "fixed"))
+    assert room_err > 2 * clean_err  # room light flattens the normals
+    assert fixed_err <= 1.2 * clean_err
+    checks = json.loads((tmp_path / "fixed" / "report.json").read_text())["capture_checks"]
+    assert checks["ambient"]["frame"] == str(lamps_off)
+
+
+def test_a_lit_photograph_as_ambient_frame_is_refused(ambient_capture, tmp_path):
+    _, room, _ = ambient_capture
+    result = _cli("run", str(room), "-o", str(tmp_path / "out"), "--ambient", str(room / "img_000.tif"))
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "lamp on" in result.stderr and "img_000.tif" in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_ambient_frame_of_another_size_is_refused(ambient_capture, tmp_path):
+    _, room, _ = ambient_capture
+    small = tmp_path / "small.tif"
+    write_tiff16(small, np.zeros((10, 12, 3), np.float32))
+    result = _cli("run", str(room), "-o", str(tmp_path / "out"), "--ambient", str(small))
+    assert result.returncode == 2 and "12×10" in result.stderr and "128×96" in result.stderr
+
+
+@pytest.fixture(scope="module")
+def rendered() -> tuple[np.ndarray, np.ndarray]:
+    lights = dome_lights(36, 15, 75)
+    surface = SCENES["tablet"]((256, 320), pixel_size=None, seed=4)
+    return np.clip(render(surface, lights, noise=0.003, seed=4), 0, 1).astype(np.float32), lights
+
+
+def _drift(images: np.ndarray, lights: np.ndarray):
+    probe = DriftProbe(images.shape[1:3], len(images))
+    for k, img in enumerate(images):
+        probe.take(k, img, False)
+    return measure_drift(probe, lights)
+
+
+def test_a_steady_capture_raises_no_alarm(rendered):
+    images, lights = rendered
+    drift = _drift(images, lights)
+    assert not drift.needs_alignment()
+    assert drift.largest()[1] < ALIGN_THRESHOLD_PX
+
+
+def test_displaced_photographs_are_found(rendered):
+    images, lights = rendered
+    moved = images.copy()
+    for k in range(1, len(moved), 2):  # every other photograph: 3 rows down, 4 columns right
+        moved[k] = ndshift(images[k], (3, 4, 0), order=5, mode="nearest")
+    drift = _drift(moved, lights)
+    assert drift.needs_alignment()
+    # The first photograph's frame is kept (two equal groups: the one the capture started in).
+    shifted = np.median(drift.offsets[1::2], axis=0)
+    assert np.allclose(shifted, [4, -3], atol=0.4)  # x right, y up
+    assert np.allclose(np.median(drift.offsets[0::2], axis=0), 0, atol=0.2)
+
+
+def test_a_featureless_capture_is_not_measured():
+    lights = dome_lights(24, 20, 70)
+    flat = np.broadcast_to((0.5 * np.clip(lights[:, 2], 0, 1))[:, None, None, None], (24, 96, 96, 3)).astype(np.float32)
+    drift = _drift(flat, lights)
+    assert not drift.needs_alignment() and np.all(drift.confidence == 0)
+
+
+def test_warp_photograph():
+    rng = np.random.default_rng(1)
+    img = rng.random((40, 50, 3)).astype(np.float32)
+    identity = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+    assert np.allclose(warp_photograph(img, identity), img, atol=1e-6)
+    # The common frame's pixel (c, r) lies at (c + 2, r + 1) in the photograph.
+    moved = warp_photograph(img, np.array([[1.0, 0, 2], [0, 1.0, 1]]))
+    assert np.allclose(moved[:-1, :-2], img[1:, 2:], atol=1e-5)
+
+
+def test_check_reports_a_steady_capture(ambient_capture, tmp_path):
+    clean, _, _ = ambient_capture
+    found = tmp_path / "check.json"
+    result = _cli("check", str(clean), "--json", str(found))
+    assert result.returncode == 0, result.stderr
+    assert "Nothing to act on" in result.stdout
+    data = json.loads(found.read_text())
+    assert data["photographs"] == 24 and data["checks"]["lights"]["rank"] == 6
+
+
+def test_check_names_black_photographs(ambient_capture, tmp_path):
+    import shutil
+
+    import tifffile
+
+    clean, _, _ = ambient_capture
+    capture = tmp_path / "cap"
+    shutil.copytree(clean, capture)
+    tifffile.imwrite(capture / "img_003.tif", np.zeros((96, 128, 3), np.uint16))
+    result = _cli("check", str(capture))
+    assert result.returncode == 0 and "mostly black" in result.stdout and "img_003.tif" in result.stdout
+
+
+def test_room_light_is_warned_of_and_gone_once_subtracted(ambient_capture, tmp_path):
+    _, room, lamps_off = ambient_capture
+    for name, extra in (("room", ()), ("fixed", ("--ambient", str(lamps_off)))):
+        assert _cli("run", str(room), "-o", str(tmp_path / name), "-q", *extra).returncode == 0
+    room_report = json.loads((tmp_path / "room" / "report.json").read_text())
+    fixed_report = json.loads((tmp_path / "fixed" / "report.json").read_text())
+    assert room_report["capture_checks"]["stray_light"]["warned"]
+    assert abs(room_report["capture_checks"]["stray_light"]["level"] - 0.1) < 0.02
+    assert any(w.startswith("stray light") for w in room_report["warnings"])
+    assert not fixed_report["capture_checks"]["stray_light"]["warned"]
+    assert not any(w.startswith("stray light") for w in fixed_report["warnings"])
+
+
+def test_check_warns_of_room_light(ambient_capture):
+    _, room, _ = ambient_capture
+    result = _cli("check", str(room))
+    assert result.returncode == 0 and "stray light" in result.stdout
