@@ -518,6 +518,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
             help="auto: measure the camera's drift (a bumped tripod) and resample photographs displaced by more "
                  "than a pixel onto the others' frame before fitting (experimental: see BENCHMARKS.md); off "
                  "(default): neither. `reconstruct check` measures the drift in seconds")
+    p.add_argument("--flat-field", type=_path, metavar="DIR",
+                   help="a capture of a flat white or grey board under the same lights (same .lp names or order): "
+                        "corrects lamps that light the frame unevenly (cones, vignetting, fall-off) and unequal lamps")
+    p.add_argument("--reference-region", metavar="X,Y,W,H",
+                   help="a grey card seen in every photograph (pixels: X column and Y row of its top-left corner): "
+                        "each photograph's light intensity is read from it (not with --intensities)")
     p.add_argument("--ambient", type=_path, metavar="FILE",
                    help="a photograph with the lamps off (the room's light alone, same exposure), subtracted from "
                         "every photograph")

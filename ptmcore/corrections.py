@@ -5,9 +5,13 @@ evenly, the tripod was bumped. Each correction here works on one photograph in l
 every pass that decodes the photographs (:func:`ptmcore.reduce.reduce_photographs`: the stack,
 the relighting fits, a second streamed pass) applies the same ones, in this order:
 
-1. the ambient frame (lamps off) subtracted (:mod:`ptmcore.illumination`), in the photograph's
-   own frame, where the room's light was;
-2. the photograph resampled onto the capture's common frame (:mod:`ptmcore.align`).
+1. the ambient frame (lamps off) subtracted (:mod:`ptmcore.illumination`);
+2. the photograph divided by its light's gain over the frame, measured on a flat board under the
+   same lights (:class:`ptmcore.illumination.FlatField`);
+3. the photograph resampled onto the capture's common frame (:mod:`ptmcore.align`).
+
+The first two are in the photograph's own frame, where the room's light and the lamps' pattern
+were; the last one moves it.
  A corrected photograph is float32 linear RGB, which the reduction
 takes as it takes a float TIFF; with no correction the photograph goes to the reduction as it was
 decoded, so clean captures (and the PTMfitter-compatible files made from 8-bit photographs) are
@@ -17,10 +21,14 @@ unchanged.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .images import srgb_to_linear
+
+if TYPE_CHECKING:
+    from .illumination import FlatField
 
 __all__ = ["Corrections", "to_linear_rgb"]
 
@@ -68,18 +76,21 @@ class Corrections:
     ----------
     ambient : ndarray, shape (H, W, 3), float32, or None
         The room's light alone, linear (:func:`ptmcore.illumination.read_ambient`).
+    flat : FlatField or None
+        Each light's gain over the frame (:func:`ptmcore.illumination.load_flat_field`).
     transforms : ndarray, shape (N, 2, 3), or None
         For each photograph, where each pixel of the common frame lies in it
         (:attr:`ptmcore.align.Drift.transforms`); None or the identity leaves it in place.
     """
 
     ambient: np.ndarray | None = None
+    flat: FlatField | None = None
     transforms: np.ndarray | None = None
 
     @property
     def active(self) -> bool:
         """Whether any photograph's pixels change."""
-        return self.ambient is not None or self.transforms is not None
+        return self.ambient is not None or self.flat is not None or self.transforms is not None
 
     def moves(self, k: int) -> bool:
         """Whether photograph ``k`` is resampled."""
@@ -100,6 +111,8 @@ class Corrections:
             if self.ambient is not None:
                 band -= self.ambient[r0:r1]
                 np.maximum(band, 0, out=band)
+            if self.flat is not None:  # a gain near 0 (a board's black corner) must not blow up
+                band /= np.maximum(self.flat.gain_rows(k, r0, r1), np.float32(1e-3))[:, :, None]
         if self.moves(k):
             from .align import warp_photograph
 

@@ -173,3 +173,63 @@ def test_check_warns_of_room_light(ambient_capture):
     _, room, _ = ambient_capture
     result = _cli("check", str(room))
     assert result.returncode == 0 and "stray light" in result.stdout
+
+
+@pytest.fixture(scope="module")
+def uneven_capture(tmp_path_factory) -> tuple[Path, Path, Path]:
+    """A tablet under lamps that light the frame unevenly (vignetting, each lamp's cone), its
+    board under the same lamps, and the same tablet under even lamps."""
+    from data_synthetic import illumination as synth
+    from ptmcore.lp import write_lp
+
+    root = tmp_path_factory.mktemp("uneven")
+    shape, lights = (96, 128), dome_lights(24, 15, 75)
+    surface = SCENES["tablet"](shape, pixel_size=None, seed=5)
+    radiance = np.clip(render(surface, lights, noise=0.003, seed=5), 0, 1).astype(np.float32)
+    gains = (synth.vignetting(shape, 0.6), synth.lamp_cone(shape, lights))
+    names = [f"img_{k:03d}.tif" for k in range(len(lights))]
+    for folder, images in (("even", radiance), ("uneven", synth.apply_gains(radiance.copy(), *gains))):
+        (root / folder / "ground_truth").mkdir(parents=True)
+        for name, image in zip(names, images):
+            write_tiff16(root / folder / name, np.clip(image, 0, 1))
+        write_lp(root / folder / "lights.lp", names, lights)
+        np.save(root / folder / "ground_truth" / "normals.npy", surface.normals.astype(np.float32))
+    synth.write_board_capture(root / "board", np.clip(synth.render_board(shape, lights, *gains, seed=6), 0, 1), names)
+    return root / "even", root / "uneven", root / "board"
+
+
+def test_the_flat_field_evens_the_lamps_out(uneven_capture, tmp_path):
+    even, uneven, board = uneven_capture
+    for name, capture, extra in (("even", even, ()), ("uneven", uneven, ()),
+                                 ("fixed", uneven, ("--flat-field", str(board)))):
+        result = _cli("run", str(capture), "-o", str(tmp_path / name), "-q", *extra)
+        assert result.returncode == 0, result.stderr
+    even_err, uneven_err, fixed_err = (_mean_error(tmp_path / n) for n in ("even", "uneven", "fixed"))
+    assert uneven_err > 2 * even_err
+    assert fixed_err <= 1.2 * even_err
+    checks = json.loads((tmp_path / "fixed" / "report.json").read_text())["capture_checks"]
+    assert checks["flat_field"]["capture"] == str(board)
+
+
+def test_a_board_of_another_light_count_is_refused(uneven_capture, tmp_path):
+    import shutil
+
+    _, uneven, board = uneven_capture
+    short = tmp_path / "board"
+    shutil.copytree(board, short)
+    sorted(short.glob("*.tif"))[-1].unlink()
+    result = _cli("run", str(uneven), "-o", str(tmp_path / "out"), "--flat-field", str(short))
+    assert result.returncode == 2 and result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_grey_card_gives_the_intensities(uneven_capture, tmp_path):
+    even, _, _ = uneven_capture
+    result = _cli("run", str(even), "-o", str(tmp_path / "out"), "-q", "--reference-region", "2,2,12,10")
+    assert result.returncode == 0, result.stderr
+    found = json.loads((tmp_path / "out" / "report.json").read_text())["intensities"]
+    assert found["source"] == "reference region 2,2,12,10" and len(found["factors"]) == 24
+    bad = _cli("run", str(even), "-o", str(tmp_path / "bad"), "--reference-region", "120,90,20,20")
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1
+    both = _cli("run", str(even), "-o", str(tmp_path / "both"), "--reference-region", "2,2,4,4", "--intensities", "estimate")
+    assert both.returncode == 2 and "either" in both.stderr

@@ -83,7 +83,7 @@ def _run_inputs(item: BatchItem) -> tuple[set[Path], set[Path]]:
     The photographs: those of its folder, those its ``.lp`` files list (wherever they are) and
     a ``.ptm`` source. The others: every other file of its folder (``.lp``, dataset files), the
     ``--lp`` given, the ``light_positions.csv`` beside each ``.lp`` (or the file given), the
-    mask, the intensities, the ambient frame, the ground truth's files (given, or ``ground_truth/`` of the
+    mask, the intensities, the ambient frame, the flat-field board's files, the ground truth's files (given, or ``ground_truth/`` of the
     capture) and the scan. A file that does not exist is listed too: its appearing matters.
     """
     from ptmcore.lp import read_lp
@@ -113,6 +113,8 @@ def _run_inputs(item: BatchItem) -> tuple[set[Path], set[Path]]:
         others.add(Path(opt.intensities))
     if opt.ambient is not None:  # a photograph, but an input like the mask: its content counts
         others.add(opt.ambient)
+    if opt.flat_field is not None:  # the board's photographs and .lp, by size and time as photographs are
+        photographs.update(_regular_files(opt.flat_field))
     return photographs, others - photographs
 
 

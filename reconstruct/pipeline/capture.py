@@ -286,8 +286,8 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         if opt.light_positions not in ("auto", "none"):
             raise InputError("light positions apply to captures with an .lp file or spheres, "
                              "not to a photometric-stereo dataset", capture)
-        if opt.ambient is not None:
-            raise InputError("--ambient applies to captures with an .lp file or spheres, not to a "
+        if opt.ambient is not None or opt.flat_field is not None:
+            raise InputError("--ambient and --flat-field apply to captures with an .lp file, not to a "
                              "photometric-stereo dataset", capture)
         with stages("decode"):
             # Intensities asked for replace the dataset's own (estimated ones are estimated on
@@ -306,7 +306,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         on_disk, warnings = _stack_place(photographs, opt, scratch)
         # The lights are read from the decoded photographs: the ambient frame is subtracted,
         # the drift (measured against the lights) is not.
-        corrections, checks = capture_corrections(photographs, ambient=opt.ambient)
+        corrections, checks = capture_corrections(photographs, ambient=opt.ambient, flat_field=opt.flat_field)
         with stages("decode", len(photographs)) as advance:
             stack = load_stack(photographs, linearize=opt.linearize, threads=opt.threads, progress=advance,
                                storage=_storage(opt), on_disk=on_disk, corrections=corrections)
@@ -321,7 +321,8 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
     # are fitted in the same pass (with near lights too: they use one direction per photograph).
     fit = EncodedFit(lights.directions, opt.ptm_format, opt.solver, 3 if opt.hsh else None, opt.ptm_encoding)
     on_disk, warnings = _stack_place(lights.paths, opt, scratch)
-    corrections, checks = capture_corrections(lights.paths, ambient=opt.ambient)
+    corrections, checks = capture_corrections(lights.paths, ambient=opt.ambient, flat_field=opt.flat_field,
+                                              directions=lights.directions)
     probe = new_probe(lights.paths, opt.align == "auto")
     kw = {"fit": fit, "linearize": opt.linearize, "threads": opt.threads, "storage": _storage(opt), "on_disk": on_disk,
           "corrections": corrections}
@@ -350,7 +351,7 @@ def _storage(opt: RunOptions) -> str:
     """How the stack holds luminance: 8-bit photographs as 8-bit sRGB codes (half the memory of
     16 bits; the normals of the synthetic JPEG scenes move by under 0.005°, BENCHMARKS.md),
     except when light intensities will rescale the samples, which 8 bits would round again."""
-    return "uint16" if opt.intensities is not None else "auto"
+    return "uint16" if opt.intensities is not None or opt.reference_region is not None else "auto"
 
 
 @dataclass(frozen=True)
@@ -496,14 +497,21 @@ def load_capture(
     gt_dir = _ground_truth_folder(capture, opt)
     if gt_dir is not None:
         loaded.truth, loaded.truth_source = load_ground_truth(gt_dir, loaded.shape), str(gt_dir)
-    if opt.intensities is not None:
+    if opt.intensities is not None or opt.reference_region is not None:
         directions = loaded.lights.directions
-        if opt.intensities == "estimate":
+        source = opt.intensities
+        if opt.reference_region is not None:
+            from ptmcore.illumination import measure_region, parse_region, reference_intensities
+
+            source = f"reference region {opt.reference_region}"
+            means, clipped = measure_region(loaded.stack, parse_region(opt.reference_region, loaded.shape))
+            factors = reference_intensities(means, directions, clipped=clipped, names=loaded.stack.paths)
+        elif opt.intensities == "estimate":
             factors = estimate_intensities(loaded.stack, directions, mask=loaded.mask)
         else:
             factors = read_intensities(opt.intensities, len(loaded.lights))
         loaded.stack = apply_intensities(loaded.stack, factors, relative=True, in_place=True)
-        loaded.intensities = {"source": opt.intensities, "factors": factors}
+        loaded.intensities = {"source": source, "factors": factors}
     _check_exposure(loaded)
     if len(loaded.lights) >= 6:
         loaded.checks["stray_light"], said = stray_light_finding(loaded.stack, loaded.lights.directions,

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.corrections import Corrections
+from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, image_size, read_image
 
 __all__ = [
@@ -46,9 +47,11 @@ def frame_shape(paths: Sequence[Path]) -> tuple[int, int]:
     return read_image(paths[0]).shape[:2]
 
 
-def capture_corrections(paths: Sequence[Path], *, ambient: Path | None) -> tuple[Corrections, dict]:
+def capture_corrections(paths: Sequence[Path], *, ambient: Path | None, flat_field: Path | None = None,
+                        directions: np.ndarray | None = None) -> tuple[Corrections, dict]:
     """What is known before decoding: the ambient frame (``--ambient``, a photograph with the
-    lamps off), checked against the photographs' size and brightness.
+    lamps off), checked against the photographs' size and brightness, and the lamps' gains over
+    the frame from a board's capture (``--flat-field``; needs the lights' ``directions``).
 
     Returns
     -------
@@ -58,13 +61,23 @@ def capture_corrections(paths: Sequence[Path], *, ambient: Path | None) -> tuple
     """
     checks: dict = {"colour": colour_of(paths[0])}
     corrections = Corrections()
-    if ambient is None:
+    if ambient is None and flat_field is None:
         return corrections, checks
-    from ptmcore.illumination import check_ambient, read_ambient
+    from ptmcore.illumination import check_ambient, load_flat_field, read_ambient
 
-    corrections.ambient = read_ambient(ambient, frame_shape(paths))
-    check_ambient(corrections.ambient, paths, ambient)
-    checks["ambient"] = {"frame": str(ambient), "mean_level": float(corrections.ambient.mean())}
+    shape = frame_shape(paths)
+    if ambient is not None:
+        corrections.ambient = read_ambient(ambient, shape)
+        check_ambient(corrections.ambient, paths, ambient)
+        checks["ambient"] = {"frame": str(ambient), "mean_level": float(corrections.ambient.mean())}
+    if flat_field is not None:
+        if directions is None:
+            raise InputError("--flat-field needs the lights before decoding: give the capture an .lp file "
+                             "(a capture calibrated from spheres has none yet)", flat_field)
+        corrections.flat = load_flat_field(flat_field, [p.name for p in paths], directions, shape)
+        found = corrections.flat.describe()
+        checks["flat_field"] = {"capture": str(flat_field),
+                                **{k: v for k, v in found.items() if not isinstance(v, (list, tuple, np.ndarray))}}
     return corrections, checks
 
 

@@ -285,6 +285,14 @@ class RunOptions:
     ambient : Path or None
         A photograph of the object with the lamps off (the room's light alone, same exposure),
         subtracted from every photograph in linear light.
+    flat_field : Path or None
+        A folder with a capture of a flat white or grey board under the same lights (same
+        ``.lp`` names, or the same order): each photograph is divided by its light's smooth gain
+        over the frame (:func:`ptmcore.illumination.load_flat_field`).
+    reference_region : str or None
+        ``"x,y,w,h"`` (pixels; x the column and y the row of the top-left corner): a grey card
+        seen in every photograph, from which each photograph's light intensity is read
+        (:func:`ptmcore.illumination.reference_intensities`); not with ``intensities``.
 
     Raises
     ------
@@ -324,6 +332,8 @@ class RunOptions:
     light_positions: Path | Literal["auto", "none"] = "auto"
     align: Align = "off"
     ambient: Path | None = None
+    flat_field: Path | None = None
+    reference_region: str | None = None
 
     def __post_init__(self) -> None:
         _check_choices(self)
@@ -355,6 +365,14 @@ class RunOptions:
         self.mask = _path_or_word(self.mask, ("auto",), "mask")
         self.light_positions = _path_or_word(self.light_positions, ("auto", "none"), "light_positions")
         self.ambient = _path_or_word(self.ambient, (), "ambient")
+        self.flat_field = _path_or_word(self.flat_field, (), "flat_field")
+        if self.reference_region is not None:
+            if self.intensities is not None:
+                raise InputError("give either --intensities or --reference-region: both set each photograph's "
+                                 "light intensity")
+            from ptmcore.illumination import parse_region
+
+            parse_region(self.reference_region, (1 << 30, 1 << 30))  # its form; the frame once decoded
 
 
 @dataclass

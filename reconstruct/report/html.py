@@ -445,7 +445,7 @@ def _files(folder: Path, written_after: Sequence[str], also: Sequence[Path]) -> 
 
 def capture_check_rows(checks: dict) -> list[tuple[str, str]]:
     """The findings of ``report.json``'s ``capture_checks`` (and of ``reconstruct check``) in
-    words, one row each: colour, drift, stray light, the ambient frame."""
+    words, one row each: colour, drift, stray light, the ambient frame, the flat field."""
     rows = []
     if checks.get("colour"):
         rows.append(("Colour", str(checks["colour"])))
@@ -468,6 +468,9 @@ def capture_check_rows(checks: dict) -> list[tuple[str, str]]:
             rows.append(("Stray light", f"{stray['level']:.1%} of the lamps' light in attached shadows ({verdict})"))
     if checks.get("ambient"):
         rows.append(("Ambient frame", f"{checks['ambient']['frame']} subtracted"))
+    flat = checks.get("flat_field")
+    if flat:
+        rows.append(("Flat field", f"{flat['capture']}: {flat['summary']}" if flat.get("summary") else str(flat["capture"])))
     return rows
 
 
