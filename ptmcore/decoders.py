@@ -23,15 +23,24 @@ min-is-white (inverted); palette images through their colour map; fewer than 8 o
 sample scaled to the full range of their type. A CMYK separation (a print derivative, whose
 tones depend on a press profile) and other colour models are refused with one line. In a TIFF
 of several images, the largest full-resolution one is read, not a thumbnail stored first.
+
+An embedded ICC colour profile (JPEG APP2 ``ICC_PROFILE`` segments, PNG ``iCCP``, TIFF tag 34675)
+is read with the pixels (:func:`read_raster_and_profile`): one that describes sRGB leaves the
+image as it is; any other RGB or grey profile has the image converted by littlecms to linear
+light in sRGB primaries (:func:`apply_colour_profile`), so an Adobe RGB photograph is not taken
+as sRGB; one that cannot be used (CMYK, Lab, damaged, over :data:`MAX_PROFILE_BYTES`) is refused.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
 import os
+import zlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 import numpy as np
 
@@ -306,6 +315,11 @@ def _tiff_pixels(page, img: np.ndarray, path: Path) -> np.ndarray:
 
 def decode_tiff(path: Path) -> np.ndarray:
     """A TIFF's main image (see :func:`_tiff_main_page`) as its samples: ``(H, W[, C])``."""
+    return _decode_tiff(path)[0]
+
+
+def _decode_tiff(path: Path) -> tuple[np.ndarray, bytes | None]:
+    """:func:`decode_tiff` and the main image's embedded colour profile (None without one)."""
     import tifffile
 
     with open_input_file(path, "image") as f:
@@ -317,7 +331,8 @@ def decode_tiff(path: Path) -> np.ndarray:
                     raise InputError("cannot decode TIFF image (it holds no image)", path)
                 _tiff_colour(page, path)
                 _tiff_claim(page, path, file_size)
-                return _tiff_pixels(page, page.asarray(), path)
+                profile = _tiff_profile(page, path)
+                return _tiff_pixels(page, page.asarray(), path), profile
         except InputError:
             raise
         except MemoryError:
@@ -368,13 +383,33 @@ def read_raster(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
     """A JPEG, PNG or TIFF file's samples as stored, whatever the file's name says.
 
     See :func:`ptmcore.images.read_image`, which checks and shapes the result; ``min_side``
-    lets a JPEG be decoded smaller (a thumbnail).
+    lets a JPEG be decoded smaller (a thumbnail). Any embedded colour profile is checked
+    (a damaged one is refused) but not applied: see :func:`read_raster_and_profile`.
 
     Raises
     ------
     InputError
         Missing, not a regular file, empty, not one of the three formats, corrupt, or claiming
         more pixels than its bytes or the memory available allow.
+    """
+    return read_raster_and_profile(path, buffer=buffer, min_side=min_side)[0]
+
+
+def read_raster_and_profile(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
+                            min_side: int | None = None) -> tuple[np.ndarray, bytes | None]:
+    """:func:`read_raster`'s samples and the file's embedded ICC colour profile.
+
+    Returns
+    -------
+    img : ndarray
+        The samples as stored, as :func:`read_raster`.
+    profile : bytes or None
+        The embedded ICC profile (at most :data:`MAX_PROFILE_BYTES`), None without one.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_raster`; or an embedded profile that is damaged or too large.
     """
     path = Path(path)
     with open_input_file(path, "image") as f:
@@ -392,8 +427,337 @@ def read_raster(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
                 data = f.read()
             except OSError as exc:
                 raise InputError(f"cannot read image ({exc.strerror or exc})", path) from None
+    # The profile first: a damaged one is named as such, not as the decoder's complaint about it.
     if kind == "JPEG":
-        return decode_jpeg(data, path, buffer, min_side)
+        profile = _jpeg_profile(io.BytesIO(data), path)
+        return decode_jpeg(data, path, buffer, min_side), profile
     if kind == "PNG":
-        return decode_png(data, path)
-    return decode_tiff(path)
+        profile = _png_profile(io.BytesIO(data), path)
+        return decode_png(data, path), profile
+    return _decode_tiff(path)
+
+
+# --- embedded ICC colour profiles --------------------------------------------------------------
+
+#: The largest embedded colour profile read, in bytes. Matrix profiles are under 4 KB and the
+#: largest lookup-table profiles (printers, scanners) about 1 MB; a larger one is a damaged or
+#: hostile file, and a PNG's compressed profile is never inflated beyond this.
+MAX_PROFILE_BYTES = 4 << 20
+_ICC_JPEG = b"ICC_PROFILE\x00"
+#: Rows converted at once: a float32 band of a 10000-pixel-wide photograph is 60 MB, beside the
+#: preallocated result.
+_PROFILE_BAND_ROWS = 512
+#: littlecms' relative colorimetric intent: the profile's white becomes white, and colours are
+#: measured, not re-rendered for appearance (perceptual tables would alter the light's values).
+_RELATIVE_COLORIMETRIC = 1
+
+
+def _unusable(reason: str, path: Path) -> InputError:
+    return InputError(f"embedded colour profile cannot be used: {reason}", path)
+
+
+def _check_profile_size(size: int, path: Path) -> None:
+    if size > MAX_PROFILE_BYTES:
+        raise _unusable(f"it is larger than the {MAX_PROFILE_BYTES:,} bytes read (a damaged or hostile file)", path)
+
+
+def _jpeg_profile(f: BinaryIO, path: Path) -> bytes | None:
+    """The ICC profile in a JPEG's APP2 ``ICC_PROFILE`` segments (chunks numbered 1..count,
+    joined in order), read from the markers before the scan; None without one."""
+    f.seek(2)  # past SOI
+    chunks: dict[int, bytes] = {}
+    counts: set[int] = set()
+    total = 0
+    while True:
+        byte = f.read(1)
+        if not byte:
+            break
+        if byte != b"\xff":
+            continue  # stray bytes between markers, which libjpeg skips too
+        code = f.read(1)
+        while code == b"\xff":  # fill bytes
+            code = f.read(1)
+        if not code or code in (b"\xda", b"\xd9"):  # start of scan, end of image: no more markers
+            break
+        if code == b"\x01" or b"\xd0" <= code <= b"\xd7":  # markers without a length
+            continue
+        size = f.read(2)
+        if len(size) < 2:
+            break
+        length = int.from_bytes(size, "big") - 2
+        if length < 0:
+            break
+        if code == b"\xe2":
+            payload = f.read(length)
+            if payload.startswith(_ICC_JPEG) and len(payload) >= 14:
+                seq, count = payload[12], payload[13]
+                if seq < 1 or seq > count or seq in chunks:
+                    raise _unusable(f"its JPEG chunk {seq} of {count} is numbered wrongly or repeated "
+                                    "(a damaged file)", path)
+                counts.add(count)
+                total += len(payload) - 14
+                _check_profile_size(total, path)
+                chunks[seq] = payload[14:]
+        else:
+            f.seek(length, os.SEEK_CUR)
+    if not chunks:
+        return None
+    count = max(counts)
+    if len(counts) > 1 or len(chunks) != count:
+        raise _unusable(f"{len(chunks)} of its {count} JPEG chunks are present (a damaged file)", path)
+    return b"".join(chunks[k] for k in range(1, count + 1))
+
+
+def _png_profile(f: BinaryIO, path: Path) -> bytes | None:
+    """The ICC profile in a PNG's ``iCCP`` chunk (a name, a NUL, a method byte and the zlib
+    stream), inflated to at most :data:`MAX_PROFILE_BYTES`; None without one."""
+    f.seek(8)  # past the signature
+    while True:
+        header = f.read(8)
+        if len(header) < 8:
+            return None
+        length, kind = int.from_bytes(header[:4], "big"), header[4:]
+        if kind in (b"IDAT", b"IEND"):  # iCCP comes before the image data
+            return None
+        if kind != b"iCCP":
+            f.seek(length + 4, os.SEEK_CUR)  # and its CRC
+            continue
+        _check_profile_size(length, path)  # compressed, it is no larger than inflated
+        body = f.read(length)
+        crc = f.read(4)
+        if len(body) < length or len(crc) < 4 or zlib.crc32(kind + body) != int.from_bytes(crc, "big"):
+            raise _unusable("its PNG iCCP chunk is truncated or fails its checksum (a damaged file)", path)
+        nul = body.find(b"\x00", 0, 80)
+        if nul < 1 or nul + 2 > len(body) or body[nul + 1] != 0:
+            raise _unusable("its PNG iCCP chunk has no name or an unknown compression (a damaged file)", path)
+        inflate = zlib.decompressobj()
+        try:
+            profile = inflate.decompress(body[nul + 2:], MAX_PROFILE_BYTES + 1)
+        except zlib.error as exc:
+            raise _unusable(f"its compressed data is damaged ({exc})", path) from None
+        _check_profile_size(len(profile) + len(inflate.unconsumed_tail), path)
+        return profile
+
+
+def _tiff_profile(page, path: Path) -> bytes | None:
+    """The ICC profile in a TIFF page's tag 34675 (InterColorProfile); None without one."""
+    tag = page.tags.get(34675)
+    if tag is None:
+        return None
+    _check_profile_size(int(getattr(tag, "valuebytecount", 0) or tag.count), path)
+    value = tag.value
+    if isinstance(value, np.ndarray):
+        value = value.tobytes()
+    elif isinstance(value, tuple):
+        value = bytes(value)
+    if not isinstance(value, bytes):
+        raise _unusable(f"its TIFF tag holds {type(value).__name__}, not bytes (a damaged file)", path)
+    return value or None
+
+
+def _profile_space(profile: bytes, path: Path) -> str:
+    """``"rgb"`` or ``"gray"``, the colour space of an ICC profile, after its header's checks."""
+    if len(profile) < 132 or profile[36:40] != b"acsp":
+        raise _unusable("it is not an ICC profile (a damaged file)", path)
+    if int.from_bytes(profile[:4], "big") > len(profile):
+        raise _unusable("it is truncated (a damaged file)", path)
+    space = profile[16:20]
+    if space == b"RGB ":
+        return "rgb"
+    if space == b"GRAY":
+        return "gray"
+    name = space.decode("latin-1").strip() or "unnamed"
+    raise _unusable(f"it describes {name} colour, not RGB or grey (a print separation or an unusual "
+                    "export); save the photographs as RGB", path)
+
+
+def _linear_profile(space: str) -> bytes:
+    """Linear light in sRGB's primaries and D65 white (or linear grey): the converted image's
+    space. (``cms_profile('srgb', gamma=1.0)`` would ignore the gamma.)"""
+    import imagecodecs
+
+    if space == "gray":
+        return imagecodecs.cms_profile("gray", gamma=1.0)
+    return imagecodecs.cms_profile("rgb", whitepoint=[0.3127, 0.3290, 1.0],
+                                   primaries=[0.64, 0.33, 1, 0.30, 0.60, 1, 0.15, 0.06, 1], gamma=1.0)
+
+
+def _test_colours(space: str) -> np.ndarray:
+    """8-bit colours that tell sRGB from another space: a grid with saturated primaries (the
+    gamut) and greys from near black (the tone curve's toe, where sRGB and gamma 2.2 differ)."""
+    greys = np.array([0, 2, 5, 10, 20, 40, 64, 96, 128, 160, 192, 224, 255], np.uint8)
+    if space == "gray":
+        return greys.reshape(1, -1)
+    levels = np.array([0, 20, 110, 255], np.uint8)
+    grid = np.stack(np.meshgrid(levels, levels, levels, indexing="ij"), -1).reshape(-1, 3)
+    return np.concatenate([grid, np.repeat(greys[:, None], 3, axis=1)]).reshape(1, -1, 3)
+
+
+#: sRGB-equivalence already decided, by the profile's SHA-256 (a capture's photographs share one).
+_SRGB_VERDICTS: dict[bytes, bool] = {}
+
+
+def profile_is_srgb(profile: bytes, path: str | os.PathLike = "") -> bool:
+    """Whether an ICC profile describes sRGB (or sRGB's grey), to within one 8-bit code.
+
+    A fixed set of test colours is converted through the profile to littlecms' own sRGB
+    profile: a profile that changes none by more than one code (an sRGB profile from any
+    vendor, v2 or v4) is taken as sRGB, and the image as it is stored.
+
+    Raises
+    ------
+    InputError
+        If the profile is not RGB or grey, is damaged, or littlecms refuses it.
+    """
+    import imagecodecs
+
+    path = Path(path)
+    space = _profile_space(profile, path)
+    key = hashlib.sha256(profile).digest()
+    verdict = _SRGB_VERDICTS.get(key)
+    if verdict is None:
+        colours = _test_colours(space)
+        try:
+            out = imagecodecs.cms_transform(colours, profile, imagecodecs.cms_profile("srgb"), colorspace=space,
+                                            outcolorspace="rgb", outdtype=np.uint8, intent=_RELATIVE_COLORIMETRIC)
+        except Exception as exc:  # imagecodecs.CmsError: littlecms refused the profile
+            raise _unusable(f"littlecms refuses it ({exc})", path) from None
+        expected = colours[..., None] if space == "gray" else colours
+        verdict = bool(np.abs(out.astype(np.int16) - expected.astype(np.int16)).max() <= 1)
+        if len(_SRGB_VERDICTS) >= 64:
+            _SRGB_VERDICTS.clear()
+        _SRGB_VERDICTS[key] = verdict
+    return verdict
+
+
+def apply_colour_profile(img: np.ndarray, profile: bytes, path: str | os.PathLike) -> np.ndarray:
+    """An image with its embedded profile applied: unchanged when the profile is sRGB.
+
+    Parameters
+    ----------
+    img : ndarray
+        ``(H, W)`` grey or ``(H, W, 3)`` RGB, uint8, uint16 or float32, as
+        :func:`ptmcore.images.read_image` shapes it.
+    profile : bytes
+        The embedded ICC profile.
+    path : str or PathLike
+        The file, for messages.
+
+    Returns
+    -------
+    ndarray
+        ``img`` itself when :func:`profile_is_srgb` (8-bit as sRGB, 16-bit and float as linear,
+        as without a profile); otherwise float32 linear light in sRGB's primaries and D65 white
+        (linear grey for a grey profile), same shape, clipped below at 0 but not above 1.
+
+    Raises
+    ------
+    InputError
+        If the profile cannot be used (see :func:`profile_is_srgb`), or is RGB for a grey image
+        or grey for an RGB one, or the result would not fit in memory.
+    """
+    import imagecodecs
+
+    path = Path(path)
+    if profile_is_srgb(profile, path):
+        return img
+    space = _profile_space(profile, path)
+    grey = img.ndim == 2
+    if grey != (space == "gray"):
+        raise _unusable(f"it is {'RGB' if space == 'rgb' else 'grey'} but the image is "
+                        f"{'grey' if grey else 'RGB'}; save the photograph with a matching profile", path)
+    dst = _linear_profile(space)
+
+    def convert(data: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        try:
+            return imagecodecs.cms_transform(np.ascontiguousarray(data), profile, dst, colorspace=space,
+                                             outcolorspace=space, outdtype=np.float32,
+                                             intent=_RELATIVE_COLORIMETRIC, out=out)
+        except Exception as exc:  # imagecodecs.CmsError: littlecms refused the profile
+            raise _unusable(f"littlecms refuses it ({exc})", path) from None
+
+    height, width = img.shape[:2]
+    if grey and img.dtype in (np.uint8, np.uint16):
+        # A grey profile is one tone curve: convert every code once, then look them up.
+        codes = np.arange(np.iinfo(img.dtype).max + 1, dtype=img.dtype).reshape(-1, 256)
+        table = np.maximum(convert(codes).reshape(-1), np.float32(0.0))
+        _check_claim(width, height, img.size * 4, path)
+        return table[img]
+    _check_claim(width, height, img.size * 4, path)
+    result = np.empty(img.shape, np.float32)
+    for r0 in range(0, height, _PROFILE_BAND_ROWS):
+        band = result[r0:r0 + _PROFILE_BAND_ROWS]
+        done = convert(img[r0:r0 + _PROFILE_BAND_ROWS], band)
+        if not np.shares_memory(done, band):
+            band[...] = done
+        np.maximum(band, np.float32(0.0), out=band)
+    return result
+
+
+def profile_description(profile: bytes) -> str:
+    """The profile's own description ("Adobe RGB (1998)", "sRGB IEC61966-2.1"), or
+    ``"embedded profile"`` when it has none that Pillow reads."""
+    try:
+        from PIL import ImageCms
+
+        text = ImageCms.getProfileDescription(ImageCms.ImageCmsProfile(io.BytesIO(profile)))
+    except Exception:  # noqa: BLE001 - a description is optional; the profile itself is checked elsewhere
+        return "embedded profile"
+    text = " ".join(str(text).split())
+    return text if text and text.isprintable() else "embedded profile"
+
+
+def embedded_profile(path: str | os.PathLike) -> bytes | None:
+    """A JPEG, PNG or TIFF file's embedded ICC profile from its header (no pixel is decoded),
+    or None without one.
+
+    Raises
+    ------
+    InputError
+        As :func:`read_raster` for a file that cannot be read or is not one of the three, or a
+        damaged or oversized profile.
+    """
+    import tifffile
+
+    path = Path(path)
+    with open_input_file(path, "image") as f:
+        head = f.read(16)
+        kind = image_format(head)
+        if not head:
+            raise InputError("image file is empty", path)
+        if kind is None:
+            raise InputError(_not_read(head), path)
+        try:
+            if kind == "JPEG":
+                return _jpeg_profile(f, path)
+            if kind == "PNG":
+                return _png_profile(f, path)
+            f.seek(0)
+            with tifffile.TiffFile(f, name=path.name) as tif:
+                page = _tiff_main_page(tif)
+                return None if page is None else _tiff_profile(page, path)
+        except InputError:
+            raise
+        except Exception as exc:  # tifffile raises many types for corrupt files
+            raise InputError(f"cannot decode TIFF image ({exc})", path) from None
+
+
+def colour_description(path: str | os.PathLike) -> str:
+    """How a photograph's colours are read, from its header alone.
+
+    Returns
+    -------
+    str
+        ``"sRGB (no embedded profile)"``, ``"<description> (embedded, sRGB)"`` or
+        ``"<description> (embedded; converted to linear sRGB)"``.
+
+    Raises
+    ------
+    InputError
+        As :func:`embedded_profile`, or a profile that cannot be used (:func:`profile_is_srgb`).
+    """
+    profile = embedded_profile(path)
+    if profile is None:
+        return "sRGB (no embedded profile)"
+    srgb = profile_is_srgb(profile, path)
+    return f"{profile_description(profile)} " + ("(embedded, sRGB)" if srgb else "(embedded; converted to linear sRGB)")

@@ -79,7 +79,8 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
 
 def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
                min_side: int | None = None) -> np.ndarray:
-    """Read a photograph as it is stored.
+    """Read a photograph as it is stored, or in linear sRGB when its colour profile says
+    it is in another space.
 
     Parameters
     ----------
@@ -100,17 +101,23 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
     -------
     ndarray
         ``(H, W)`` for grey or ``(H, W, 3)`` for colour, in the file's own dtype (uint8,
-        uint16 or float32). An alpha channel is dropped.
+        uint16 or float32). An alpha channel is dropped. With an embedded ICC profile that is
+        not sRGB (Adobe RGB, ProPhoto, a grey gamma 2.2, ...), float32 linear light in sRGB's
+        primaries and D65 white instead, clipped below at 0 but not above 1
+        (:func:`ptmcore.decoders.apply_colour_profile`); an sRGB profile changes nothing.
 
     Raises
     ------
     InputError
         If the file is missing, not a regular file, unreadable, not a JPEG, PNG or TIFF, of an
-        unsupported depth or colour model, or claims more pixels than its bytes or the memory
-        available allow.
+        unsupported depth or colour model, claims more pixels than its bytes or the memory
+        available allow, or embeds a colour profile that cannot be used (damaged, too large,
+        CMYK or Lab, or refused by littlecms).
     """
+    from .decoders import apply_colour_profile, read_raster_and_profile
+
     path = Path(path)
-    img = read_raster(path, buffer=buffer, min_side=min_side)
+    img, profile = read_raster_and_profile(path, buffer=buffer, min_side=min_side)
     if img.ndim == 3:
         if img.shape[2] == 1 or img.shape[2] == 2:
             img = img[..., 0]
@@ -118,16 +125,18 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
             img = img[..., :3]
     if img.ndim not in (2, 3) or min(img.shape[:2]) < 1:
         raise InputError(f"unsupported image layout {img.shape}", path)
-    if img.dtype == np.uint8 or img.dtype == np.uint16:
-        return img
     if img.dtype.kind == "f":
         img = img.astype(np.float32, copy=False)
         if not np.all(np.isfinite(img)):
             raise InputError("image contains NaN or infinite values", path)
-        return img
-    if img.dtype == np.int16 or img.dtype == np.int32 or img.dtype == np.uint32:
+    elif img.dtype == np.int16 or img.dtype == np.int32 or img.dtype == np.uint32:
         raise InputError(f"unsupported sample type {img.dtype} (use 8 or 16 bit unsigned)", path)
-    raise InputError(f"unsupported sample type {img.dtype}", path)
+    elif img.dtype != np.uint8 and img.dtype != np.uint16:
+        raise InputError(f"unsupported sample type {img.dtype}", path)
+    if profile is not None:
+        # An sRGB profile returns the image itself (8-bit bit-identical); any other is applied.
+        img = apply_colour_profile(img, profile, path)
+    return img
 
 
 @dataclass
