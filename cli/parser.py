@@ -515,9 +515,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "light direction; auto (default): light_positions.csv beside the .lp, or lights triangulated "
                         "from two or more spheres when they are near; none: distant lights")
     _choice(p, RunOptions, "align",
-            help="auto: measure the camera's drift (a bumped tripod) and resample photographs displaced by more "
-                 "than a pixel onto the others' frame before fitting (experimental: see BENCHMARKS.md); off "
-                 "(default): neither. `reconstruct check` measures the drift in seconds")
+            help="auto (default): measure the camera's drift (a bumped tripod) and resample the photographs onto "
+                 "one frame before fitting when one is displaced by more than a pixel; off: neither. "
+                 "`reconstruct check` measures the drift in seconds")
     p.add_argument("--flat-field", type=_path, metavar="DIR",
                    help="a capture of a flat white or grey board under the same lights (same .lp names or order): "
                         "corrects lamps that light the frame unevenly (cones, vignetting, fall-off) and unequal lamps")

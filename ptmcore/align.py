@@ -2,18 +2,26 @@
 
 A bumped tripod or a sagging head moves the camera between photographs; a pixel then sees a
 different point of the object in each, and every fit (PTM, normals) mixes neighbours: half the
-photographs of a synthetic tablet moved by 4 × 3 px raised the mean normal error from 0.35° to
-4.6°. Two photographs under different lights cannot be compared directly (the shading changes
-completely), so each photograph is compared with the capture's own prediction of it: a PTM fitted
-to all the photographs, evaluated for its light *leaving it out* (the hat-matrix shortcut), has
-the same shading and the majority's geometry. Phase correlation of the two (sub-pixel, by
-scikit-image's upsampled DFT) gives the photograph's offset; the photographs are shifted by their
-offsets, the PTM fitted again and the offsets measured again, until they settle.
+photographs of a synthetic tablet moved by 4 × 3 px raised the mean normal error from 0.28° to
+4.4°, and every other one moved by half a pixel to 0.73°.
+
+Two photographs under different lights cannot be compared directly (the shading changes), but
+two under *neighbouring* lights nearly can: their shading and shadows are alike. So the fine
+detail (high-passed) of each photograph is cross-correlated with that of the photographs of its
+ten nearest lights, giving each pair's relative offset to a twentieth of a pixel (an FFT, then an
+upsampled DFT around the peak, for all pairs at once); the offsets that best agree with all the
+pairs are solved for on that graph, robustly (a pair misled by a moving highlight is dropped).
+A capture whose photographs split in two groups (before and after a bump) is found whole, as
+long as the groups' lights are neighbours somewhere. Of what remains, the part that the light's
+elevation explains (grazing light lengthens shadows away from the lamp: the lowest ring of a
+dome reads half a pixel away from its lamps on a steady capture) is taken away
+(:func:`_shading_bias`). An earlier design registered each photograph against the capture's
+PTM relit for its light; the PTM has no cast shadows, and on a capture split along the light
+layout's order it went wrong by several pixels (BENCHMARKS.md, "Camera drift").
 
 The work is on a few tiles of the frame, copied from each photograph while it is decoded
-(:class:`DriftProbe`), so a steady capture pays no second decoding; several tiles give a small
-rotation as well as the translation. The frame that most photographs share is kept (of two
-equal groups, the one the capture started in).
+(:class:`DriftProbe`), so a steady capture pays no second decoding (a 48-photograph capture's
+measurement takes about 0.2 s); several tiles give a small rotation as well as the translation.
 """
 
 from __future__ import annotations
@@ -24,15 +32,25 @@ import numpy as np
 
 from .images import LUMA_WEIGHTS, srgb_to_linear
 
-__all__ = ["ALIGN_THRESHOLD_PX", "Drift", "DriftProbe", "measure_drift", "warp_photograph"]
+__all__ = ["ALIGN_THRESHOLD_PX", "FRAME_RADIUS_PX", "STILL_PX", "Drift", "DriftProbe", "measure_drift", "warp_photograph"]
 
 #: A photograph displaced by more than this anywhere in the frame (pixels) makes a run resample
-#: the capture. Steady captures read up to 0.55 px on the synthetic tablet (its grazing lights'
-#: cast shadows, which the PTM prediction does not have, pull the registration) and 0.78 px and
-#: 0.67 px on the real captures of ../shared/real (benchmarks/drift.py, 2026-11-28): a lower
-#: threshold would resample steady captures, blurring them for nothing. Above it, the error
-#: the drift causes grows fast (4 × 3 px: 4.6° mean normal error against 0.35°).
+#: the capture. Steady captures read up to 0.13 px on the 640 × 480 synthetic tablet, 0.83 px on
+#: a 800 × 768 one under 24 lights (smooth at the pixel's scale: only shading to register),
+#: 0.32 px on the real RTI icon and 0.58 px on DiLiGenT's glossy cat, whose highlights move with
+#: the light (benchmarks/drift.py): resampling by offsets that are the measurement's own noise
+#: would move photographs by as much as it corrects. Drift below it is reported, not undone; it
+#: costs: every other photograph of the tablet moved by 0.5 px, 0.73° mean normal error against
+#: 0.28°; by 1 px, 1.27°.
 ALIGN_THRESHOLD_PX = 1.0
+#: A photograph whose tiles disagree by more than this (pixels) with one rigid motion is not
+#: measured: its details moved with the shading, not with the camera.
+RIGID_TOLERANCE_PX = 0.5
+#: Photographs this close to one another (pixels) share a frame.
+FRAME_RADIUS_PX = 0.5
+#: A photograph of the common frame displaced by less than this (pixels) is left as it is when
+#: the others are resampled: resampling blurs, a little.
+STILL_PX = 0.1
 #: The probe's memory at most (bytes): its tiles shrink for captures of many photographs.
 PROBE_BYTES = 64 << 20
 #: The largest tile side (pixels): enough texture for a sub-pixel offset, small enough that
@@ -41,10 +59,8 @@ TILE = 192
 #: The smallest useful tile side.
 MIN_TILE = 32
 _SRGB8 = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0)).astype(np.float32)
-#: Passes of fitting and measuring; a steady capture stops after the first.
-_PASSES = 10
-#: Below this confidence (correlation of the photograph's and its prediction's details) a
-#: tile's offset is not trusted: a featureless or dark tile.
+#: Below this confidence (the median correlation of a photograph's details with its neighbours')
+#: a tile's offset is not trusted: a featureless or dark tile.
 _MIN_CONFIDENCE = 0.2
 
 
@@ -73,6 +89,8 @@ class DriftProbe:
         size = min(TILE, int(min(h, w) / 2.5))
         spread = min(h, w) >= 4 * size
         count = 5 if spread else 1
+        if not spread:  # one tile: as large as the frame allows, for as much detail as it holds
+            size = min(TILE, int(0.8 * min(h, w)))
         size = min(size, int(np.sqrt(PROBE_BYTES / (4 * count * max(1, n)))))
         self.size = max(MIN_TILE, size - size % 2)
         s = self.size
@@ -141,86 +159,232 @@ class Drift:
         k = int(np.argmax(d))
         return k, float(d[k])
 
-    def needs_alignment(self, threshold: float = ALIGN_THRESHOLD_PX) -> bool:
-        """Whether some photograph is displaced by more than ``threshold`` pixels."""
-        return self.largest()[1] > threshold
+    def needs_alignment(self, threshold: float | None = None) -> bool:
+        """Whether some photograph is displaced by more than ``threshold`` pixels
+        (:data:`ALIGN_THRESHOLD_PX` when None)."""
+        return self.largest()[1] > (ALIGN_THRESHOLD_PX if threshold is None else threshold)
+
+    def resampling(self, still: float = STILL_PX) -> np.ndarray:
+        """:attr:`transforms`, with the identity for photographs displaced by less than
+        ``still`` pixels (left as they are)."""
+        out = self.transforms.copy()
+        out[self.displacement() < still] = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+        return out
 
 
-def _ptm_basis(lights: np.ndarray) -> np.ndarray:
-    lu, lv = lights[:, 0], lights[:, 1]
-    return np.stack([lu * lu, lv * lv, lu * lv, lu, lv, np.ones_like(lu)], axis=1)
+#: Each photograph is compared with the photographs of its nearest lights: their shading and
+#: shadows are most alike, so the light's change biases the comparison least.
+_NEIGHBOURS = 10
+#: Elevations this close (degrees, one standard deviation) share their shading's bias: a dome's
+#: ring is within a few degrees; rings are 10–15° apart.
+_BIAS_BANDWIDTH_DEG = 4.0
+#: The correlation peak is refined on a grid of 1/_UPSAMPLE pixel.
+_UPSAMPLE = 20
+_WHITEN = 0.0
 
 
-def _details(tile: np.ndarray) -> np.ndarray:
-    """A tile's fine detail, windowed: minus its blur (the shading's slow part), times a Hann
-    window (so that its edges do not correlate with themselves)."""
+def _details(tiles: np.ndarray) -> np.ndarray:
+    """Tiles' fine detail, windowed: minus their blur (the shading's slow part), times a Hann
+    window (so that their edges do not correlate with themselves)."""
     from scipy.ndimage import gaussian_filter
 
-    high = tile - gaussian_filter(tile, 4.0, mode="nearest")
-    s = tile.shape[-1]
+    high = tiles - gaussian_filter(tiles, (0, 4.0, 4.0), mode="nearest")
+    s = tiles.shape[-1]
     window = np.hanning(s).astype(np.float32)
     return high * window[:, None] * window[None, :]
 
 
-def _shift(tiles: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Each tile moved back by its offset ``d`` (rows, columns): the common frame's view."""
-    from scipy.ndimage import shift
+def _neighbour_pairs(lights: np.ndarray, k: int = _NEIGHBOURS) -> np.ndarray:
+    """``(E, 2)`` pairs ``(i, j)``, ``i < j``: each photograph with those of its ``k`` nearest
+    lights that are within three times the layout's typical spacing (the median angle to a light's
+    nearest neighbour), and always its two nearest: under lights farther apart the shading
+    differs too much for the details to be compared (a sparse layout's top lamps against the
+    lowest ring read offsets of 2–3 px on a steady capture)."""
+    n = len(lights)
+    k = min(k, n - 1)
+    cos = np.clip(lights @ lights.T, -1.0, 1.0)
+    np.fill_diagonal(cos, -np.inf)
+    nearest = np.argsort(-cos, axis=1, kind="stable")[:, :k]
+    angle = np.arccos(np.take_along_axis(cos, nearest, axis=1))
+    near = angle <= 3 * np.median(angle[:, 0])
+    near[:, :2] = True
+    i = np.repeat(np.arange(n), k)[near.ravel()]
+    j = nearest.ravel()[near.ravel()]
+    return np.unique(np.stack([np.minimum(i, j), np.maximum(i, j)], 1), axis=0)
 
-    out = np.empty_like(tiles)
-    for i in range(len(tiles)):
-        out[i] = tiles[i] if not d[i].any() else shift(tiles[i], -d[i], order=3, mode="nearest")
-    return out
+
+def _pair_offsets(details: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each pair ``(i, j)``: where tile ``i``'s content lies in tile ``j`` (rows, columns,
+    sub-pixel), and the normalised correlation at that offset.
+
+    Cross-correlation by FFT, its peak refined by a local upsampled DFT (Guizar-Sicairos et al.
+    2008, as scikit-image's ``phase_cross_correlation``), all pairs at once: one call per pair
+    costs 20 times as much on a 48-photograph capture.
+    """
+    e = len(pairs)
+    s = details.shape[-1]
+    spectra = np.fft.rfft2(details)
+    cross = spectra[pairs[:, 1]] * np.conj(spectra[pairs[:, 0]])
+    if _WHITEN:
+        magnitude = np.abs(cross)
+        cross = cross / (magnitude ** _WHITEN + 1e-12 * magnitude.max())
+    corr = np.fft.irfft2(cross, s=(s, s))
+    flat = corr.reshape(e, -1).argmax(axis=1)
+    peak = np.stack(np.unravel_index(flat, (s, s)), 1).astype(np.float64)
+    peak[peak > s // 2] -= s
+    # The whole spectrum of the pair for the refinement (the half-spectrum's mirror).
+    full = np.fft.fft2(details)
+    cross = full[pairs[:, 1]] * np.conj(full[pairs[:, 0]])
+    if _WHITEN:
+        magnitude = np.abs(cross)
+        cross = cross / (magnitude ** _WHITEN + 1e-12 * magnitude.max())
+    m = int(np.ceil(1.5 * _UPSAMPLE))
+    steps = (np.arange(m) - m // 2) / _UPSAMPLE
+    freq = np.fft.fftfreq(s)
+    rows = peak[:, 0, None] + steps[None]
+    cols = peak[:, 1, None] + steps[None]
+    kr = np.exp(2j * np.pi * rows[:, :, None] * freq)
+    kc = np.exp(2j * np.pi * cols[:, :, None] * freq)
+    local = np.einsum("emr,erc,enc->emn", kr, cross, kc, optimize=True).real
+    best = local.reshape(e, -1).argmax(axis=1)
+    bi, bj = np.unravel_index(best, (m, m))
+    offsets = np.stack([rows[np.arange(e), bi], cols[np.arange(e), bj]], 1)
+    norms = np.linalg.norm(details.reshape(len(details), -1), axis=1)
+    denom = norms[pairs[:, 0]] * norms[pairs[:, 1]] * s * s
+    value = local.reshape(e, -1).max(axis=1)
+    conf = np.divide(value, denom, out=np.zeros(e), where=denom > 0)
+    return offsets, np.clip(conf, 0, 1)
+
+
+def _solve_graph(n: int, pairs: np.ndarray, relative: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Offsets ``(n, 2)`` whose differences ``d[j] - d[i]`` best match ``relative`` (robustly:
+    Tukey's biweight drops pairs a repeated texture or a moving shadow misled), mean zero."""
+    e = len(pairs)
+    a = np.zeros((e + 1, n))
+    a[np.arange(e), pairs[:, 1]] = 1.0
+    a[np.arange(e), pairs[:, 0]] = -1.0
+    a[e] = 1.0
+    rhs = np.vstack([relative, np.zeros((1, 2))])
+    w = weight.copy()
+    d = np.zeros((n, 2))
+    for _ in range(6):
+        sw = np.sqrt(np.append(w, 1.0))[:, None]
+        d = np.linalg.lstsq(a * sw, rhs * sw, rcond=None)[0]
+        residual = np.linalg.norm(a[:e] @ d - relative, axis=1)
+        scale = 4.685 * max(1.4826 * float(np.median(residual)), 0.1)
+        w = weight * np.where(residual < scale, (1 - (residual / scale) ** 2) ** 2, 0.0)
+    return d
 
 
 def _measure_tiles(tiles: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Offsets ``(N, 2)`` (rows, columns) of each photograph's tile, and their confidence."""
-    from skimage.registration import phase_cross_correlation
-
+    """Offsets ``(N, 2)`` (rows, columns) of each photograph's tile against their mean, and
+    their confidence: the median correlation of the photograph's details with its neighbours'."""
     n = len(tiles)
-    a = _ptm_basis(lights)
-    p = np.linalg.pinv(a)
-    leverage = np.clip(np.einsum("ij,ji->i", a, p), 0, 0.95)
-    d = np.zeros((n, 2))
-    details = np.stack([_details(t) for t in tiles])
-
-    def predictions() -> np.ndarray:
-        # Each photograph as the others predict it, in the common frame.
-        flat = _shift(tiles, d).reshape(n, -1)
-        pred = a @ (p @ flat)
-        return (flat - (flat - pred) / (1 - leverage)[:, None]).reshape(tiles.shape)
-
-    for _ in range(_PASSES):
-        loo = predictions()
-        found = d.copy()
-        for k in range(n):
-            ref = _details(loo[k])
-            if ref.any() and details[k].any():
-                # The shift that brings the photograph onto its prediction: minus its offset.
-                found[k] = -np.asarray(phase_cross_correlation(ref, details[k], upsample_factor=10,
-                                                               normalization=None)[0], float)
-        moved, d = np.abs(found - d).max(), found
-        if moved < 0.05:  # settled: a steady capture stops after the first passes
-            break
-    loo = predictions()
-    aligned = _shift(tiles, d)
-    confidence = np.array([_correlation(_details(loo[k]), _details(aligned[k])) for k in range(n)])
-    return d, confidence
+    details = _details(tiles)
+    pairs = _neighbour_pairs(lights)
+    relative, conf = _pair_offsets(details, pairs)
+    d = _solve_graph(n, pairs, relative, conf ** 2)
+    per = np.zeros(n)
+    for k in range(n):
+        per[k] = np.median(conf[(pairs[:, 0] == k) | (pairs[:, 1] == k)])
+    return d, per
 
 
-def _correlation(a: np.ndarray, b: np.ndarray) -> float:
-    na, nb = np.linalg.norm(a), np.linalg.norm(b)
-    return 0.0 if na == 0 or nb == 0 else float(np.clip((a * b).sum() / (na * nb), 0, 1))
+def _rigid(offsets: np.ndarray, pos: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """A photograph's translation (rows, columns) and small rotation θ (radians, about the frame's
+    centre) from its tiles' offsets ``(T, 2)`` at ``pos`` (rows, columns from the centre), or
+    None when the tiles do not agree on one rigid motion.
+
+    A camera's move displaces every tile alike (but for the rotation); a grazing light's
+    shadows move each tile's details their own way (a steady 1600 × 1200 synthetic tablet, smooth
+    at the pixel's scale, read up to 10 px in one tile and 0.5 px in another). So the fit leaves
+    out the tile that disagrees most when five are trusted, and the photograph is not measured
+    when the others are still more than :data:`RIGID_TOLERANCE_PX` from the fit.
+    """
+    def fit(keep: np.ndarray, rotate: bool) -> tuple[np.ndarray, float, float]:
+        # A tile at (r, c) moves by (θ·c, −θ·r) beside the translation.
+        rows = np.zeros((2 * keep.sum(), 3))
+        rows[0::2, 0], rows[0::2, 2] = 1, pos[keep, 1]
+        rows[1::2, 1], rows[1::2, 2] = 1, -pos[keep, 0]
+        rows = rows if rotate else rows[:, :2]
+        target = offsets[keep].reshape(-1)
+        sol = np.linalg.lstsq(rows, target, rcond=None)[0]
+        worst = float(np.abs(rows @ sol - target).max())
+        return sol[:2], float(sol[2]) if rotate else 0.0, worst
+
+    candidates = [use]
+    if use.sum() >= 5:
+        for t in np.flatnonzero(use):
+            keep = use.copy()
+            keep[t] = False
+            candidates.append(keep)
+    # A rotation only where a translation does not explain the tiles: the tiles' own scatter
+    # (a few tenths of a pixel, 200 px apart) would otherwise read as a rotation that moves
+    # the frame's corners by more than the threshold.
+    for rotate in (False, True):
+        translation, angle, worst = min((fit(keep, rotate) for keep in candidates), key=lambda f: f[2])
+        if worst <= RIGID_TOLERANCE_PX:
+            return translation, angle
+    return None
 
 
-def _common_frame(shift: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """The photographs of the frame most of them share: the largest group within a pixel of one
-    another (a bumped tripod splits a capture in two groups: before and after), and of equal
-    groups the one of the earliest photograph, the frame the capture started in."""
+def _shading_bias(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` the part of the offsets (rows, columns) that the light's elevation explains.
+
+    Under a grazing light, shadows lengthen away from the lamp and the details move with them:
+    on a steady capture the lowest ring of a dome reads about half a pixel away from its lights
+    (synthetic tablet 0.58 px at 15°, DiLiGenT cat 0.27 px at 40–55°), the rings above a few
+    hundredths. The camera's drift does not depend on where the lamp is. So the photographs of
+    the common frame ``ref`` give, for each elevation, the mean offset along and across their
+    lights' azimuths (a Gaussian kernel of :data:`_BIAS_BANDWIDTH_DEG` in elevation); that is
+    removed from every photograph. A ring moved as a whole is left alone, as its offsets along
+    the azimuths of a full ring average to zero.
+    """
+    n = len(shift)
+    lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
+    norm = np.linalg.norm(lxy, axis=1)
+    oblique = norm > 0.05  # an overhead lamp has no azimuth
+    along_dir = np.zeros((n, 2))
+    along_dir[oblique] = lxy[oblique] / norm[oblique, None]
+    across_dir = np.stack([-along_dir[:, 1], along_dir[:, 0]], 1)
+    along = (shift * along_dir).sum(axis=1)
+    across = (shift * across_dir).sum(axis=1)
+    elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1.0, 1.0)))
+    use = ref & oblique
+    if not use.any():
+        return np.zeros((n, 2))
+    kernel = np.exp(-0.5 * ((elevation[:, None] - elevation[None, use]) / _BIAS_BANDWIDTH_DEG) ** 2)
+    total = kernel.sum(axis=1)
+    # Enough of the common frame near an elevation to say what its shading does there.
+    known = total > 2.0
+    safe = np.where(known, total, 1.0)
+    count = total ** 2 / np.maximum((kernel ** 2).sum(axis=1), 1e-300)  # the kernel's effective count
+
+    def shared(values: np.ndarray) -> np.ndarray:
+        # The mean, shrunk by its own uncertainty: where the photographs scatter (a camera that
+        # shook) a mean of their scatter is not a bias to take away. Only a mean of two
+        # standard errors or more is kept whole (four times the squared error below).
+        mean = kernel @ values / safe
+        spread = kernel @ values ** 2 / safe - mean ** 2
+        noise = np.maximum(spread, 0.0) / np.maximum(count - 1.0, 1.0)
+        keep = np.clip(1.0 - np.divide(4.0 * noise, mean ** 2, out=np.ones(n), where=mean != 0), 0.0, 1.0)
+        return np.where(known, mean * keep, 0.0)
+
+    return shared(along[use])[:, None] * along_dir + shared(across[use])[:, None] * across_dir
+
+
+def _common_frame(pose: np.ndarray, measured: np.ndarray, radius: float = FRAME_RADIUS_PX) -> np.ndarray:
+    """The photographs of the frame the capture shares: the largest group within
+    :data:`FRAME_RADIUS_PX` (``radius``) of one photograph when it holds at least half of them (a bumped tripod splits a capture in two
+    groups, before and after), of two equal groups the one of the earliest photograph, the frame
+    the capture started in; otherwise (a camera that shook) all of them, whose median is then
+    the frame that moves the photographs least."""
     k = np.flatnonzero(measured)
-    close = np.linalg.norm(shift[k, None] - shift[None, k], axis=2) <= 1.0
-    best = int(np.argmax(close.sum(axis=1)))  # argmax takes the first of equals: the earliest
-    ref = np.zeros(len(shift), bool)
-    ref[k[close[best]]] = True
+    close = np.linalg.norm(pose[k, None] - pose[None, k], axis=2) <= radius
+    count = close.sum(axis=1)
+    best = int(np.argmax(count))  # argmax takes the first of equals: the earliest
+    ref = np.zeros(len(pose), bool)
+    ref[k[close[best]] if 2 * count[best] >= len(k) else k] = True
     return ref
 
 
@@ -255,19 +419,35 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray) -> Drift:
         if not use.any():
             continue
         if use.sum() >= 3:
-            # Small rotation θ about the centre (rows down, columns right): a tile at (r, c)
-            # moves by (θ·c, −θ·r) beside the translation.
-            rows = np.zeros((2 * use.sum(), 3))
-            rows[0::2, 0], rows[0::2, 2] = 1, pos[use, 1]
-            rows[1::2, 1], rows[1::2, 2] = 1, -pos[use, 0]
-            sol, *_ = np.linalg.lstsq(rows, per_tile[k, use].reshape(-1), rcond=None)
-            shift[k], theta[k] = sol[:2], sol[2]
+            fit = _rigid(per_tile[k], pos, use)
+            if fit is None:  # the tiles disagree: shading, not the camera, moved the details
+                trusted[k] = False
+                continue
+            shift[k], theta[k] = fit
         else:
             shift[k] = np.median(per_tile[k, use], axis=0)
     measured = trusted.any(axis=1)
+    reach = 0.5 * float(np.hypot(h, w))
+
+    def pose(translation: np.ndarray) -> np.ndarray:
+        # Translation and rotation in pixels (a corner's move): two photographs share a frame
+        # when they agree on both.
+        return np.column_stack([translation, theta * reach])
+
     if measured.any():
-        ref = _common_frame(shift, measured)
+        # The bias spreads the common frame's photographs apart (by about a pixel across a
+        # dome's lowest ring): it is measured on a looser group, and the frame found again
+        # once it is gone (twice: the first may be the wrong one of two equal groups).
+        raw = shift.copy()
+        bias = np.zeros_like(shift)
+        for _ in range(2):
+            ref = _common_frame(pose(raw - bias), measured, 2 * FRAME_RADIUS_PX)
+            centred = raw - np.median(raw[ref] - bias[ref], axis=0)
+            bias = _shading_bias(centred, lights, ref)
+        shift = raw - bias
+        ref = _common_frame(pose(shift), measured)
         shift[measured] -= np.median(shift[ref], axis=0)
+        shift[~measured] = 0.0
         theta[measured] -= np.median(theta[ref])
     cos, sin = np.cos(theta), np.sin(theta)
     transforms = np.zeros((n, 2, 3))
@@ -282,7 +462,9 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray) -> Drift:
 
 
 def warp_photograph(img: np.ndarray, transform: np.ndarray) -> np.ndarray:
-    """A photograph resampled onto the common frame (bicubic; the border repeated).
+    """A photograph resampled onto the common frame (Lanczos, 8 × 8 samples: on the drift
+    benchmark's tablet its normals were 0.335° where bicubic's were 0.348°, clean 0.284°; the
+    border repeated).
 
     Parameters
     ----------
@@ -298,4 +480,4 @@ def warp_photograph(img: np.ndarray, transform: np.ndarray) -> np.ndarray:
 
     h, w = img.shape[:2]
     return cv2.warpAffine(np.ascontiguousarray(img, np.float32), np.asarray(transform, np.float64), (w, h),
-                          flags=cv2.INTER_CUBIC | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)
+                          flags=cv2.INTER_LANCZOS4 | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE)

@@ -29,6 +29,7 @@ from .images import srgb_to_linear
 
 if TYPE_CHECKING:
     from .illumination import FlatField
+    from .raw import RawDevelopment
 
 __all__ = ["Corrections", "to_linear_rgb"]
 
@@ -81,11 +82,16 @@ class Corrections:
     transforms : ndarray, shape (N, 2, 3), or None
         For each photograph, where each pixel of the common frame lies in it
         (:attr:`ptmcore.align.Drift.transforms`); None or the identity leaves it in place.
+    raw : RawDevelopment or None
+        How camera RAW photographs are developed (:func:`ptmcore.raw.raw_development`): one
+        white balance and orientation for the whole capture, so that its photographs stay
+        comparable. It changes how they are decoded, not what is done to them after.
     """
 
     ambient: np.ndarray | None = None
     flat: FlatField | None = None
     transforms: np.ndarray | None = None
+    raw: RawDevelopment | None = None
 
     @property
     def active(self) -> bool:

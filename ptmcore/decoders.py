@@ -29,6 +29,11 @@ is read with the pixels (:func:`read_raster_and_profile`): one that describes sR
 image as it is; any other RGB or grey profile has the image converted by littlecms to linear
 light in sRGB primaries (:func:`apply_colour_profile`), so an Adobe RGB photograph is not taken
 as sRGB; one that cannot be used (CMYK, Lab, damaged, over :data:`MAX_PROFILE_BYTES`) is refused.
+
+Camera RAW files (DNG, CR2, NEF, ...) are the one exception to telling a format by its content:
+most are TIFF inside, so they are told by their names (:func:`ptmcore.raw.is_raw`) before any
+of this, and developed by LibRaw into linear sRGB primaries (:mod:`ptmcore.raw`); they carry no
+ICC profile.
 """
 
 from __future__ import annotations
@@ -48,6 +53,8 @@ from .errors import InputError, open_input_file
 
 if TYPE_CHECKING:
     import PIL.Image
+
+    from .raw import RawDevelopment
 
 #: The largest image read, in pixels: OpenCV's own limit (2^30, e.g. 32768 × 32768). A header
 #: that claims more (a decompression bomb, or a corrupt header) is refused before any memory
@@ -355,8 +362,13 @@ def _tiff_size(path: Path) -> tuple[int, int] | None:
 
 def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
     """``(width, height)`` of a JPEG, PNG or TIFF from its header (nothing is decoded), or None
-    when the file is missing, not a regular file, not one of those formats, or unreadable."""
+    when the file is missing, not a regular file, not one of those formats, or unreadable.
+    A camera RAW file (by its name) gives its developed size (:func:`ptmcore.raw.raw_size`)."""
+    from .raw import is_raw, raw_size
+
     path = Path(path)
+    if is_raw(path):
+        return raw_size(path)
     try:
         with open_input_file(path, "image") as f:
             head = f.read(64 * 1024)
@@ -379,12 +391,14 @@ def image_size(path: str | os.PathLike) -> tuple[int, int] | None:
 
 
 def read_raster(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
-                min_side: int | None = None) -> np.ndarray:
+                min_side: int | None = None, raw: RawDevelopment | None = None) -> np.ndarray:
     """A JPEG, PNG or TIFF file's samples as stored, whatever the file's name says.
 
     See :func:`ptmcore.images.read_image`, which checks and shapes the result; ``min_side``
     lets a JPEG be decoded smaller (a thumbnail). Any embedded colour profile is checked
-    (a damaged one is refused) but not applied: see :func:`read_raster_and_profile`.
+    (a damaged one is refused) but not applied: see :func:`read_raster_and_profile`. A camera
+    RAW file (told by its name) is developed by :func:`ptmcore.raw.read_raw` with ``raw``
+    (default: its own development), ``buffer`` unused.
 
     Raises
     ------
@@ -392,11 +406,12 @@ def read_raster(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
         Missing, not a regular file, empty, not one of the three formats, corrupt, or claiming
         more pixels than its bytes or the memory available allow.
     """
-    return read_raster_and_profile(path, buffer=buffer, min_side=min_side)[0]
+    return read_raster_and_profile(path, buffer=buffer, min_side=min_side, raw=raw)[0]
 
 
 def read_raster_and_profile(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
-                            min_side: int | None = None) -> tuple[np.ndarray, bytes | None]:
+                            min_side: int | None = None, raw: RawDevelopment | None = None
+                            ) -> tuple[np.ndarray, bytes | None]:
     """:func:`read_raster`'s samples and the file's embedded ICC colour profile.
 
     Returns
@@ -404,14 +419,19 @@ def read_raster_and_profile(path: str | os.PathLike, *, buffer: np.ndarray | Non
     img : ndarray
         The samples as stored, as :func:`read_raster`.
     profile : bytes or None
-        The embedded ICC profile (at most :data:`MAX_PROFILE_BYTES`), None without one.
+        The embedded ICC profile (at most :data:`MAX_PROFILE_BYTES`), None without one (and
+        for a camera RAW file, developed straight into linear sRGB primaries).
 
     Raises
     ------
     InputError
         As :func:`read_raster`; or an embedded profile that is damaged or too large.
     """
+    from .raw import is_raw, read_raw
+
     path = Path(path)
+    if is_raw(path):  # before the content is sniffed: a DNG is a TIFF inside
+        return read_raw(path, raw, min_side=min_side), None
     with open_input_file(path, "image") as f:
         head = f.read(16)
         kind = image_format(head)
@@ -711,6 +731,8 @@ def embedded_profile(path: str | os.PathLike) -> bytes | None:
     """A JPEG, PNG or TIFF file's embedded ICC profile from its header (no pixel is decoded),
     or None without one.
 
+    A camera RAW file has none: it is developed straight into linear sRGB primaries.
+
     Raises
     ------
     InputError
@@ -719,7 +741,12 @@ def embedded_profile(path: str | os.PathLike) -> bytes | None:
     """
     import tifffile
 
+    from .raw import is_raw
+
     path = Path(path)
+    if is_raw(path):
+        open_input_file(path, "RAW file").close()  # missing or not a regular file: said as for the others
+        return None
     with open_input_file(path, "image") as f:
         head = f.read(16)
         kind = image_format(head)
@@ -749,13 +776,19 @@ def colour_description(path: str | os.PathLike) -> str:
     -------
     str
         ``"sRGB (no embedded profile)"``, ``"<description> (embedded, sRGB)"`` or
-        ``"<description> (embedded; converted to linear sRGB)"``.
+        ``"<description> (embedded; converted to linear sRGB)"``; for a camera RAW file
+        :func:`ptmcore.raw.raw_description` (``"camera RAW (<camera>; LibRaw, linear, camera
+        white balance 2.05/1/1.46)"``, which unpacks the raw data to read the balance).
 
     Raises
     ------
     InputError
         As :func:`embedded_profile`, or a profile that cannot be used (:func:`profile_is_srgb`).
     """
+    from .raw import is_raw, raw_description
+
+    if is_raw(path):
+        return raw_description(path)
     profile = embedded_profile(path)
     if profile is None:
         return "sRGB (no embedded profile)"

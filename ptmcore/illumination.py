@@ -35,6 +35,7 @@ from numpy.polynomial import legendre
 from .decoders import image_size
 from .errors import InputError, first_few
 from .images import LUMA_WEIGHTS, ImageStack, read_image
+from .raw import RAW_SUFFIXES, RawDevelopment
 
 __all__ = [
     "FlatField",
@@ -100,7 +101,7 @@ def _check_size(path: Path, shape: tuple[int, int], what: str, theirs: str = "th
         raise InputError(f"{what} is {size[0]}×{size[1]} pixels but {theirs} are {_size_text(shape)}", path)
 
 
-def read_ambient(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
+def read_ambient(path: str | os.PathLike, shape: tuple[int, int], *, raw: RawDevelopment | None = None) -> np.ndarray:
     """The ambient frame (the room's light alone) as linear light.
 
     Parameters
@@ -123,7 +124,7 @@ def read_ambient(path: str | os.PathLike, shape: tuple[int, int]) -> np.ndarray:
     """
     path = Path(path)
     _check_size(path, shape, "the ambient frame")
-    img = read_image(path)
+    img = read_image(path, raw=raw)
     if img.shape[:2] != tuple(shape):
         raise InputError(f"the ambient frame is {_size_text(img.shape)} pixels but the photographs are "
                          f"{_size_text(shape)}", path)
@@ -137,7 +138,8 @@ def _resize(img: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return cv2.resize(img, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
 
 
-def check_ambient(ambient: np.ndarray, photographs: Sequence[str | os.PathLike], path: str | os.PathLike) -> None:
+def check_ambient(ambient: np.ndarray, photographs: Sequence[str | os.PathLike], path: str | os.PathLike, *,
+                  raw: RawDevelopment | None = None) -> None:
     """Refuse an ambient frame brighter than the photographs.
 
     Every photograph holds the room's light plus its lamp's, so the ambient frame is at most as
@@ -169,7 +171,7 @@ def check_ambient(ambient: np.ndarray, photographs: Sequence[str | os.PathLike],
     own_map = ambient @ LUMA_WEIGHTS
     levels = []
     for k in picks:
-        lum = _luminance(read_image(photographs[k], min_side=side))
+        lum = _luminance(read_image(photographs[k], min_side=side, raw=raw))
         levels.append(float(lum.mean()))
         # Pixel by pixel too: a photograph with a lamp on, given by mistake, is no brighter on
         # average than the dimmest photograph when it is that photograph or its neighbour, but it
@@ -220,7 +222,7 @@ def subtract_ambient(img: np.ndarray, ambient: np.ndarray, rows: slice = slice(N
 # --- flat field ----------------------------------------------------------------------------
 
 #: Image files a board capture may hold (when it has no ``.lp``).
-_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", *sorted(RAW_SUFFIXES))
 #: The board's photographs are reduced to block means on a grid at most this long: a smooth
 #: gain needs no more, and ~12,000 blocks keep the robust fit to a few milliseconds a light.
 _GRID_SIDE = 128
@@ -466,7 +468,8 @@ def _match(files: list[Path], capture_names: Sequence[str]) -> tuple[list[Path],
     return list(files), "order"
 
 
-def _board_grid(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _board_grid(path: Path, shape: tuple[int, int],
+                raw: RawDevelopment | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A board photograph as block means of linear luminance on a grid ≤ :data:`_GRID_SIDE`.
 
     Returns the block means, and each block's centre as ``u``, ``v`` in [-1, 1] (flattened);
@@ -474,7 +477,7 @@ def _board_grid(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndar
     """
     _check_size(path, shape, "the board photograph", "the capture's photographs")
     side = max(1, min(shape) * _GRID_SIDE // max(shape))
-    img = read_image(path, min_side=side)
+    img = read_image(path, min_side=side, raw=raw)
     h, w = img.shape[:2]
     if image_size(path) is None and (h, w) != tuple(shape):  # no header to check: decoded whole
         raise InputError(f"the board photograph is {_size_text(img.shape)} pixels but the capture's photographs "
@@ -503,6 +506,7 @@ def load_flat_field(
     shape: tuple[int, int],
     *,
     degree: int = FLAT_DEGREE,
+    raw: RawDevelopment | None = None,
 ) -> FlatField:
     """Measure each light's gain over the frame from a capture of a flat board.
 
@@ -512,7 +516,8 @@ def load_flat_field(
         A capture of a flat white or grey board (matte, filling the frame, facing the camera)
         under the same lights, camera and exposure. Its photographs are those its ``.lp`` lists
         when it has one (read with :func:`ptmcore.lp.read_lp`; its directions are not used),
-        else its ``.jpg``, ``.jpeg``, ``.png``, ``.tif`` and ``.tiff`` files sorted by name.
+        else its ``.jpg``, ``.jpeg``, ``.png``, ``.tif``, ``.tiff`` and camera RAW files sorted by
+        name.
     capture_names : sequence of str
         The capture's photographs' file names, in the order of its lights. A board photograph
         of the same name (ignoring the extension and case) is matched with each when every one
@@ -523,6 +528,9 @@ def load_flat_field(
         ``(H, W)`` of the capture's photographs.
     degree : int
         Total degree of the polynomial in log-gain (:data:`FLAT_DEGREE`).
+    raw : RawDevelopment, optional
+        The capture's development of camera RAW photographs (:mod:`ptmcore.raw`), so that the
+        board is developed as the capture is.
 
     Returns
     -------
@@ -551,7 +559,7 @@ def load_flat_field(
     residual = np.empty(len(files))
     rejected = np.empty(len(files))
     for k, path in enumerate(files):
-        b, u, v = _board_grid(path, shape)
+        b, u, v = _board_grid(path, shape, raw)
         if len(b) < 4 * terms:
             raise InputError("the board photograph is black or clipped over most of the frame", path)
         a = _design(u, v, degree)

@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from .align import DriftProbe
     from .corrections import Corrections
     from .ptmencoded import EncodedFit, EncodedFits
+    from .raw import RawDevelopment
 
 #: Rec. 709 / sRGB luminance weights of linear R, G, B.
 LUMA_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
@@ -78,7 +79,7 @@ def linear_to_srgb(v: np.ndarray) -> np.ndarray:
 
 
 def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
-               min_side: int | None = None) -> np.ndarray:
+               min_side: int | None = None, raw: RawDevelopment | None = None) -> np.ndarray:
     """Read a photograph as it is stored, or in linear sRGB when its colour profile says
     it is in another space.
 
@@ -87,15 +88,20 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
     path : str or PathLike
         JPEG, PNG or TIFF file (told by its content; anything else is refused, see
         :mod:`ptmcore.decoders`); 8 or 16 bit (TIFF may also be float); grey, RGB(A), palette
-        or min-is-white grey.
+        or min-is-white grey. Or a camera RAW file (DNG, CR2, NEF, ..., told by its name:
+        :func:`ptmcore.raw.is_raw`), developed by LibRaw (:func:`ptmcore.raw.read_raw`).
     buffer : ndarray of uint8, optional
         A JPEG is decoded into it when it is large enough, and the result is a view of it.
         Reusing one buffer saves a fresh array's page faults for every photograph, which on
         some (virtual) machines cost as much time as decoding.
     min_side : int, optional
         A JPEG is decoded at the smallest of libjpeg's DCT scales (1/8 to 1) whose sides are
-        both at least this long: a thumbnail for a fraction of the work. Other formats are
-        read whole.
+        both at least this long: a thumbnail for a fraction of the work; a RAW file at half
+        size when both its halved sides are that long. Other formats are read whole.
+    raw : RawDevelopment, optional
+        How a RAW file is developed: the capture's white balance and orientation
+        (:func:`ptmcore.raw.raw_development` of its first photograph), so its photographs stay
+        comparable. Default: each file's own. Ignored for other formats.
 
     Returns
     -------
@@ -105,6 +111,7 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
         not sRGB (Adobe RGB, ProPhoto, a grey gamma 2.2, ...), float32 linear light in sRGB's
         primaries and D65 white instead, clipped below at 0 but not above 1
         (:func:`ptmcore.decoders.apply_colour_profile`); an sRGB profile changes nothing.
+        A RAW file: ``(H, W, 3)`` uint16, linear light in sRGB's primaries.
 
     Raises
     ------
@@ -112,12 +119,12 @@ def read_image(path: str | os.PathLike, *, buffer: np.ndarray | None = None,
         If the file is missing, not a regular file, unreadable, not a JPEG, PNG or TIFF, of an
         unsupported depth or colour model, claims more pixels than its bytes or the memory
         available allow, or embeds a colour profile that cannot be used (damaged, too large,
-        CMYK or Lab, or refused by littlecms).
+        CMYK or Lab, or refused by littlecms); a RAW file that LibRaw cannot read.
     """
     from .decoders import apply_colour_profile, read_raster_and_profile
 
     path = Path(path)
-    img, profile = read_raster_and_profile(path, buffer=buffer, min_side=min_side)
+    img, profile = read_raster_and_profile(path, buffer=buffer, min_side=min_side, raw=raw)
     if img.ndim == 3:
         if img.shape[2] == 1 or img.shape[2] == 2:
             img = img[..., 0]

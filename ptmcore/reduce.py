@@ -589,7 +589,7 @@ def reduce_photographs(
     InputError
         If no photograph is given, one cannot be read, or sizes differ.
     """
-    photos = Photographs(images)
+    photos = Photographs(images, raw=corrections.raw if corrections is not None else None)
     n = len(photos)
     if n < 1:
         raise InputError("no photographs given")

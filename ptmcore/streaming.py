@@ -20,12 +20,16 @@ import os
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .errors import InputError
 from .images import read_image
 from .resources import thread_count
+
+if TYPE_CHECKING:
+    from .raw import RawDevelopment
 
 __all__ = ["Photographs", "check_same_size", "run_in_groups"]
 
@@ -52,10 +56,15 @@ class Photographs:
     images : sequence of path or ndarray, or ndarray (N, H, W[, 3])
         Files are read with :func:`ptmcore.images.read_image`; arrays are checked
         (``(H, W)`` or ``(H, W, 3)``, uint8, uint16 or float).
+    raw : RawDevelopment, optional
+        How camera RAW files are developed, all alike (:func:`ptmcore.raw.raw_development`
+        of the capture's first photograph); default: each file's own.
     """
 
-    def __init__(self, images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray) -> None:
+    def __init__(self, images: Sequence[str | os.PathLike | np.ndarray] | np.ndarray,
+                 raw: RawDevelopment | None = None) -> None:
         self.items = [images[k] for k in range(len(images))] if isinstance(images, np.ndarray) else list(images)
+        self.raw = raw
 
     def __len__(self) -> int:
         return len(self.items)
@@ -70,7 +79,7 @@ class Photographs:
         decode it into ``buffer``)."""
         path = self.path(k)
         if path is not None:
-            return read_image(path, buffer=buffer)
+            return read_image(path, buffer=buffer, raw=self.raw)
         return _as_image(self.items[k], f"image {k}")
 
 

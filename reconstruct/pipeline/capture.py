@@ -23,6 +23,7 @@ import numpy as np
 from ptmcore.corrections import Corrections
 from ptmcore.errors import InputError, first_few
 from ptmcore.images import ImageStack, check_content, image_size, load_stack, load_stack_and_fits, read_image
+from ptmcore.raw import RAW_SUFFIXES
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
@@ -45,7 +46,7 @@ __all__ = [
     "read_mask",
 ]
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", *sorted(RAW_SUFFIXES))
 
 #: How report.json names each layout.
 LP_CAPTURE = "capture with .lp"
@@ -165,7 +166,7 @@ def capture_images(folder: str | os.PathLike) -> list[Path]:
         raise InputError("capture folder not found", folder)
     paths = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if not paths:
-        raise InputError("no photographs (JPEG, PNG or TIFF) in the capture folder", folder)
+        raise InputError("no photographs (JPEG, PNG, TIFF or camera RAW) in the capture folder", folder)
     return paths
 
 
@@ -339,7 +340,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         if resample:
             # Decoded again, each photograph resampled onto the common frame: only a capture
             # that moved pays a second pass; a steady one paid the measurement alone.
-            corrections.transforms = drift.transforms
+            corrections.transforms = drift.resampling()
             del stack, fits
             with stages("align", len(lights)) as advance:
                 stack, fits = load_stack_and_fits(lights.paths, progress=advance, **kw)

@@ -22,6 +22,7 @@ import numpy as np
 from ptmcore.corrections import to_linear_rgb
 from ptmcore.errors import first_few
 from ptmcore.images import LUMA_WEIGHTS, read_image
+from ptmcore.raw import is_raw, raw_development
 from ptmcore.lp import read_lp
 from ptmcore.resources import thread_count
 from reconstruct.pipeline.capture import find_lp
@@ -72,10 +73,10 @@ class CheckResult:
                           "warnings": self.warnings})
 
 
-def _reduced(path: Path) -> tuple[np.ndarray, tuple[int, int]]:
+def _reduced(path: Path, raw=None) -> tuple[np.ndarray, tuple[int, int]]:
     """A photograph's linear luminance about :data:`CHECK_SIDE` long (1 where a channel
     clipped), and the size ``(H, W)`` it was decoded at."""
-    img = read_image(path, min_side=CHECK_SIDE // 2)
+    img = read_image(path, min_side=CHECK_SIDE // 2, raw=raw)
     top = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}.get(img.dtype, 1.0)
     rgb = img if img.ndim == 3 else img[:, :, None]
     clipped = (rgb >= top).any(axis=2)
@@ -121,7 +122,9 @@ def check_capture(capture: str | os.PathLike, *, lp: str | os.PathLike | None = 
     lights = read_lp(find_lp(capture, None if lp is None else Path(lp)))
     paths, directions = lights.paths, lights.directions
     with ThreadPoolExecutor(thread_count(threads)) as pool:
-        reduced = list(pool.map(_reduced, paths))
+        # Camera RAW: one development (the first photograph's white balance) for all of them.
+        raw = raw_development(paths[0]) if is_raw(paths[0]) else None
+        reduced = list(pool.map(lambda p: _reduced(p, raw), paths))
     first = reduced[0][1]
     for path, (_, full) in zip(paths, reduced):
         if full != first:

@@ -33,9 +33,11 @@ __all__ = [
 
 #: Pixels sampled for the stray-light estimate (a grid over the frame).
 _STRAY_SAMPLES = 20000
-#: Frames smaller than this on either side are not measured for drift: the probe's tiles would
-#: hold too few pixels for a sub-pixel offset (and such captures are test fixtures, not photographs).
-ALIGN_MIN_SIDE = 64
+#: Frames smaller than this on either side are not measured for drift: the probe's tiles (the
+#: shorter side ÷ 2.5, at most 192 px) would hold too little detail for a sub-pixel offset
+#: (a steady 128 × 96 synthetic tablet under 24 lights read 1.1 px with 38-px tiles; from 64-px
+#: tiles on, steady captures read under 0.4 px). Such frames are thumbnails, not photographs.
+ALIGN_MIN_SIDE = 160
 
 
 def frame_shape(paths: Sequence[Path]) -> tuple[int, int]:
@@ -59,34 +61,42 @@ def capture_corrections(paths: Sequence[Path], *, ambient: Path | None, flat_fie
     checks : dict
         What ``report.json``'s ``capture_checks`` says of them (and of the colour profile).
     """
-    checks: dict = {"colour": colour_of(paths[0])}
+    from ptmcore.raw import is_raw, raw_development
+
     corrections = Corrections()
+    if is_raw(paths[0]):
+        # One development for the whole capture (and its ambient frame and board): the first
+        # photograph's white balance and orientation.
+        corrections.raw = raw_development(paths[0])
+    checks: dict = {"colour": colour_of(paths[0], corrections.raw)}
     if ambient is None and flat_field is None:
         return corrections, checks
     from ptmcore.illumination import check_ambient, load_flat_field, read_ambient
 
     shape = frame_shape(paths)
     if ambient is not None:
-        corrections.ambient = read_ambient(ambient, shape)
-        check_ambient(corrections.ambient, paths, ambient)
+        corrections.ambient = read_ambient(ambient, shape, raw=corrections.raw)
+        check_ambient(corrections.ambient, paths, ambient, raw=corrections.raw)
         checks["ambient"] = {"frame": str(ambient), "mean_level": float(corrections.ambient.mean())}
     if flat_field is not None:
         if directions is None:
             raise InputError("--flat-field needs the lights before decoding: give the capture an .lp file "
                              "(a capture calibrated from spheres has none yet)", flat_field)
-        corrections.flat = load_flat_field(flat_field, [p.name for p in paths], directions, shape)
+        corrections.flat = load_flat_field(flat_field, [p.name for p in paths], directions, shape,
+                                           raw=corrections.raw)
         found = corrections.flat.describe()
         checks["flat_field"] = {"capture": str(flat_field),
                                 **{k: v for k, v in found.items() if not isinstance(v, (list, tuple, np.ndarray))}}
     return corrections, checks
 
 
-def colour_of(path: Path) -> str:
-    """The colour profile of a photograph in words (:func:`ptmcore.decoders.colour_description`)."""
-    from ptmcore import decoders
+def colour_of(path: Path, raw=None) -> str:
+    """The colour profile of a photograph in words (:func:`ptmcore.decoders.colour_description`;
+    a RAW photograph's development, ``raw``, :func:`ptmcore.raw.raw_description`)."""
+    from ptmcore.decoders import colour_description
+    from ptmcore.raw import is_raw, raw_description
 
-    describe = getattr(decoders, "colour_description", None)
-    return describe(path) if describe is not None else "taken as sRGB (8-bit) or linear (16-bit, float)"
+    return raw_description(path, raw) if raw is not None and is_raw(path) else colour_description(path)
 
 
 def new_probe(paths: Sequence[Path], enabled: bool = True):
