@@ -6,6 +6,12 @@ bands of rows are filtered with NumPy and deflated by zlib in threads (pigz's wa
 independent raw deflate stream ended by a sync flush, so they concatenate into one zlib stream),
 both of which leave the GIL. :func:`encode_png` gives the same file as bytes (figures,
 textures).
+
+An image meant to be looked at is written with ``srgb=True``: it then carries the PNG ``sRGB``
+chunk (rendering intent 0, perceptual) with the ``gAMA`` and ``cHRM`` chunks the PNG
+specification recommends beside it for decoders that do not know ``sRGB``
+(:data:`SRGB_CHUNKS`), so colour-managed viewers show it as intended. Data (16-bit normal
+maps, masks, the web page's planes) is written untagged, the default.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import numpy as np
 from .atomic import atomic_write
 from .resources import cpu_count
 
-__all__ = ["encode_png", "write_png"]
+__all__ = ["SRGB_CHUNKS", "encode_png", "write_png"]
 
 # Bytes of image data per band that one thread filters and compresses: a few hundred rows of a
 # 24-megapixel image, small enough to spread over the threads and to bound the memory.
@@ -34,6 +40,16 @@ _PNG_WORKERS = min(4, cpu_count())
 _PNG_AHEAD = 2 * _PNG_WORKERS
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _ADLER_BASE = 65521
+
+#: The chunks that tag a PNG as sRGB, as ``(type, data)``, in the order written after IHDR:
+#: ``sRGB`` with rendering intent 0 (perceptual), and the ``gAMA`` (1/2.2 as 45455) and
+#: ``cHRM`` (D65 white, Rec. 709 primaries, each ×100000) values the PNG specification (11.3.3.5)
+#: says to write beside it for decoders that do not know ``sRGB``.
+SRGB_CHUNKS: tuple[tuple[bytes, bytes], ...] = (
+    (b"sRGB", bytes([0])),
+    (b"gAMA", struct.pack(">I", 45455)),
+    (b"cHRM", struct.pack(">8I", 31270, 32900, 64000, 33000, 30000, 60000, 15000, 6000)),
+)
 
 
 def _png_chunk(kind: bytes, data: bytes | memoryview) -> list[bytes | memoryview]:
@@ -89,8 +105,9 @@ def _check(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def _write(f: BinaryIO, image: np.ndarray, compress: bool) -> None:
-    """The PNG of a checked image into a binary file, bands encoded in parallel threads."""
+def _write(f: BinaryIO, image: np.ndarray, compress: bool, srgb: bool = False) -> None:
+    """The PNG of a checked image into a binary file, bands encoded in parallel threads; tagged
+    as sRGB (:data:`SRGB_CHUNKS`) when ``srgb``."""
     h, w = image.shape[:2]
     colour = 2 if image.ndim == 3 else 0
     header = struct.pack(">IIBBBBB", w, h, 8 * image.itemsize, colour, 0, 0, 0)
@@ -99,6 +116,8 @@ def _write(f: BinaryIO, image: np.ndarray, compress: bool) -> None:
     with ThreadPoolExecutor(max_workers=_PNG_WORKERS) as pool:
         f.write(_PNG_SIGNATURE)
         f.writelines(_png_chunk(b"IHDR", header))
+        for kind, data in SRGB_CHUNKS if srgb else ():
+            f.writelines(_png_chunk(kind, data))
         f.writelines(_png_chunk(b"IDAT", b"\x78\x01"))  # zlib header: deflate, 32 KiB window
         adler, pending = 1, deque[Future]()
 
@@ -123,7 +142,7 @@ def _write(f: BinaryIO, image: np.ndarray, compress: bool) -> None:
         f.writelines(_png_chunk(b"IEND", b""))
 
 
-def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = True) -> None:
+def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = True, srgb: bool = False) -> None:
     """Write an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as PNG, bands in parallel.
 
     A plain PNG that every reader opens (one zlib stream over several IDAT chunks). It is
@@ -143,16 +162,22 @@ def write_png(path: str | os.PathLike, image: np.ndarray, *, compress: bool = Tr
         default on photographs). False stores the data uncompressed: valid and fastest, for
         data that hardly compresses (a 16-bit normal map's low bytes are noise: compression
         saves a quarter of the size for about six times the time).
+    srgb : bool
+        Tag the image as sRGB (the ``sRGB``, ``gAMA`` and ``cHRM`` chunks of
+        :data:`SRGB_CHUNKS`, 73 bytes): True for every image meant to be looked at (albedo,
+        textures, figures), so colour-managed viewers show it as intended. False (the
+        default) for data: a tag claims the values are colours, which invites a colour-managed
+        program to convert them.
     """
     image = _check(image)
     with atomic_write(path, "wb") as f:
-        _write(f, image, compress)
+        _write(f, image, compress, srgb)
 
 
-def encode_png(image: np.ndarray, *, compress: bool = True) -> bytes:
+def encode_png(image: np.ndarray, *, compress: bool = True, srgb: bool = False) -> bytes:
     """The PNG file of an 8- or 16-bit grey or RGB image ``(H, W[, 3])`` as bytes, as
-    :func:`write_png` writes it (figures, textures)."""
+    :func:`write_png` writes it (figures, textures); ``srgb`` tags it as sRGB."""
     image = _check(image)
     buf = io.BytesIO()
-    _write(buf, image, compress)
+    _write(buf, image, compress, srgb)
     return buf.getvalue()

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.colourtags import srgb_save_options
 from ptmcore.errors import InputError
 from ptmcore.images import ImageStack, linear_to_srgb, load_stack
 from ptmcore.lp import write_lp
@@ -421,4 +422,4 @@ def write_diagnostic(path: str | os.PathLike, image: np.ndarray, calibration: Ca
             draw.line([hx - a, hy, hx + a, hy], fill=(255, 0, 0), width=1)
             draw.line([hx, hy - a, hx, hy + a], fill=(255, 0, 0), width=1)
     with atomic_write(path, "wb") as f:
-        pil.save(f, format="PNG")
+        pil.save(f, format="PNG", **srgb_save_options("PNG"))

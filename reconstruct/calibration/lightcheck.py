@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ptmcore.atomic import atomic_write
+from ptmcore.colourtags import srgb_save_options
 from ptmcore.relight import light_angles
 from ptmcore.solvers import LP_PRECISION, RankInfo, analyse_lights, duplicate_groups
 
@@ -358,12 +359,12 @@ def polar_plot_png(
     title: str | None = None,
     size: int = 640,
 ) -> bytes:
-    """The PNG bytes of :func:`write_polar_plot` (for a page that embeds it)."""
+    """The PNG bytes of :func:`write_polar_plot` (for a page that embeds it), tagged as sRGB."""
     if size < 200:
         raise ValueError(f"plot size must be at least 200 pixels, got {size}")
     fig = _polar_figure(directions, names, title, size)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=fig.dpi)
+    fig.savefig(buf, format="png", dpi=fig.dpi, pil_kwargs=srgb_save_options("PNG"))
     return buf.getvalue()
 
 

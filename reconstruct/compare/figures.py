@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.colourtags import srgb_save_options
 from ptmcore.png import write_png
 from reconstruct.mesh.ply import write_binary_ply
 from reconstruct.report import rendering
@@ -439,7 +440,7 @@ def write_histogram(
     panel.text(0, 37 + 27 * len(lines), "blue: d < 0   red: d > 0", va="top",
                color=_rgb(_GREY_TEXT), fontsize=small_size)
     buffer = io.BytesIO()
-    fig.savefig(buffer, format="png", dpi=_DPI)
+    fig.savefig(buffer, format="png", dpi=_DPI, pil_kwargs=srgb_save_options("PNG"))
     with atomic_write(path, "wb") as handle:
         handle.write(buffer.getvalue())
 
@@ -594,4 +595,4 @@ def write_overlay(
         plotter.reset_camera()
 
     image = rendering.render_image(draw, size, shape=(1, 2), border=False)
-    write_png(path, np.ascontiguousarray(image[..., :3]))
+    write_png(path, np.ascontiguousarray(image[..., :3]), srgb=True)

@@ -171,11 +171,14 @@ def _write_bytes(path: str, data: bytes) -> None:
 def _texture_png(texture: str | os.PathLike | np.ndarray) -> bytes:
     """The texture as PNG bytes: a PNG file's own bytes, or an image or array encoded as PNG.
 
-    A PNG is copied rather than decoded and encoded again: at 24 megapixels that is seconds.
+    A PNG is copied rather than decoded and encoded again: at 24 megapixels that is seconds
+    (it keeps its own colour tags, or none). An array, or a JPEG or TIFF without an ICC
+    profile, is tagged as sRGB; one with a profile is converted to RGB without it and left
+    untagged, as before.
     """
     if isinstance(texture, np.ndarray):
         rgb = _as_rgb(texture, texture.shape[:2])
-        return encode_png(np.ascontiguousarray(rgb))
+        return encode_png(np.ascontiguousarray(rgb), srgb=True)
     try:
         data = read_input_file(texture, "texture image")
         if data.startswith(b"\x89PNG\r\n\x1a\n"):
@@ -183,6 +186,6 @@ def _texture_png(texture: str | os.PathLike | np.ndarray) -> bytes:
         # Pillow chooses among these plugins alone: with none named it tries every one, and
         # its EPS plugin runs Ghostscript.
         with Image.open(io.BytesIO(data), formats=["JPEG", "TIFF"]) as image:
-            return encode_png(np.asarray(image.convert("RGB")))
+            return encode_png(np.asarray(image.convert("RGB")), srgb=not image.info.get("icc_profile"))
     except (OSError, Image.DecompressionBombError) as exc:
         raise InputError(f"cannot read the texture image ({exc})", texture) from exc

@@ -438,10 +438,11 @@ def write_maps(folder: str | os.PathLike, writer: FileWriter, *, normals: np.nda
                mask: np.ndarray | None) -> list[str]:
     """Start writing ``albedo.png``, ``normals.png``, ``normals.npy`` and ``mask.png`` (when
     there is a mask) with ``writer``; return their names. The arrays must not change until
-    the writer is done."""
+    the writer is done. Only ``albedo.png`` is tagged as sRGB (:mod:`ptmcore.colourtags`):
+    the normal map and the mask are data."""
     folder = Path(folder)
     names = writer.submit(["normals.png"], outputs.write_normals_png, folder / "normals.png", normals)
-    names += writer.submit(["albedo.png"], write_png, folder / "albedo.png", texture)
+    names += writer.submit(["albedo.png"], write_png, folder / "albedo.png", texture, srgb=True)
     names += writer.submit(["normals.npy"], outputs.write_npy, folder / "normals.npy", normals)
     if mask is not None:
         names += writer.submit(["mask.png"], lambda: write_png(folder / "mask.png", mask.astype(np.uint8) * 255))

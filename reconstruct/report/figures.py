@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.colourtags import srgb_save_options
 from ptmcore.decoders import MAX_EXPANSION
 from ptmcore.errors import InputError, open_input_file
 from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
@@ -120,13 +121,14 @@ def linear_ptm(report: dict | None) -> bool:
 
 def encode(image: np.ndarray, fmt: str = "PNG", quality: int = 85) -> bytes:
     """Encode an 8-bit grey or RGB image as ``"PNG"`` (:func:`ptmcore.png.encode_png`)
-    or ``"JPEG"`` bytes."""
+    or ``"JPEG"`` bytes, tagged as sRGB (:mod:`ptmcore.colourtags`): these are pictures for
+    people (the report's figures, the gallery's thumbnails)."""
     from PIL import Image
 
     if fmt == "PNG":
-        return encode_png(np.asarray(image))
+        return encode_png(np.asarray(image), srgb=True)
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(image)).save(buf, format=fmt, quality=quality)
+    Image.fromarray(np.ascontiguousarray(image)).save(buf, format=fmt, quality=quality, **srgb_save_options(fmt))
     return buf.getvalue()
 
 

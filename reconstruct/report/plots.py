@@ -32,9 +32,11 @@ def round_ticks(nbins: int = 6):
 
 
 def png(fig) -> bytes:
-    """A matplotlib figure as PNG bytes."""
+    """A matplotlib figure as PNG bytes, tagged as sRGB (:mod:`ptmcore.colourtags`)."""
+    from ptmcore.colourtags import srgb_save_options
+
     buf = io.BytesIO()
-    fig.savefig(buf, format="png")
+    fig.savefig(buf, format="png", pil_kwargs=srgb_save_options("PNG"))
     return buf.getvalue()
 
 

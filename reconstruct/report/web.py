@@ -44,7 +44,10 @@ range instead, clipping outliers; the full range never clips.)
 The JPEGs are written in the RGB colour space without chroma subsampling (Pillow's
 ``keep_rgb``, ``subsampling=0``), as Relight writes LRGB planes (``JCS_RGB``): a YCbCr
 transform would spread each coefficient's compression error over the other two channels of
-its plane. Rows are in image order (row 0 at the top), as the viewer displays them.
+its plane. Rows are in image order (row 0 at the top), as the viewer displays them. The planes
+and the layers below are data, so they carry no colour tag (no ICC profile, no PNG ``sRGB``
+chunk, unlike the images for people, :mod:`ptmcore.colourtags`); the page uploads them with
+``UNPACK_COLORSPACE_CONVERSION_WEBGL`` off.
 
 Beside these, the folder gets its own viewer, so that it can be published as it is:
 

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.colourtags import srgb_save_options
 from ptmcore.errors import InputError
 from ptmcore.normals import normals_from_ptm
 from ptmcore.ptmfile import PTMFile, read_ptm
@@ -202,7 +203,8 @@ def sweep_lights(count: int, elevation_deg: float = 30.0) -> np.ndarray:
 
 
 def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
-    """Write an 8-bit RGB image; the format follows the extension (PNG, JPEG, TIFF...)."""
+    """Write an 8-bit RGB image; the format follows the extension (PNG, JPEG, TIFF...), tagged
+    as sRGB where the format can say so (:func:`ptmcore.colourtags.srgb_save_options`)."""
     from PIL import Image
 
     path = Path(path)
@@ -210,7 +212,7 @@ def write_image(path: str | os.PathLike, image: np.ndarray) -> None:
     if fmt is None:
         raise InputError(f"unknown image extension {path.suffix!r} (use .png, .jpg or .tif)", path)
     buf = io.BytesIO()
-    Image.fromarray(image).save(buf, format=fmt)
+    Image.fromarray(image).save(buf, format=fmt, **srgb_save_options(fmt))
     with atomic_write(path, "wb") as f:
         f.write(buf.getbuffer())
 
@@ -219,7 +221,8 @@ def write_gif(path: str | os.PathLike, frames: Iterable[np.ndarray], *, frame_ms
     """Write frames as a looping animated GIF (adaptive palette per frame).
 
     Each RGB frame is reduced to its palette as it comes, so a sweep holds one byte per
-    pixel of each frame, not four (the RGB frames beside their palettes).
+    pixel of each frame, not four (the RGB frames beside their palettes). Untagged: GIF has
+    no colour profile in practice, and viewers take it as sRGB.
     """
     from PIL import Image
 
