@@ -177,7 +177,7 @@ class Drift:
 _NEIGHBOURS = 10
 #: Elevations this close (degrees, one standard deviation) share their shading's bias: a dome's
 #: ring is within a few degrees; rings are 10–15° apart.
-_BIAS_BANDWIDTH_DEG = 4.0
+_BIAS_BANDWIDTH_DEG = 5.0
 #: The correlation peak is refined on a grid of 1/_UPSAMPLE pixel.
 _UPSAMPLE = 20
 _WHITEN = 0.0
@@ -328,18 +328,59 @@ def _rigid(offsets: np.ndarray, pos: np.ndarray, use: np.ndarray) -> tuple[np.nd
     return None
 
 
-def _shading_bias(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> np.ndarray:
+def _shading_bias(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray) -> np.ndarray:
     """``(N, 2)`` the part of the offsets (rows, columns) that the light's elevation explains.
 
     Under a grazing light, shadows lengthen away from the lamp and the details move with them:
-    on a steady capture the lowest ring of a dome reads about half a pixel away from its lights
-    (synthetic tablet 0.58 px at 15°, DiLiGenT cat 0.27 px at 40–55°), the rings above a few
-    hundredths. The camera's drift does not depend on where the lamp is. So the photographs of
-    the common frame ``ref`` give, for each elevation, the mean offset along and across their
-    lights' azimuths (a Gaussian kernel of :data:`_BIAS_BANDWIDTH_DEG` in elevation); that is
-    removed from every photograph. A ring moved as a whole is left alone, as its offsets along
-    the azimuths of a full ring average to zero.
+    on a steady capture the lowest ring of a dome reads half a pixel to a pixel away from its
+    lamps (synthetic tablets: 0.58 px at 15° under 48 lights, 1.3 px under 24; DiLiGenT's cat
+    0.27 px at 40–55°), and a sparse dome's top ring as much. The camera's drift does not
+    depend on where the lamp is: at each elevation the offsets are modelled as ``β·u + γ·u⊥``
+    (``u`` the direction towards the lamp in the image) plus the camera's move. Each estimate
+    of β and γ is blind to some moves: the ring's mean (:func:`_bias_from_means`) over the
+    largest group of photographs that stayed together, to every move of the others; over all
+    the photographs, to a move of a whole ring or of every other photograph of it; the
+    differences of neighbouring photographs (:func:`_bias_from_differences`), to a move of a
+    contiguous part of a ring (a bump half-way through it). Of these, and of no correction,
+    the one kept leaves the photographs in the tightest groups: a drift is a few groups, a
+    shading bias a spread.
     """
+    k = np.flatnonzero(measured)
+    if len(k) < 3:
+        return np.zeros_like(shift)
+    # The means over the largest group of photographs that moved together (found again once
+    # the bias is out: it spreads them by about a pixel), over all of them, and the differences.
+    group = np.zeros_like(shift)
+    for _ in range(2):
+        ref = _common_frame(shift - group, measured, 2 * FRAME_RADIUS_PX)
+        group = _bias_from_means(shift - np.median(shift[ref] - group[ref], axis=0), lights, ref)
+    candidates = [group, _bias_from_means(shift - np.median(shift[k], axis=0), lights, measured),
+                  _bias_from_differences(shift, lights, measured, _neighbour_pairs(lights)), np.zeros_like(shift)]
+
+    def tightness(bias: np.ndarray) -> float:
+        # Groups within FRAME_RADIUS_PX of one photograph, largest first: the sum of their
+        # squared shares is 1 for one group, ½ for two equal ones, small for a spread.
+        corrected = (shift - bias)[k]
+        close = np.linalg.norm(corrected[:, None] - corrected[None], axis=2) <= FRAME_RADIUS_PX
+        left = np.ones(len(k), bool)
+        total = 0.0
+        while left.any():
+            count = (close & left[None, :]).sum(axis=1) * left
+            best = int(np.argmax(count))
+            total += (count[best] / len(k)) ** 2
+            left &= ~close[best]
+        return total
+
+    scores = [tightness(b) for b in candidates]
+    return candidates[int(np.argmax(scores))]  # of equals, the first
+
+
+def _bias_from_means(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` each elevation's mean offset along and across its lamps' azimuths, over the
+    photographs ``ref`` (a Gaussian kernel of :data:`_BIAS_BANDWIDTH_DEG` in elevation), shrunk by
+    its own uncertainty. A move shared by a whole ring, or by every other photograph of it,
+    leaves the mean alone (the azimuths' directions add up to nothing); a move of one
+    contiguous part of a ring does not."""
     n = len(shift)
     lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
     norm = np.linalg.norm(lxy, axis=1)
@@ -371,6 +412,81 @@ def _shading_bias(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> np.
         return np.where(known, mean * keep, 0.0)
 
     return shared(along[use])[:, None] * along_dir + shared(across[use])[:, None] * across_dir
+
+
+def _bias_from_differences(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray,
+                           pairs: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` the part of the offsets (rows, columns) that the light's elevation explains.
+
+    Under a grazing light, shadows lengthen away from the lamp and the details move with them:
+    on a steady capture the lowest ring of a dome reads half a pixel to a pixel away from its
+    lamps (synthetic tablets: 0.58 px at 15° under 48 lights, 1.3 px under 24; DiLiGenT's cat
+    0.27 px at 40–55°), the rings above less. The camera's drift does not depend on where the
+    lamp is. So, for each photograph's elevation, the offsets are modelled as
+    ``β·u + γ·u⊥`` (``u`` the direction towards its lamp in the image) plus the camera's move,
+    and β and γ are fitted to the *differences* of neighbouring photographs at that elevation
+    (pairs of the graph within :data:`_BIAS_BANDWIDTH_DEG`): a move the two share (a ring, or
+    part of one, moved by a bump) cancels in their difference, and the few pairs across a bump
+    are dropped as outliers. Each coefficient is shrunk by its own uncertainty (James–Stein),
+    so that a shaking camera's scatter is not taken for a bias.
+    """
+    n = len(shift)
+    lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
+    norm = np.linalg.norm(lxy, axis=1)
+    oblique = (norm > 0.05) & measured  # an overhead lamp has no azimuth
+    along = np.zeros((n, 2))
+    along[oblique] = lxy[oblique] / norm[oblique, None]
+    across = np.stack([-along[:, 1], along[:, 0]], 1)
+    elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1.0, 1.0)))
+    a, b = pairs[:, 0], pairs[:, 1]
+    usable = oblique[a] & oblique[b] & (np.abs(elevation[a] - elevation[b]) <= _BIAS_BANDWIDTH_DEG)
+    a, b = a[usable], b[usable]
+    bias = np.zeros((n, 2))
+    fitted: dict[tuple[int, ...], np.ndarray] = {}
+    for k in np.flatnonzero(oblique):
+        near = (np.abs(elevation[a] - elevation[k]) <= _BIAS_BANDWIDTH_DEG) & (
+            np.abs(elevation[b] - elevation[k]) <= _BIAS_BANDWIDTH_DEG)
+        key = tuple(np.flatnonzero(near))
+        if key not in fitted:
+            fitted[key] = _bias_coefficients(shift[b[near]] - shift[a[near]], along[b[near]] - along[a[near]],
+                                             across[b[near]] - across[a[near]])
+        beta, gamma = fitted[key]
+        bias[k] = beta * along[k] + gamma * across[k]
+    return bias
+
+
+def _bias_coefficients(difference: np.ndarray, d_along: np.ndarray, d_across: np.ndarray) -> np.ndarray:
+    """β, γ with ``difference ≈ β·d_along + γ·d_across`` (each ``(m, 2)``), robustly (Tukey's
+    biweight), each shrunk by its standard error; zeros with fewer than three pairs (a dome's
+    top ring may hold three lamps)."""
+    m = len(difference)
+    if m < 3:
+        return np.zeros(2)
+    x = np.zeros((2 * m, 2))
+    x[:, 0] = d_along.reshape(-1)
+    x[:, 1] = d_across.reshape(-1)
+    y = difference.reshape(-1)
+    w = np.ones(2 * m)
+    coef = np.zeros(2)
+    for _ in range(5):
+        sw = np.sqrt(w)
+        coef = np.linalg.lstsq(x * sw[:, None], y * sw, rcond=None)[0]
+        residual = (y - x @ coef).reshape(m, 2)
+        size = np.linalg.norm(residual, axis=1)
+        scale = 4.685 * max(1.4826 * float(np.median(size)), 0.05)
+        w = np.repeat(np.where(size < scale, (1 - (size / scale) ** 2) ** 2, 0.0), 2)
+    kept = w > 0
+    if kept.sum() < 4:
+        return np.zeros(2)
+    r = y[kept] - x[kept] @ coef
+    sigma2 = float(r @ r) / max(int(kept.sum()) - 2, 1)
+    try:
+        cov = sigma2 * np.linalg.inv((x[kept] * w[kept, None]).T @ x[kept])
+    except np.linalg.LinAlgError:
+        return np.zeros(2)
+    noise = np.maximum(np.diag(cov), 0.0)
+    keep = np.clip(1.0 - np.divide(noise, coef ** 2, out=np.ones(2), where=coef != 0), 0.0, 1.0)
+    return coef * keep
 
 
 def _common_frame(pose: np.ndarray, measured: np.ndarray, radius: float = FRAME_RADIUS_PX) -> np.ndarray:
@@ -435,15 +551,8 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray) -> Drift:
         return np.column_stack([translation, theta * reach])
 
     if measured.any():
-        # The bias spreads the common frame's photographs apart (by about a pixel across a
-        # dome's lowest ring): it is measured on a looser group, and the frame found again
-        # once it is gone (twice: the first may be the wrong one of two equal groups).
         raw = shift.copy()
-        bias = np.zeros_like(shift)
-        for _ in range(2):
-            ref = _common_frame(pose(raw - bias), measured, 2 * FRAME_RADIUS_PX)
-            centred = raw - np.median(raw[ref] - bias[ref], axis=0)
-            bias = _shading_bias(centred, lights, ref)
+        bias = _shading_bias(raw, lights, measured)
         shift = raw - bias
         ref = _common_frame(pose(shift), measured)
         shift[measured] -= np.median(shift[ref], axis=0)

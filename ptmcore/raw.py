@@ -78,6 +78,11 @@ _FLIPS = {0: "as stored", 1: "mirrored left-right", 2: "mirrored top-bottom", 3:
 #: LibRaw's working memory per pixel beyond the raw data: its 4-channel uint16 image (8 bytes)
 #: and the 16-bit RGB output (6 bytes).
 _IMAGE_BYTES, _OUTPUT_BYTES = 8, 6
+#: LibRaw's demosaicing. On a synthetic 480 × 384 capture of 24 DNGs (mean normal error; its
+#: linear TIFFs 0.39°): AHD 0.62°, DHT 0.59°, PPG 0.61°, AAHD 0.65°, DCB 0.70°, VNG 0.70°,
+#: bilinear 0.96° (2026-11-29). AHD, LibRaw's default and the most widely used, is kept: the
+#: others are within the measurement's spread, and the gap to the TIFFs is the mosaic's own.
+DEMOSAIC = "AHD"
 #: The raw data, per raw pixel, at most: a 4-channel uint16 "stack" (LinearRaw DNG, Foveon);
 #: a Bayer mosaic takes 2, but which one a file holds is known only after unpacking it.
 _RAW_BYTES = 8
@@ -463,7 +468,7 @@ def read_raw(path: str | os.PathLike, development: RawDevelopment | None = None,
         with _libraw(path):
             dev = development if development is not None else _development(raw, path)
             img = raw.postprocess(
-                demosaic_algorithm=rawpy.DemosaicAlgorithm.AHD, half_size=half,
+                demosaic_algorithm=getattr(rawpy.DemosaicAlgorithm, DEMOSAIC), half_size=half,
                 use_camera_wb=False, use_auto_wb=False, user_wb=list(dev.white_balance),
                 output_color=rawpy.ColorSpace.sRGB, output_bps=16, gamma=(1.0, 1.0),
                 no_auto_bright=True, adjust_maximum_thr=0.0, highlight_mode=rawpy.HighlightMode.Clip,

@@ -321,3 +321,20 @@ def test_a_raw_capture_runs_as_its_linear_tiffs(tmp_path):
         report = json.loads((out / "report.json").read_text())
     assert "camera RAW" in report["capture_checks"]["colour"]
     assert errors["dng"] < 2 * errors["tiff"], errors
+
+
+def test_a_run_reports_a_photograph_exposed_differently(tmp_path):
+    from ptmcore.images import read_image
+
+    capture = tmp_path / "capture"
+    write_capture(capture, shape=(96, 128), n_lights=24, seed=2, scan_points=0)
+    darker = sorted(capture.glob("img_*.tif"))[5]
+    write_tiff16(darker, read_image(darker).astype(np.float32) / np.float32(65535 * 3))
+    out = tmp_path / "out"
+    result = _cli("run", str(capture), "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "report.json").read_text())
+    odd = report["capture_checks"]["exposure"]["odd_brightness"]
+    assert list(odd) == [darker.name] and odd[darker.name] < 0.5
+    assert any("brighter or darker than their light's elevation" in w for w in report["warnings"])
+    assert "Exposure" in (out / "report.html").read_text()

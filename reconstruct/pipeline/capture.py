@@ -31,7 +31,13 @@ from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
 from ptmcore.resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, available_memory_mb
 from ptmcore.solvers import RankInfo, analyse_lights
-from reconstruct.pipeline.defects import capture_corrections, drift_finding, new_probe, stray_light_finding
+from reconstruct.pipeline.defects import (
+    capture_corrections,
+    drift_finding,
+    exposure_finding,
+    new_probe,
+    stray_light_finding,
+)
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
 from reconstruct.surface.accuracy import GroundTruth, load_ground_truth
@@ -433,13 +439,24 @@ def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
     return guess if os.path.lexists(guess / "normals.npy") else None
 
 
+#: Pixels on a grid that a run looks at for the photographs' exposure (as ``reconstruct check``).
+_EXPOSURE_SAMPLES = 250_000
+
+
 def _check_exposure(loaded: Capture) -> None:
-    """Warn of a degenerate light layout and of photographs with many clipped pixels."""
+    """Warn of a degenerate light layout and of photographs with many clipped pixels, mostly
+    black, or brighter or darker than their light explains (``capture_checks["exposure"]``)."""
     loaded.rank = analyse_lights(loaded.lights.directions)
     if loaded.rank.deficient:
         loaded.warnings.append(f"the PTM light matrix has rank {loaded.rank.rank} of 6: " + "; ".join(loaded.rank.causes))
     h, w = loaded.shape
     saturated = loaded.stack.saturated / (h * w)
+    stack = loaded.stack
+    step = max(1, int(np.sqrt(h * w / _EXPOSURE_SAMPLES)))
+    sampled = stack.table[stack.grid(step)].reshape(len(stack), -1)
+    loaded.checks["exposure"], said = exposure_finding(sampled, saturated, loaded.lights.directions,
+                                                       [p.name for p in stack.paths])
+    loaded.warnings += said
     if saturated.max() > 0.01:
         worst = int(np.argmax(saturated))
         loaded.warnings.append(

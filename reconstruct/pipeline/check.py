@@ -26,20 +26,13 @@ from ptmcore.raw import is_raw, raw_development
 from ptmcore.lp import read_lp
 from ptmcore.resources import thread_count
 from reconstruct.pipeline.capture import find_lp
-from reconstruct.pipeline.defects import ALIGN_MIN_SIDE
+from reconstruct.pipeline.defects import ALIGN_MIN_SIDE, CLIPPED_SHARE, exposure_finding
 
 __all__ = ["CHECK_SIDE", "CheckResult", "check_capture", "check_text"]
 
 #: The reduced photographs' longer side, pixels: enough for a drift of a pixel of the full frame
 #: to show on a 24-megapixel photograph, little enough to read 50 of them in seconds.
 CHECK_SIDE = 1024
-#: A photograph with more of its pixels clipped (any channel at its top) than this is reported.
-CLIPPED_SHARE = 0.01
-#: A photograph with more of its pixels nearly black (linear luminance under 0.5 %) than this.
-DARK_SHARE = 0.5
-#: A photograph whose brightness, divided by what its light's elevation explains (the sine),
-#: is off the capture's median by more than this factor either way.
-EXPOSURE_FACTOR = 2.0
 
 
 @dataclass
@@ -140,28 +133,12 @@ def check_capture(capture: str | os.PathLike, *, lp: str | os.PathLike | None = 
     checks["colour"] = colour_of(paths[0])
 
     # Exposure: clipped, dark, and brightness the light's elevation does not explain.
-    clipped = (luminance >= 1.0).mean(axis=(1, 2))
-    dark = (luminance < 0.005).mean(axis=(1, 2))
-    brightness = np.median(luminance, axis=(1, 2)) / np.maximum(directions[:, 2], 0.1)
-    relative = brightness / max(float(np.median(brightness)), 1e-9)
-    odd = np.flatnonzero((relative > EXPOSURE_FACTOR) | (relative < 1 / EXPOSURE_FACTOR))
-    checks["exposure"] = {
-        "clipped": {n: round(float(c), 4) for n, c in zip(names, clipped) if c > CLIPPED_SHARE},
-        "dark": {n: round(float(d), 4) for n, d in zip(names, dark) if d > DARK_SHARE},
-        "odd_brightness": {names[k]: round(float(relative[k]), 3) for k in odd},
-    }
+    checks["exposure"], said = exposure_finding(luminance, (luminance >= 1.0).mean(axis=(1, 2)), directions, names)
     if checks["exposure"]["clipped"]:
         many = checks["exposure"]["clipped"]
         warnings.append(f"{len(many)} photograph(s) have more than {CLIPPED_SHARE:.0%} clipped pixels "
                         f"({first_few(list(many))}): lower the exposure, or they are left out where clipped")
-    if checks["exposure"]["dark"]:
-        many = checks["exposure"]["dark"]
-        warnings.append(f"{len(many)} photograph(s) are mostly black ({first_few(list(many))}): a lamp that did "
-                        "not fire, or a light below the object's horizon")
-    if len(odd):
-        warnings.append(f"{len(odd)} photograph(s) are more than {EXPOSURE_FACTOR:g}× brighter or darker than their "
-                        f"light's elevation explains ({first_few([names[k] for k in odd])}): exposure or lamp power "
-                        "changed during the capture (--intensities estimate, or --reference-region, evens them out)")
+    warnings += said
 
     # Drift, measured on the reduced frame and given in the full frame's pixels.
     if min(luminance.shape[1:3]) >= ALIGN_MIN_SIDE and len(paths) >= 3:
@@ -177,6 +154,7 @@ def check_capture(capture: str | os.PathLike, *, lp: str | os.PathLike | None = 
         checks["drift"] = {
             "threshold_px": float(ALIGN_THRESHOLD_PX * max(1.0, factor)), "largest_px": float(magnitude[k]),
             "largest_photograph": names[k], "aligned": False, "measured_at": f"1/{factor:.3g} scale",
+            "measured": int(np.count_nonzero(np.asarray(drift.confidence) > 0)),
             "photographs": [{"name": n, "dx": round(float(dx), 2), "dy": round(float(dy), 2),
                              "rotation_deg": round(float(r), 3), "confidence": round(float(c), 3)}
                             for n, (dx, dy), r, c in zip(names, offsets, drift.rotation_deg, drift.confidence)],
@@ -219,9 +197,6 @@ def check_text(result: CheckResult) -> str:
 
     lines = [f"{result.capture}: {result.photographs} photographs, {result.size[0]}×{result.size[1]}"]
     lines += [f"  {label}: {text}" for label, text in capture_check_rows(result.checks)]
-    exposure = result.checks.get("exposure", {})
-    if not any(exposure.values()):
-        lines.append("  Exposure: no clipped, black or oddly exposed photograph")
     lights = result.checks.get("lights")
     if lights:
         lines.append(f"  Lights: {lights['count']}, elevations {lights['elevation_range_deg'][0]:.0f}°–"

@@ -25,6 +25,7 @@ __all__ = [
     "ALIGN_MIN_SIDE",
     "capture_corrections",
     "drift_finding",
+    "exposure_finding",
     "frame_shape",
     "colour_of",
     "new_probe",
@@ -38,6 +39,13 @@ _STRAY_SAMPLES = 20000
 #: (a steady 128 × 96 synthetic tablet under 24 lights read 1.1 px with 38-px tiles; from 64-px
 #: tiles on, steady captures read under 0.4 px). Such frames are thumbnails, not photographs.
 ALIGN_MIN_SIDE = 160
+#: A photograph with more of its pixels clipped (any channel at its top) than this is reported.
+CLIPPED_SHARE = 0.01
+#: A photograph with more of its pixels nearly black (linear luminance under 0.5 %) than this.
+DARK_SHARE = 0.5
+#: A photograph whose brightness, divided by what its light's elevation explains (the sine),
+#: is off the capture's median by more than this factor either way.
+EXPOSURE_FACTOR = 2.0
 
 
 def frame_shape(paths: Sequence[Path]) -> tuple[int, int]:
@@ -143,6 +151,7 @@ def drift_finding(drift, names: Sequence[str], align: str) -> tuple[dict, list[s
         "largest_px": float(largest),
         "largest_photograph": names[k],
         "aligned": resample,
+        "measured": int(np.count_nonzero(np.asarray(drift.confidence) > 0)),
         "photographs": [
             {"name": name, "dx": round(float(dx), 3), "dy": round(float(dy), 3),
              "rotation_deg": round(float(rot), 4), "confidence": round(float(conf), 3)}
@@ -157,6 +166,55 @@ def drift_finding(drift, names: Sequence[str], align: str) -> tuple[dict, list[s
         warnings.append(f"{what}; they were aligned onto the other photographs' frame before fitting" if resample
                         else f"{what}; not aligned: expect blurred normals and height")
     return finding, warnings, resample
+
+
+def exposure_finding(luminance: np.ndarray, clipped: np.ndarray, directions: np.ndarray,
+                     names: Sequence[str]) -> tuple[dict, list[str]]:
+    """Photographs clipped, mostly black, or brighter or darker than their light explains.
+
+    Parameters
+    ----------
+    luminance : ndarray, shape (N, h, w)
+        Linear luminance of each photograph, reduced or sampled on a grid.
+    clipped : ndarray, shape (N,)
+        The share of each photograph's pixels where a channel clipped.
+    directions : ndarray, shape (N, 3)
+        The lights (for the elevation a photograph's brightness is divided by).
+    names : sequence of str
+
+    Returns
+    -------
+    finding : dict
+        ``clipped`` and ``dark`` (name → share, for those over :data:`CLIPPED_SHARE` and
+        :data:`DARK_SHARE`) and ``odd_brightness`` (name → brightness over the capture's median,
+        for those off by more than :data:`EXPOSURE_FACTOR`).
+    warnings : list of str
+        For the dark and oddly bright photographs (clipping is warned of by the caller, whose
+        advice depends on what it does with clipped samples).
+    """
+    from ptmcore.errors import first_few
+
+    n = len(luminance)
+    flat = luminance.reshape(n, -1)
+    dark = (flat < 0.005).mean(axis=1)
+    brightness = np.median(flat, axis=1) / np.maximum(np.asarray(directions, np.float64)[:, 2], 0.1)
+    relative = brightness / max(float(np.median(brightness)), 1e-9)
+    odd = np.flatnonzero((relative > EXPOSURE_FACTOR) | (relative < 1 / EXPOSURE_FACTOR))
+    finding = {
+        "clipped": {m: round(float(c), 4) for m, c in zip(names, clipped) if c > CLIPPED_SHARE},
+        "dark": {m: round(float(d), 4) for m, d in zip(names, dark) if d > DARK_SHARE},
+        "odd_brightness": {names[k]: round(float(relative[k]), 3) for k in odd},
+    }
+    warnings = []
+    if finding["dark"]:
+        many = finding["dark"]
+        warnings.append(f"{len(many)} photograph(s) are mostly black ({first_few(list(many))}): a lamp that did "
+                        "not fire, or a light below the object's horizon")
+    if len(odd):
+        warnings.append(f"{len(odd)} photograph(s) are more than {EXPOSURE_FACTOR:g}× brighter or darker than their "
+                        f"light's elevation explains ({first_few([names[k] for k in odd])}): exposure or lamp power "
+                        "changed during the capture (--intensities estimate, or --reference-region, evens them out)")
+    return finding, warnings
 
 
 def stray_light_finding(stack: ImageStack, directions: np.ndarray, ambient_given: bool

@@ -445,20 +445,31 @@ def _files(folder: Path, written_after: Sequence[str], also: Sequence[Path]) -> 
 
 def capture_check_rows(checks: dict) -> list[tuple[str, str]]:
     """The findings of ``report.json``'s ``capture_checks`` (and of ``reconstruct check``) in
-    words, one row each: colour, drift, stray light, the ambient frame, the flat field."""
+    words, one row each: colour, drift, exposure, stray light, the ambient frame, the flat field."""
     rows = []
     if checks.get("colour"):
         rows.append(("Colour", str(checks["colour"])))
     drift = checks.get("drift")
     if drift:
         moved = f"largest displacement {drift['largest_px']:.2f} px ({drift['largest_photograph']})"
-        if drift.get("aligned"):
+        measured, total = drift.get("measured"), len(drift.get("photographs", ()))
+        if measured is not None and measured < total:
+            moved += f"; {total - measured} of {total} photographs not measured (too little detail, or details moved by the shading)"
+        if measured == 0:
+            moved, state = "not measured", "too little detail to tell the camera's move from the shading's"
+        elif drift.get("aligned"):
             state = "aligned onto one frame before fitting"
         elif drift["largest_px"] > drift["threshold_px"]:
             state = "not aligned (--align off)"
         else:
             state = f"steady (under {drift['threshold_px']:g} px)"
         rows.append(("Camera drift", f"{moved}: {state}"))
+    exposure = checks.get("exposure")
+    if exposure is not None:
+        parts = [f"{len(exposure[key])} {what}" for key, what in
+                 (("clipped", "with over 1 % clipped pixels"), ("dark", "mostly black"),
+                  ("odd_brightness", "brighter or darker than their light explains")) if exposure.get(key)]
+        rows.append(("Exposure", "; ".join(parts) if parts else "no clipped, black or oddly exposed photograph"))
     stray = checks.get("stray_light")
     if stray:
         if stray.get("level") is None:
