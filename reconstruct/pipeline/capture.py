@@ -339,7 +339,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
     if probe is not None:
         from ptmcore.align import measure_drift
 
-        drift = measure_drift(probe, lights.directions)
+        drift = measure_drift(probe, lights.directions, threads=opt.threads)
         del probe
         checks["drift"], said, resample = drift_finding(drift, [p.name for p in lights.paths], opt.align)
         warnings += said
