@@ -506,17 +506,17 @@ def _bias_coefficients(difference: np.ndarray, d_along: np.ndarray, d_across: np
 
 
 def _common_frame(pose: np.ndarray, measured: np.ndarray, radius: float = FRAME_RADIUS_PX) -> np.ndarray:
-    """The photographs of the frame the capture shares: the largest group within
-    :data:`FRAME_RADIUS_PX` (``radius``) of one photograph when it holds at least half of them (a bumped tripod splits a capture in two
-    groups, before and after), of two equal groups the one of the earliest photograph, the frame
-    the capture started in; otherwise (a camera that shook) all of them, whose median is then
-    the frame that moves the photographs least."""
+    """The photographs of the frame the capture is brought to: those within ``radius`` of the
+    first photograph measured when they are a third of the photographs or more (the frame the
+    capture started in, before a bump); else the largest such group when it holds at least half
+    of them; else (a camera that shook) all of them, whose median is then the frame that moves
+    the photographs least."""
     k = np.flatnonzero(measured)
     close = np.linalg.norm(pose[k, None] - pose[None, k], axis=2) <= radius
     count = close.sum(axis=1)
-    best = int(np.argmax(count))  # argmax takes the first of equals: the earliest
+    best = 0 if 3 * count[0] >= len(k) else int(np.argmax(count))
     ref = np.zeros(len(pose), bool)
-    ref[k[close[best]] if 2 * count[best] >= len(k) else k] = True
+    ref[k[close[best]] if 2 * count[best] >= len(k) or best == 0 else k] = True
     return ref
 
 
@@ -573,11 +573,12 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray, *, threads: int | None 
         else:
             shift[k] = np.median(per_tile[k, use], axis=0)
     measured = trusted.any(axis=1)
-    reach = 0.5 * float(np.hypot(h, w))
+    reach = float(np.hypot(pos[:, 0], pos[:, 1]).mean())
 
     def pose(translation: np.ndarray) -> np.ndarray:
-        # Translation and rotation in pixels (a corner's move): two photographs share a frame
-        # when they agree on both.
+        # Translation and rotation in pixels (a tile's move, where the rotation is measured: at
+        # a corner its noise would be twice as large): two photographs share a frame when they
+        # agree on both.
         return np.column_stack([translation, theta * reach])
 
     if measured.any():
