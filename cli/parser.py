@@ -516,7 +516,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
                         "from two or more spheres when they are near; none: distant lights")
     _choice(p, RunOptions, "align",
             help="auto (default): measure the camera's drift (a bumped tripod) and resample the photographs onto "
-                 "one frame before fitting when one is displaced by more than a pixel; off: neither. "
+                 "one frame before fitting when one is displaced by more than a pixel; off: measured and reported, not undone. "
                  "`reconstruct check` measures the drift in seconds")
     p.add_argument("--flat-field", type=_path, metavar="DIR",
                    help="a capture of a flat white or grey board under the same lights (same .lp names or order): "

@@ -92,6 +92,17 @@ def image_format(head: bytes) -> str | None:
     return None
 
 
+def _sniff(f: BinaryIO, path: Path) -> str:
+    """The format of the file open as ``f`` from its first bytes, or the error for it."""
+    head = f.read(16)
+    kind = image_format(head)
+    if not head:
+        raise InputError("image file is empty", path)
+    if kind is None:
+        raise InputError(_not_read(head), path)
+    return kind
+
+
 def _not_read(head: bytes) -> str:
     named = {b"%!PS": "PostScript", b"\xc5\xd0\xd3\xc6": "EPS", b"%PDF": "PDF", b"BM": "BMP",
              b"GIF8": "GIF", b"RIFF": "RIFF (WebP?)", b"\x00\x00\x00\x0cjP": "JPEG 2000"}
@@ -433,12 +444,7 @@ def read_raster_and_profile(path: str | os.PathLike, *, buffer: np.ndarray | Non
     if is_raw(path):  # before the content is sniffed: a DNG is a TIFF inside
         return read_raw(path, raw, min_side=min_side), None
     with open_input_file(path, "image") as f:
-        head = f.read(16)
-        kind = image_format(head)
-        if not head:
-            raise InputError("image file is empty", path)
-        if kind is None:
-            raise InputError(_not_read(head), path)
+        kind = _sniff(f, path)
         if kind == "TIFF":
             data = b""
         else:
@@ -748,12 +754,7 @@ def embedded_profile(path: str | os.PathLike) -> bytes | None:
         open_input_file(path, "RAW file").close()  # missing or not a regular file: said as for the others
         return None
     with open_input_file(path, "image") as f:
-        head = f.read(16)
-        kind = image_format(head)
-        if not head:
-            raise InputError("image file is empty", path)
-        if kind is None:
-            raise InputError(_not_read(head), path)
+        kind = _sniff(f, path)
         try:
             if kind == "JPEG":
                 return _jpeg_profile(f, path)

@@ -18,7 +18,7 @@ from data_synthetic.render import render
 from data_synthetic.surfaces import SCENES
 from ptmcore.align import ALIGN_THRESHOLD_PX, DriftProbe, measure_drift, warp_photograph
 from ptmcore.corrections import Corrections, to_linear_rgb
-from ptmcore.images import srgb_to_linear
+from ptmcore.images import read_image, srgb_to_linear
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
@@ -297,7 +297,6 @@ def test_a_raw_capture_runs_as_its_linear_tiffs(tmp_path):
     # equal: the TIFFs hold three colours a pixel, the DNGs one, which LibRaw's demosaicing
     # interpolates (0.65° against 0.38° at 240 × 192, 2026-11-29).
     from data_synthetic.raw import write_dng
-    from ptmcore.images import read_image
 
     tiffs = tmp_path / "tiff"
     write_capture(tiffs, shape=(192, 240), n_lights=24, seed=3, scan_points=0)
@@ -324,7 +323,6 @@ def test_a_raw_capture_runs_as_its_linear_tiffs(tmp_path):
 
 
 def test_a_run_reports_a_photograph_exposed_differently(tmp_path):
-    from ptmcore.images import read_image
 
     capture = tmp_path / "capture"
     write_capture(capture, shape=(96, 128), n_lights=24, seed=2, scan_points=0)
@@ -338,3 +336,22 @@ def test_a_run_reports_a_photograph_exposed_differently(tmp_path):
     assert list(odd) == [darker.name] and odd[darker.name] < 0.5
     assert any("brighter or darker than their light's elevation" in w for w in report["warnings"])
     assert "Exposure" in (out / "report.html").read_text()
+
+
+def test_align_off_reports_the_drift_without_undoing_it(tmp_path):
+    capture = tmp_path / "capture"
+    write_capture(capture, shape=(192, 256), n_lights=24, seed=3, scan_points=0)
+    for path in sorted(capture.glob("img_*.tif"))[12:]:  # the tripod bumped half-way
+        img = read_image(path).astype(np.float32) / np.float32(65535)
+        write_tiff16(path, np.clip(ndshift(img, (3, 4, 0), order=5, mode="nearest"), 0, 1))
+    reports = {}
+    for align in ("off", "auto"):
+        out = tmp_path / align
+        result = _cli("run", str(capture), "-o", str(out), "--align", align)
+        assert result.returncode == 0, result.stderr
+        reports[align] = json.loads((out / "report.json").read_text())
+    for align, report in reports.items():
+        drift = report["capture_checks"]["drift"]
+        assert drift["largest_px"] > 4 and drift["aligned"] == (align == "auto")
+        assert any("the camera moved" in w for w in report["warnings"])
+    assert any("not aligned" in w for w in reports["off"]["warnings"])

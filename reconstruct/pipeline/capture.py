@@ -330,7 +330,8 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
     on_disk, warnings = _stack_place(lights.paths, opt, scratch)
     corrections, checks = capture_corrections(lights.paths, ambient=opt.ambient, flat_field=opt.flat_field,
                                               directions=lights.directions)
-    probe = new_probe(lights.paths, opt.align == "auto")
+    # Measured with --align off too (a fraction of a second): the drift is then said, not undone.
+    probe = new_probe(lights.paths)
     kw = {"fit": fit, "linearize": opt.linearize, "threads": opt.threads, "storage": _storage(opt), "on_disk": on_disk,
           "corrections": corrections}
     with stages("decode", len(lights)) as advance:

@@ -107,10 +107,10 @@ def colour_of(path: Path, raw=None) -> str:
     return raw_description(path, raw) if raw is not None and is_raw(path) else colour_description(path)
 
 
-def new_probe(paths: Sequence[Path], enabled: bool = True):
+def new_probe(paths: Sequence[Path]):
     """A :class:`ptmcore.align.DriftProbe` for these photographs, or None when the frame is
     too small to measure (or its size cannot be read before decoding)."""
-    if not enabled or len(paths) < 3:
+    if len(paths) < 3:
         return None
     size = image_size(paths[0])
     if size is None or min(size) < ALIGN_MIN_SIDE:
@@ -160,7 +160,7 @@ def drift_finding(drift, names: Sequence[str], align: str) -> tuple[dict, list[s
     }
     warnings = []
     if needed:
-        moved = int(np.count_nonzero(np.hypot(*np.asarray(drift.offsets).T) > ALIGN_THRESHOLD_PX))
+        moved = int(np.count_nonzero(drift.displacement() > ALIGN_THRESHOLD_PX))  # rotation included
         what = (f"the camera moved during the capture: {moved} photograph(s) are displaced, up to {largest:.1f} px "
                 f"({names[k]})")
         warnings.append(f"{what}; they were aligned onto the other photographs' frame before fitting" if resample

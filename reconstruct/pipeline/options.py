@@ -281,7 +281,7 @@ class RunOptions:
         ``"auto"``: the camera's drift is measured (:mod:`ptmcore.align`) and the photographs
         resampled onto one frame when one is displaced by more than
         :data:`ptmcore.align.ALIGN_THRESHOLD_PX` (default; the measurement costs about 0.2 s
-        on a steady capture). ``"off"``: neither.
+        on a steady capture). ``"off"``: measured and reported, not undone.
     ambient : Path or None
         A photograph of the object with the lamps off (the room's light alone, same exposure),
         subtracted from every photograph in linear light.
