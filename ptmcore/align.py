@@ -505,6 +505,30 @@ def _bias_coefficients(difference: np.ndarray, d_along: np.ndarray, d_across: np
     return coef * keep
 
 
+def _shared_moves(shift: np.ndarray, theta: np.ndarray, measured: np.ndarray,
+                  reach: float) -> tuple[np.ndarray, np.ndarray]:
+    """The translations and rotations the photographs are resampled by: each group of at least
+    three photographs within :data:`FRAME_RADIUS_PX` of one another (tiles' moves) takes its
+    median, as a bumped camera moved them all alike; this divides the measurement's own noise
+    (±0.03° of rotation, 0.3 px at a frame's corner) by the root of the group's size. Others
+    (a shaking camera's photographs) keep their own."""
+    move, turn = shift.copy(), theta.copy()
+    k = np.flatnonzero(measured)
+    pose = np.column_stack([shift, theta * reach])[k]
+    close = np.linalg.norm(pose[:, None] - pose[None], axis=2) <= FRAME_RADIUS_PX
+    left = np.ones(len(k), bool)
+    while left.any():
+        count = (close & left[None, :]).sum(axis=1) * left
+        best = int(np.argmax(count))
+        if count[best] < 3:
+            break
+        members = k[close[best] & left]
+        move[members] = np.median(shift[members], axis=0)
+        turn[members] = np.median(theta[members])
+        left &= ~close[best]
+    return move, turn
+
+
 def _common_frame(pose: np.ndarray, measured: np.ndarray, radius: float = FRAME_RADIUS_PX) -> np.ndarray:
     """The photographs of the frame the capture is brought to: those within ``radius`` of the
     first photograph measured when they are a third of the photographs or more (the frame the
@@ -589,13 +613,14 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray, *, threads: int | None 
         shift[measured] -= np.median(shift[ref], axis=0)
         shift[~measured] = 0.0
         theta[measured] -= np.median(theta[ref])
-    cos, sin = np.cos(theta), np.sin(theta)
+    move, turn = _shared_moves(shift, theta, measured, reach)
+    cos, sin = np.cos(turn), np.sin(turn)
     transforms = np.zeros((n, 2, 3))
     # (column, row) of the common frame → the photograph: rotate about the centre, then shift.
     transforms[:, 0, 0], transforms[:, 0, 1] = cos, -sin
     transforms[:, 1, 0], transforms[:, 1, 1] = sin, cos
     cxy = centre[::-1]
-    transforms[:, :, 2] = cxy + shift[:, ::-1] - np.einsum("nij,j->ni", transforms[:, :, :2], cxy)
+    transforms[:, :, 2] = cxy + move[:, ::-1] - np.einsum("nij,j->ni", transforms[:, :, :2], cxy)
     offsets = np.stack([shift[:, 1], -shift[:, 0]], axis=1)
     confidence = np.where(trusted, conf, 0).sum(axis=1) / np.maximum(1, trusted.sum(axis=1))
     return Drift(offsets, -np.degrees(theta), transforms, confidence, (h, w))
