@@ -8,20 +8,25 @@ photographs of a synthetic tablet moved by 4 × 3 px raised the mean normal erro
 Two photographs under different lights cannot be compared directly (the shading changes), but
 two under *neighbouring* lights nearly can: their shading and shadows are alike. So the fine
 detail (high-passed) of each photograph is cross-correlated with that of the photographs of its
-ten nearest lights, giving each pair's relative offset to a twentieth of a pixel (an FFT,
-then the correlation's Fourier series evaluated finely around its peak); the offsets that best agree with all the
-pairs are solved for on that graph, robustly (a pair misled by a moving highlight is dropped).
-A capture whose photographs split in two groups (before and after a bump) is found whole, as
-long as the groups' lights are neighbours somewhere. Of what remains, the part that the light's
-elevation explains (grazing light lengthens shadows away from the lamp: the lowest ring of a
-dome reads half a pixel away from its lamps on a steady capture) is taken away
-(:func:`_shading_bias`). An earlier design registered each photograph against the capture's
-PTM relit for its light; the PTM has no cast shadows, and on a capture split along the light
-layout's order it went wrong by several pixels (BENCHMARKS.md, "Camera drift").
+ten nearest lights, giving each pair's relative offset to a twentieth of a pixel (an FFT, then
+the correlation's Fourier series evaluated finely around its peak); the offsets that best agree
+with all the pairs are solved for on that graph, robustly (a pair misled by a moving highlight
+is dropped). A capture whose photographs split in two groups (before and after a bump) is found
+whole, as long as the groups' lights are neighbours somewhere. Of what remains, the part that the
+light's elevation explains (grazing light lengthens shadows away from the lamp: the lowest ring
+of a dome reads half a pixel away from its lamps on a steady capture) is taken away
+(:func:`_shading_bias`). The frame kept is the one the capture started in
+(:func:`_common_frame`), and a group of photographs that moved together is resampled by its
+median move (:func:`_shared_moves`). An earlier design registered each photograph against the
+capture's PTM relit for its light; the PTM has no cast shadows, and on a capture split along the
+light layout's order it went wrong by several pixels (BENCHMARKS.md, "Camera drift").
 
 The work is on a few tiles of the frame, copied from each photograph while it is decoded
 (:class:`DriftProbe`), so a steady capture pays no second decoding (a 48-photograph capture's
-measurement takes about 0.2 s); several tiles give a small rotation as well as the translation.
+measurement takes 0.15–0.3 s with one tile, about 0.7 s with five); five tiles, from frames of
+768 px on their shorter side, give a small rotation as well as the translation. A capture
+whose photographs' details agree with their neighbours' too little is not measured
+(:data:`_MIN_CAPTURE_CONFIDENCE`), nor a photograph whose tiles disagree (:func:`_rigid`).
 """
 
 from __future__ import annotations
