@@ -113,7 +113,6 @@ class DriftProbe:
                                  for r, c in centres], np.int64)
         self.shape = (h, w)
         self.tiles = np.zeros((n, len(self.origins), s, s), np.float32)
-        self.seen = np.zeros(n, bool)
 
     def take(self, k: int, img: np.ndarray, srgb8: bool) -> None:
         """Copy photograph ``k``'s tiles: ``img`` ``(H, W, 3)`` as the reduction reads it (uint8,
@@ -128,7 +127,6 @@ class DriftProbe:
             else:
                 rgb = part.astype(np.float32, copy=False)
             self.tiles[k, t] = rgb @ LUMA_WEIGHTS
-        self.seen[k] = True
 
 
 @dataclass
@@ -297,12 +295,12 @@ def _solve_graph(n: int, pairs: np.ndarray, relative: np.ndarray, weight: np.nda
     return d
 
 
-def _measure_tiles(tiles: np.ndarray, lights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _measure_tiles(tiles: np.ndarray, pairs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Offsets ``(N, 2)`` (rows, columns) of each photograph's tile against their mean, and
-    their confidence: the median correlation of the photograph's details with its neighbours'."""
+    their confidence: the median correlation of the photograph's details with its neighbours'
+    (``pairs``, :func:`_neighbour_pairs`)."""
     n = len(tiles)
     details = _details(tiles)
-    pairs = _neighbour_pairs(lights)
     relative, conf = _pair_offsets(details, pairs)
     d = _solve_graph(n, pairs, relative, conf ** 2)
     per = np.zeros(n)
@@ -349,7 +347,7 @@ def _rigid(offsets: np.ndarray, pos: np.ndarray, use: np.ndarray) -> tuple[np.nd
     return None
 
 
-def _shading_bias(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray) -> np.ndarray:
+def _shading_bias(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """``(N, 2)`` the part of the offsets (rows, columns) that the light's elevation explains.
 
     Under a grazing light, shadows lengthen away from the lamp and the details move with them:
@@ -376,24 +374,28 @@ def _shading_bias(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray) -
         ref = _common_frame(shift - group, measured, 2 * FRAME_RADIUS_PX)
         group = _bias_from_means(shift - np.median(shift[ref] - group[ref], axis=0), lights, ref)
     candidates = [group, _bias_from_means(shift - np.median(shift[k], axis=0), lights, measured),
-                  _bias_from_differences(shift, lights, measured, _neighbour_pairs(lights)), np.zeros_like(shift)]
+                  _bias_from_differences(shift, lights, measured, pairs), np.zeros_like(shift)]
 
     def tightness(bias: np.ndarray) -> float:
-        # Groups within FRAME_RADIUS_PX of one photograph, largest first: the sum of their
-        # squared shares is 1 for one group, ½ for two equal ones, small for a spread.
-        corrected = (shift - bias)[k]
-        close = np.linalg.norm(corrected[:, None] - corrected[None], axis=2) <= FRAME_RADIUS_PX
-        left = np.ones(len(k), bool)
-        total = 0.0
-        while left.any():
-            count = (close & left[None, :]).sum(axis=1) * left
-            best = int(np.argmax(count))
-            total += (count[best] / len(k)) ** 2
-            left &= ~close[best]
-        return total
+        # The sum of the groups' squared shares: 1 for one group, ½ for two equal ones, small
+        # for a spread.
+        return sum((len(g) / len(k)) ** 2 for g in _groups((shift - bias)[k], FRAME_RADIUS_PX))
 
     scores = [tightness(b) for b in candidates]
     return candidates[int(np.argmax(scores))]  # of equals, the first
+
+
+def _lamp_axes(lights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each lamp's direction in the image ``u`` and its perpendicular ``u⊥`` (``(N, 2)``, rows
+    and columns; zero for an overhead lamp, which has no azimuth), whether it has one, and its
+    elevation in degrees."""
+    lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
+    norm = np.linalg.norm(lxy, axis=1)
+    oblique = norm > 0.05
+    along = np.zeros((len(lights), 2))
+    along[oblique] = lxy[oblique] / norm[oblique, None]
+    across = np.stack([-along[:, 1], along[:, 0]], 1)
+    return along, across, oblique, np.degrees(np.arcsin(np.clip(lights[:, 2], -1.0, 1.0)))
 
 
 def _bias_from_means(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -403,15 +405,9 @@ def _bias_from_means(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> 
     leaves the mean alone (the azimuths' directions add up to nothing); a move of one
     contiguous part of a ring does not."""
     n = len(shift)
-    lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
-    norm = np.linalg.norm(lxy, axis=1)
-    oblique = norm > 0.05  # an overhead lamp has no azimuth
-    along_dir = np.zeros((n, 2))
-    along_dir[oblique] = lxy[oblique] / norm[oblique, None]
-    across_dir = np.stack([-along_dir[:, 1], along_dir[:, 0]], 1)
+    along_dir, across_dir, oblique, elevation = _lamp_axes(lights)
     along = (shift * along_dir).sum(axis=1)
     across = (shift * across_dir).sum(axis=1)
-    elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1.0, 1.0)))
     use = ref & oblique
     if not use.any():
         return np.zeros((n, 2))
@@ -437,28 +433,15 @@ def _bias_from_means(shift: np.ndarray, lights: np.ndarray, ref: np.ndarray) -> 
 
 def _bias_from_differences(shift: np.ndarray, lights: np.ndarray, measured: np.ndarray,
                            pairs: np.ndarray) -> np.ndarray:
-    """``(N, 2)`` the part of the offsets (rows, columns) that the light's elevation explains.
-
-    Under a grazing light, shadows lengthen away from the lamp and the details move with them:
-    on a steady capture the lowest ring of a dome reads half a pixel to a pixel away from its
-    lamps (synthetic tablets: 0.58 px at 15° under 48 lights, 1.3 px under 24; DiLiGenT's cat
-    0.27 px at 40–55°), the rings above less. The camera's drift does not depend on where the
-    lamp is. So, for each photograph's elevation, the offsets are modelled as
-    ``β·u + γ·u⊥`` (``u`` the direction towards its lamp in the image) plus the camera's move,
-    and β and γ are fitted to the *differences* of neighbouring photographs at that elevation
-    (pairs of the graph within :data:`_BIAS_BANDWIDTH_DEG`): a move the two share (a ring, or
-    part of one, moved by a bump) cancels in their difference, and the few pairs across a bump
-    are dropped as outliers. Each coefficient is shrunk by its own uncertainty (James–Stein),
-    so that a shaking camera's scatter is not taken for a bias.
-    """
+    """``(N, 2)`` the shading's bias (:func:`_shading_bias`), β and γ fitted at each elevation to
+    the *differences* of neighbouring photographs there (pairs of the graph within
+    :data:`_BIAS_BANDWIDTH_DEG`): a move the two share (a ring, or part of one, moved by a bump)
+    cancels in their difference, and the few pairs across a bump are dropped as outliers. Each
+    coefficient is shrunk by its own uncertainty (James–Stein), so that a shaking camera's
+    scatter is not taken for a bias."""
     n = len(shift)
-    lxy = np.stack([-lights[:, 1], lights[:, 0]], 1)  # towards the lamp, (rows, columns)
-    norm = np.linalg.norm(lxy, axis=1)
-    oblique = (norm > 0.05) & measured  # an overhead lamp has no azimuth
-    along = np.zeros((n, 2))
-    along[oblique] = lxy[oblique] / norm[oblique, None]
-    across = np.stack([-along[:, 1], along[:, 0]], 1)
-    elevation = np.degrees(np.arcsin(np.clip(lights[:, 2], -1.0, 1.0)))
+    along, across, oblique, elevation = _lamp_axes(lights)
+    oblique &= measured
     a, b = pairs[:, 0], pairs[:, 1]
     usable = oblique[a] & oblique[b] & (np.abs(elevation[a] - elevation[b]) <= _BIAS_BANDWIDTH_DEG)
     a, b = a[usable], b[usable]
@@ -519,19 +502,28 @@ def _shared_moves(shift: np.ndarray, theta: np.ndarray, measured: np.ndarray,
     (a shaking camera's photographs) keep their own."""
     move, turn = shift.copy(), theta.copy()
     k = np.flatnonzero(measured)
-    pose = np.column_stack([shift, theta * reach])[k]
-    close = np.linalg.norm(pose[:, None] - pose[None], axis=2) <= FRAME_RADIUS_PX
-    left = np.ones(len(k), bool)
+    for group in _groups(np.column_stack([shift, theta * reach])[k], FRAME_RADIUS_PX, smallest=3):
+        members = k[group]
+        move[members] = np.median(shift[members], axis=0)
+        turn[members] = np.median(theta[members])
+    return move, turn
+
+
+def _groups(points: np.ndarray, radius: float, smallest: int = 1) -> list[np.ndarray]:
+    """Greedy groups of ``points`` ``(M, D)``: the most points within ``radius`` of one of them,
+    then the most of those left, and so on while a group holds ``smallest`` or more; each as
+    indices into ``points``."""
+    close = np.linalg.norm(points[:, None] - points[None], axis=2) <= radius
+    left = np.ones(len(points), bool)
+    found = []
     while left.any():
         count = (close & left[None, :]).sum(axis=1) * left
         best = int(np.argmax(count))
-        if count[best] < 3:
+        if count[best] < smallest:
             break
-        members = k[close[best] & left]
-        move[members] = np.median(shift[members], axis=0)
-        turn[members] = np.median(theta[members])
+        found.append(np.flatnonzero(close[best] & left))
         left &= ~close[best]
-    return move, turn
+    return found
 
 
 def _common_frame(pose: np.ndarray, measured: np.ndarray, radius: float = FRAME_RADIUS_PX) -> np.ndarray:
@@ -572,13 +564,14 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray, *, threads: int | None 
     # The centre tile first: where it holds too little detail (a smooth object seen at many
     # megapixels: its details are the JPEG's noise, confidence 0.04), the capture is not
     # measured and the others are not worth their time (about 0.6 s for 48 photographs).
-    per_tile[:, 0], conf[:, 0] = _measure_tiles(probe.tiles[:, 0], lights)
+    pairs = _neighbour_pairs(lights)
+    per_tile[:, 0], conf[:, 0] = _measure_tiles(probe.tiles[:, 0], pairs)
     if count > 1 and np.median(conf[:, 0]) >= _MIN_CAPTURE_CONFIDENCE / 2:
         # The others at once, in threads (the FFTs and products release the GIL).
         from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(max(1, min(count - 1, thread_count(threads)))) as pool:
-            found = pool.map(lambda t: _measure_tiles(probe.tiles[:, t], lights), range(1, count))
+            found = pool.map(lambda t: _measure_tiles(probe.tiles[:, t], pairs), range(1, count))
             for t, (d, c) in enumerate(found, 1):
                 per_tile[:, t], conf[:, t] = d, c
     trusted = conf >= _MIN_CONFIDENCE
@@ -602,19 +595,12 @@ def measure_drift(probe: DriftProbe, lights: np.ndarray, *, threads: int | None 
         else:
             shift[k] = np.median(per_tile[k, use], axis=0)
     measured = trusted.any(axis=1)
+    # Rotations in pixels of a tile's move, where they are measured (at a corner their noise
+    # would be twice as large): two photographs share a frame when they agree on both.
     reach = float(np.hypot(pos[:, 0], pos[:, 1]).mean())
-
-    def pose(translation: np.ndarray) -> np.ndarray:
-        # Translation and rotation in pixels (a tile's move, where the rotation is measured: at
-        # a corner its noise would be twice as large): two photographs share a frame when they
-        # agree on both.
-        return np.column_stack([translation, theta * reach])
-
     if measured.any():
-        raw = shift.copy()
-        bias = _shading_bias(raw, lights, measured)
-        shift = raw - bias
-        ref = _common_frame(pose(shift), measured)
+        shift = shift - _shading_bias(shift, lights, measured, pairs)
+        ref = _common_frame(np.column_stack([shift, theta * reach]), measured)
         shift[measured] -= np.median(shift[ref], axis=0)
         shift[~measured] = 0.0
         theta[measured] -= np.median(theta[ref])
