@@ -38,7 +38,8 @@ import numpy as np
 from .images import LUMA_WEIGHTS, srgb_to_linear
 from .resources import thread_count
 
-__all__ = ["ALIGN_THRESHOLD_PX", "FRAME_RADIUS_PX", "STILL_PX", "Drift", "DriftProbe", "measure_drift", "warp_photograph"]
+__all__ = ["ALIGN_THRESHOLD_PX", "FRAME_RADIUS_PX", "STILL_PX", "Drift", "DriftProbe", "measure_drift",
+           "warp_photograph"]
 
 #: A photograph displaced by more than this anywhere in the frame (pixels) makes a run resample
 #: the capture. Steady captures read up to 0.13 px on the 640 × 480 synthetic tablet, 0.83 px on

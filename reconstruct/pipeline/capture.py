@@ -23,19 +23,21 @@ import numpy as np
 from ptmcore.corrections import Corrections
 from ptmcore.errors import InputError, first_few
 from ptmcore.images import ImageStack, check_content, image_size, load_stack, load_stack_and_fits, read_image
-from ptmcore.raw import RAW_SUFFIXES
 from ptmcore.intensity import apply_intensities, estimate_intensities, read_intensities
 from ptmcore.lp import LightSet, read_lp
 from ptmcore.nearlight import read_light_positions
 from ptmcore.ptmencoded import EncodedFit, EncodedFits
 from ptmcore.psdataset import is_ps_dataset, read_ps_dataset
+from ptmcore.raw import RAW_SUFFIXES
 from ptmcore.resources import RUN_BASE_MB, RUN_BYTES_PER_PIXEL, available_memory_mb
 from ptmcore.solvers import RankInfo, analyse_lights
 from reconstruct.pipeline.defects import (
+    CLIPPED_SHARE,
     capture_corrections,
     drift_finding,
     exposure_finding,
     new_probe,
+    sampled_luminance,
     stray_light_finding,
 )
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
@@ -440,29 +442,23 @@ def _ground_truth_folder(capture: Path, opt: RunOptions) -> Path | None:
     return guess if os.path.lexists(guess / "normals.npy") else None
 
 
-#: Pixels on a grid that a run looks at for the photographs' exposure (as ``reconstruct check``).
-_EXPOSURE_SAMPLES = 250_000
-
-
-def _check_exposure(loaded: Capture) -> None:
+def _check_exposure(loaded: Capture, samples: np.ndarray) -> None:
     """Warn of a degenerate light layout and of photographs with many clipped pixels, mostly
-    black, or brighter or darker than their light explains (``capture_checks["exposure"]``)."""
+    black, or brighter or darker than their light explains (``capture_checks["exposure"]``), from
+    the ``samples`` of :func:`reconstruct.pipeline.defects.sampled_luminance`."""
     loaded.rank = analyse_lights(loaded.lights.directions)
     if loaded.rank.deficient:
         loaded.warnings.append(f"the PTM light matrix has rank {loaded.rank.rank} of 6: " + "; ".join(loaded.rank.causes))
     h, w = loaded.shape
     saturated = loaded.stack.saturated / (h * w)
-    stack = loaded.stack
-    step = max(1, int(np.sqrt(h * w / _EXPOSURE_SAMPLES)))
-    sampled = stack.table[stack.grid(step)].reshape(len(stack), -1)
-    loaded.checks["exposure"], said = exposure_finding(sampled, saturated, loaded.lights.directions,
-                                                       [p.name for p in stack.paths])
+    loaded.checks["exposure"], said = exposure_finding(samples, saturated, loaded.lights.directions,
+                                                       [p.name for p in loaded.stack.paths])
     loaded.warnings += said
-    if saturated.max() > 0.01:
+    if saturated.max() > CLIPPED_SHARE:
         worst = int(np.argmax(saturated))
         loaded.warnings.append(
-            f"{np.count_nonzero(saturated > 0.01)} photograph(s) have more than 1% clipped pixels "
-            f"(most: {loaded.stack.paths[worst].name}, {saturated[worst]:.1%}); clipped samples are left "
+            f"{np.count_nonzero(saturated > CLIPPED_SHARE)} photograph(s) have more than {CLIPPED_SHARE:.0%} "
+            f"clipped pixels (most: {loaded.stack.paths[worst].name}, {saturated[worst]:.1%}); clipped samples are left "
             "out of photometric stereo"
         )
 
@@ -531,9 +527,10 @@ def load_capture(
             factors = read_intensities(opt.intensities, len(loaded.lights))
         loaded.stack = apply_intensities(loaded.stack, factors, relative=True, in_place=True)
         loaded.intensities = {"source": source, "factors": factors}
-    _check_exposure(loaded)
+    samples = sampled_luminance(loaded.stack)  # one read of the stack for both findings
+    _check_exposure(loaded, samples)
     if len(loaded.lights) >= 6:
-        loaded.checks["stray_light"], said = stray_light_finding(loaded.stack, loaded.lights.directions,
+        loaded.checks["stray_light"], said = stray_light_finding(samples, loaded.lights.directions,
                                                                  opt.ambient is not None)
         loaded.warnings += said
     return loaded

@@ -22,8 +22,8 @@ import numpy as np
 from ptmcore.corrections import to_linear_rgb
 from ptmcore.errors import first_few
 from ptmcore.images import LUMA_WEIGHTS, read_image
-from ptmcore.raw import is_raw, raw_development
 from ptmcore.lp import read_lp
+from ptmcore.raw import is_raw, raw_development
 from ptmcore.resources import thread_count
 from reconstruct.pipeline.capture import find_lp
 from reconstruct.pipeline.defects import ALIGN_MIN_SIDE, CLIPPED_SHARE, exposure_finding

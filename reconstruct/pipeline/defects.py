@@ -29,11 +29,12 @@ __all__ = [
     "frame_shape",
     "colour_of",
     "new_probe",
+    "sampled_luminance",
     "stray_light_finding",
 ]
 
-#: Pixels sampled for the stray-light estimate (a grid over the frame).
-_STRAY_SAMPLES = 20000
+#: Pixels sampled for a run's exposure and stray-light findings (a grid over the frame).
+_SAMPLES = 20000
 #: Frames smaller than this on either side are not measured for drift: the probe's tiles (the
 #: shorter side ÷ 2.5, at most 192 px) would hold too little detail for a sub-pixel offset
 #: (a steady 128 × 96 synthetic tablet under 24 lights read 1.1 px with 38-px tiles; from 64-px
@@ -217,15 +218,20 @@ def exposure_finding(luminance: np.ndarray, clipped: np.ndarray, directions: np.
     return finding, warnings
 
 
-def stray_light_finding(stack: ImageStack, directions: np.ndarray, ambient_given: bool
+def sampled_luminance(stack: ImageStack) -> np.ndarray:
+    """``(N, M)`` float32 linear luminance of every photograph on a grid of about
+    :data:`_SAMPLES` pixels, read once for the run's findings."""
+    h, w = stack.shape
+    step = max(1, int(np.sqrt(h * w / _SAMPLES)))
+    return stack.table[stack.grid(step)].reshape(len(stack), -1).astype(np.float32)
+
+
+def stray_light_finding(samples: np.ndarray, directions: np.ndarray, ambient_given: bool
                         ) -> tuple[dict, list[str]]:
-    """Room light seen in the attached shadows of a grid of pixels
-    (:func:`ptmcore.illumination.estimate_stray_light`), and the warning when it is raised."""
+    """Room light seen in the attached shadows of the ``samples`` (:func:`sampled_luminance`;
+    :func:`ptmcore.illumination.estimate_stray_light`), and the warning when it is raised."""
     from ptmcore.illumination import estimate_stray_light
 
-    h, w = stack.shape
-    step = max(1, int(np.sqrt(h * w / _STRAY_SAMPLES)))
-    samples = stack.table[stack.grid(step)].reshape(len(stack), -1).astype(np.float32)
     found = estimate_stray_light(samples, np.asarray(directions, np.float64))
     if found.level is None:
         return {"level": None, "pixels": int(found.pixels),
