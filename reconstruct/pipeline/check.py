@@ -26,7 +26,7 @@ from ptmcore.lp import read_lp
 from ptmcore.raw import is_raw, raw_development
 from ptmcore.resources import thread_count
 from reconstruct.pipeline.capture import find_lp
-from reconstruct.pipeline.defects import ALIGN_MIN_SIDE, CLIPPED_SHARE, exposure_finding
+from reconstruct.pipeline.defects import ALIGN_MIN_SIDE, CLIPPED_SHARE, drift_finding, exposure_finding
 
 __all__ = ["CHECK_SIDE", "CheckResult", "check_capture", "check_text"]
 
@@ -142,29 +142,14 @@ def check_capture(capture: str | os.PathLike, *, lp: str | os.PathLike | None = 
 
     # Drift, measured on the reduced frame and given in the full frame's pixels.
     if min(luminance.shape[1:3]) >= ALIGN_MIN_SIDE and len(paths) >= 3:
-        from ptmcore.align import ALIGN_THRESHOLD_PX, DriftProbe, measure_drift
+        from ptmcore.align import DriftProbe, measure_drift
 
         probe = DriftProbe(luminance.shape[1:3], len(paths))
         for k in range(len(paths)):  # grey, as the reduction's grey photographs: a stride-0 view
             probe.take(k, np.broadcast_to(luminance[k][:, :, None], luminance.shape[1:] + (3,)), False)
-        drift = measure_drift(probe, directions)
-        offsets = np.asarray(drift.offsets) * factor
-        magnitude = np.hypot(offsets[:, 0], offsets[:, 1])
-        k = int(np.argmax(magnitude))
-        checks["drift"] = {
-            "threshold_px": float(ALIGN_THRESHOLD_PX * max(1.0, factor)), "largest_px": float(magnitude[k]),
-            "largest_photograph": names[k], "aligned": False, "measured_at": f"1/{factor:.3g} scale",
-            "measured": int(np.count_nonzero(np.asarray(drift.confidence) > 0)),
-            "photographs": [{"name": n, "dx": round(float(dx), 2), "dy": round(float(dy), 2),
-                             "rotation_deg": round(float(r), 3), "confidence": round(float(c), 3)}
-                            for n, (dx, dy), r, c in zip(names, offsets, drift.rotation_deg, drift.confidence)],
-        }
-        # The reduced frame's own measurement noise (ALIGN_THRESHOLD_PX of its pixels) scaled up.
-        limit = ALIGN_THRESHOLD_PX * max(1.0, factor)
-        if magnitude[k] > limit:
-            moved = int(np.count_nonzero(magnitude > limit))
-            warnings.append(f"the camera moved during the capture: {moved} photograph(s) displaced, up to "
-                            f"{magnitude[k]:.1f} px ({names[k]}); `reconstruct run` aligns them (--align auto)")
+        drift = measure_drift(probe, directions, threads=threads)
+        checks["drift"], said, _ = drift_finding(drift, names, "check", factor)
+        warnings += said
 
     # Stray light, from a grid of the reduced pixels.
     from ptmcore.illumination import estimate_stray_light

@@ -121,51 +121,66 @@ def new_probe(paths: Sequence[Path]):
     return DriftProbe((int(size[1]), int(size[0])), len(paths))
 
 
-def drift_finding(drift, names: Sequence[str], align: str) -> tuple[dict, list[str], bool]:
-    """What the measured drift means for the run.
+def drift_finding(drift, names: Sequence[str], align: str, scale: float = 1.0) -> tuple[dict, list[str], bool]:
+    """What the measured drift means for the run (or for ``reconstruct check``).
 
     Parameters
     ----------
     drift : ptmcore.align.Drift
     names : sequence of str
         The photographs' file names.
-    align : {"auto", "off"}
-        ``--align``.
+    align : {"auto", "off", "check"}
+        ``--align``, or ``"check"`` for ``reconstruct check``, which only advises.
+    scale : float
+        Pixels of the full frame per pixel the drift was measured in (``reconstruct check``
+        measures reduced photographs): offsets are given in the full frame's pixels, and the
+        threshold is :data:`ptmcore.align.ALIGN_THRESHOLD_PX` of the measured pixels when
+        those are larger (the measurement's own noise, scaled up).
 
     Returns
     -------
     finding : dict
         For ``capture_checks["drift"]``: the threshold, the largest displacement, whether the
-        photographs were aligned, and each photograph's offset (x right, y up, pixels),
-        rotation (degrees, counter-clockwise) and the measurement's confidence.
+        photographs were aligned, how many were measured, and each photograph's offset (x
+        right, y up, pixels), rotation (degrees, counter-clockwise) and the measurement's
+        confidence.
     warnings : list of str
     resample : bool
         Whether the photographs are to be resampled onto the common frame.
     """
     from ptmcore.align import ALIGN_THRESHOLD_PX
 
-    k, largest = drift.largest()
-    needed = bool(drift.needs_alignment())
+    threshold = ALIGN_THRESHOLD_PX * max(1.0, scale)
+    displacement = drift.displacement() * scale
+    k = int(np.argmax(displacement))
+    largest = float(displacement[k])
+    needed = largest > threshold
     resample = needed and align == "auto"
     finding = {
-        "threshold_px": float(ALIGN_THRESHOLD_PX),
-        "largest_px": float(largest),
+        "threshold_px": float(threshold),
+        "largest_px": largest,
         "largest_photograph": names[k],
         "aligned": resample,
         "measured": int(np.count_nonzero(np.asarray(drift.confidence) > 0)),
         "photographs": [
             {"name": name, "dx": round(float(dx), 3), "dy": round(float(dy), 3),
              "rotation_deg": round(float(rot), 4), "confidence": round(float(conf), 3)}
-            for name, (dx, dy), rot, conf in zip(names, drift.offsets, drift.rotation_deg, drift.confidence)
+            for name, (dx, dy), rot, conf in zip(names, np.asarray(drift.offsets) * scale, drift.rotation_deg,
+                                                 drift.confidence)
         ],
     }
+    if scale != 1.0:
+        finding["measured_at"] = f"1/{scale:.3g} scale"
     warnings = []
     if needed:
-        moved = int(np.count_nonzero(drift.displacement() > ALIGN_THRESHOLD_PX))  # rotation included
+        moved = int(np.count_nonzero(displacement > threshold))  # rotation included
         what = (f"the camera moved during the capture: {moved} photograph(s) are displaced, up to {largest:.1f} px "
                 f"({names[k]})")
-        warnings.append(f"{what}; they were aligned onto the other photographs' frame before fitting" if resample
-                        else f"{what}; not aligned: expect blurred normals and height")
+        if align == "check":
+            warnings.append(f"{what}; `reconstruct run` aligns them (--align auto)")
+        else:
+            warnings.append(f"{what}; they were aligned onto the other photographs' frame before fitting" if resample
+                            else f"{what}; not aligned: expect blurred normals and height")
     return finding, warnings, resample
 
 
