@@ -21,8 +21,11 @@ start with ``#`` too: a ``#`` line of the form of an entry (a name and three num
 comment when the count matches the file without it.
 
 Some tools write light positions rather than unit vectors; they are normalised, as RTIBuilder
-does. A vector that is not finite, (nearly) zero, longer than :data:`MAX_VECTOR_LENGTH`, or at
-or below the horizon is refused, naming its line. A photograph listed twice, or two lines with
+does. A vector that is not finite, (nearly) zero, longer than :data:`MAX_VECTOR_LENGTH`, or more
+than :data:`HORIZON_CLAMP_DEG` below the horizon is refused, naming its line. One within
+that of the horizon (a grazing light of a hand-held capture, whose sphere put it at −0.1°) is
+raised to :data:`MIN_ELEVATION_DEG`, keeping its azimuth, and named in
+:attr:`LightSet.warnings`. A photograph listed twice, or two lines with
 the same direction, are allowed but reported in :attr:`LightSet.warnings`.
 """
 
@@ -39,9 +42,16 @@ import numpy as np
 from .atomic import atomic_write
 from .errors import InputError, first_few, read_input_text
 
-#: Lights lower than this above the horizon (z ≤ sin 0.5°) are rejected: they light nothing
-#: of a flat object and make the fit ill-conditioned.
+#: The lowest light used: lower ones (z ≤ sin 0.5°) light nothing of a flat object and make the
+#: fit ill-conditioned.
 MIN_ELEVATION_DEG = 0.5
+
+#: A light at most this far below the horizon (degrees) is raised to :data:`MIN_ELEVATION_DEG`,
+#: with a warning, instead of refusing the capture: a grazing light whose direction, estimated from a reflective
+#: sphere, came out a little below the horizon (a real clay relief's hand-held capture has one
+#: at −0.1°; the highlight's position on a sphere is uncertain by about a degree at grazing
+#: angles). Lower than that, the direction is wrong, not imprecise.
+HORIZON_CLAMP_DEG = 2.0
 
 #: Longest vector a light file may give. Light positions in millimetres or pixels stay far
 #: below it; a longer vector is a typing or export error, and its square overflows.
@@ -82,8 +92,9 @@ class LightSet:
     source : Path or None
         The ``.lp`` file they came from.
     warnings : tuple of str
-        What a user should know about the file that does not stop a run: a photograph listed
-        twice, or two photographs with the same light direction, naming the lines.
+        What a user should know about the file that does not stop a run: a light raised from
+        just below the horizon, a photograph listed twice, or two photographs with the same
+        light direction, naming the lines.
     """
 
     paths: list[Path]
@@ -135,7 +146,8 @@ def _exists(p: Path) -> bool:
 
 
 def unit_directions(
-    vectors: np.ndarray, lines: list[int], path: str | os.PathLike, labels: list[str] | None = None
+    vectors: np.ndarray, lines: list[int], path: str | os.PathLike, labels: list[str] | None = None,
+    *, raised: list[str] | None = None,
 ) -> np.ndarray:
     """Unit light directions from the vectors of a light file, each checked.
 
@@ -149,6 +161,9 @@ def unit_directions(
         The file, for messages.
     labels : list of str, optional
         What each vector belongs to (a photograph's name); default "light K".
+    raised : list of str, optional
+        Receives one warning per light raised from just below the horizon to
+        :data:`MIN_ELEVATION_DEG` (see :data:`HORIZON_CLAMP_DEG`).
 
     Returns
     -------
@@ -159,7 +174,8 @@ def unit_directions(
     ------
     InputError
         At the first vector (in line order) that is not finite, is (nearly) zero or longer
-        than :data:`MAX_VECTOR_LENGTH`, or points at or below the horizon.
+        than :data:`MAX_VECTOR_LENGTH`, or points more than :data:`HORIZON_CLAMP_DEG` below
+        the horizon.
     """
     v = np.asarray(vectors, dtype=np.float64).reshape(-1, 3)
     finite = np.isfinite(v).all(axis=1)
@@ -172,12 +188,13 @@ def unit_directions(
     with np.errstate(over="ignore"):
         length = big * norm
     unit = scaled / np.where(norm > 0, norm, 1.0)[:, None]
-    low = unit[:, 2] <= math.sin(math.radians(MIN_ELEVATION_DEG))
+    lowest = math.sin(math.radians(-HORIZON_CLAMP_DEG))
+    low = unit[:, 2] <= lowest
     bad = ~finite | (length < MIN_VECTOR_LENGTH) | (length > MAX_VECTOR_LENGTH) | low
     if not bad.any():
-        return unit
+        return _raise_grazing(unit, lines, labels, raised)
     k = int(np.argmax(bad))
-    what = f"light direction of {labels[k]!r}" if labels is not None else f"light direction {k + 1}"
+    what = _label(labels, k)
     shown = " ".join(f"{x:g}" for x in v[k])
     if not finite[k]:
         problem = f"{what} ({shown}) is not finite"
@@ -188,9 +205,36 @@ def unit_directions(
                    f"{length[k]:.3g} (expected a unit vector, or a light position within {MAX_VECTOR_LENGTH:g})")
     else:
         elev = math.degrees(math.asin(float(np.clip(unit[k, 2], -1.0, 1.0))))
-        problem = (f"{what} is at or below the horizon (elevation {elev:.1f}°; "
+        problem = (f"{what} is below the horizon (elevation {elev:.1f}°, lower than the "
+                   f"−{HORIZON_CLAMP_DEG:g}° taken as a grazing light; "
                    "z must point towards the camera)")
     raise InputError(f"line {lines[k]}: {problem}", path)
+
+
+def _label(labels: list[str] | None, k: int) -> str:
+    return f"light direction of {labels[k]!r}" if labels is not None else f"light direction {k + 1}"
+
+
+def _raise_grazing(unit: np.ndarray, lines: list[int], labels: list[str] | None,
+                   raised: list[str] | None) -> np.ndarray:
+    """``unit`` with the lights lower than :data:`MIN_ELEVATION_DEG` raised to it, azimuth kept."""
+    z_min = math.sin(math.radians(MIN_ELEVATION_DEG))
+    low = np.flatnonzero(unit[:, 2] <= z_min)
+    if len(low) == 0:
+        return unit
+    out = unit.copy()
+    xy = out[low, :2]
+    radius = np.linalg.norm(xy, axis=1, keepdims=True)
+    # Nudged above the limit so that the raised light passes the same test everywhere else.
+    z = math.sin(math.radians(MIN_ELEVATION_DEG) + 1e-9)
+    out[low, :2] = xy / radius * math.sqrt(1.0 - z * z)
+    out[low, 2] = z
+    if raised is not None:
+        for k in low:
+            elev = math.degrees(math.asin(float(np.clip(unit[k, 2], -1.0, 1.0))))
+            raised.append(f"line {lines[k]}: {_label(labels, k)} is at {elev:.2f}° elevation, at or just "
+                          f"below the horizon; it is used as a grazing light at {MIN_ELEVATION_DEG:g}°")
+    return out
 
 
 def read_lp(path: str | os.PathLike) -> LightSet:
@@ -213,7 +257,8 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         If the file is missing, unreadable, not a regular file, larger than
         :data:`MAX_TEXT_BYTES` or UTF-16 without a byte-order mark, the count does not match
         the lines, a line does not parse, has no file name or a NUL byte in it, a vector is
-        (nearly) zero, not finite, absurdly long, or at or below the horizon, or the file lists
+        (nearly) zero, not finite, absurdly long, or more than :data:`HORIZON_CLAMP_DEG` below
+        the horizon, or the file lists
         fewer than :data:`MIN_PHOTOGRAPHS`.
     """
     path = Path(path)
@@ -257,7 +302,8 @@ def read_lp(path: str | os.PathLike) -> LightSet:
         names.append(name)
         paths.append(resolved)
     numbers = [no for no, _ in entries]
-    directions = unit_directions(vectors, numbers, path, names)
+    raised: list[str] = []
+    directions = unit_directions(vectors, numbers, path, names, raised=raised)
     if count < MIN_PHOTOGRAPHS:
         raise InputError(
             f"lists {count} photograph{'s' if count != 1 else ''}; at least {MIN_PHOTOGRAPHS} "
@@ -265,7 +311,7 @@ def read_lp(path: str | os.PathLike) -> LightSet:
             path,
         )
     return LightSet(paths=paths, directions=directions, source=path,
-                    warnings=duplicate_warnings(paths, directions, numbers))
+                    warnings=tuple(raised) + duplicate_warnings(paths, directions, numbers))
 
 
 def _entries(lines: list[tuple[int, str]], count: int, path: Path) -> list[tuple[int, str]]:

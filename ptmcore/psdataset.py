@@ -134,11 +134,12 @@ def _read_filenames(folder: Path, count: int) -> list[Path]:
     return paths
 
 
-def _read_directions(path: Path) -> np.ndarray:
-    """Unit light directions from ``light_directions.txt``, checked to be above the horizon."""
+def _read_directions(path: Path, raised: list[str]) -> np.ndarray:
+    """Unit light directions from ``light_directions.txt``, checked to be above the horizon
+    (those just below it raised, a warning for each appended to ``raised``)."""
     values, lines = read_numeric_rows(path, "light direction file", (3,))
     # Some tools write light positions rather than unit vectors; only the direction matters.
-    return unit_directions(values, lines, path)
+    return unit_directions(values, lines, path, raised=raised)
 
 
 def _read_intensities(path: Path, count: int) -> np.ndarray:
@@ -261,7 +262,8 @@ def read_ps_dataset(
         raise InputError("not a folder (expected a photometric-stereo dataset folder)", folder)
 
     directions_path = folder / DIRECTIONS
-    dirs = _read_directions(directions_path)
+    raised: list[str] = []
+    dirs = _read_directions(directions_path, raised)
     n = len(dirs)
     paths = _read_filenames(folder, n)
     if len(paths) != n:
@@ -295,5 +297,6 @@ def read_ps_dataset(
     # Photometric-stereo datasets store linear radiance, 8-bit ones too.
     stack = load_stack(paths, linearize=False, channel_gains=gains, threads=threads, progress=progress)
 
-    lights = LightSet(paths=paths, directions=dirs, source=directions_path)
+    lights = LightSet(paths=paths, directions=dirs, source=directions_path,
+                      warnings=tuple(f"{DIRECTIONS} {w}" for w in raised))
     return PSDataset(folder, lights, intensities, scale, mask, normals, stack)

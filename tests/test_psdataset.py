@@ -250,7 +250,7 @@ def test_count_mismatch_directions(dataset):
         ("light_intensities.txt", "1.0 1.0", ("line 4",)),
         ("light_intensities.txt", "1.0 0 1.0", ("line 4", "positive")),
         ("light_intensities.txt", "1.0 1.0 -0.5", ("line 4", "positive")),
-        ("light_directions.txt", "0.3 0.2 0", ("line 4", "horizon")),
+        ("light_directions.txt", "0.3 0.2 -0.1", ("line 4", "horizon")),
         ("light_directions.txt", "0.3 0.2 -0.9", ("line 4", "horizon")),
         ("light_directions.txt", "0 0 0", ("line 4", "zero length")),
     ],

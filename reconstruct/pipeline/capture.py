@@ -303,6 +303,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
             # the photographs as stored).
             ds = read_ps_dataset(capture, threads=opt.threads, divide_intensities=opt.intensities is None)
         loaded = Capture(capture, layout, ds.stack, ds.lights, mask=ds.mask)
+        loaded.warnings += ds.lights.warnings
         if ds.ground_truth_normals is not None:
             gt_mask = ds.mask if ds.mask is not None else np.ones(ds.stack.shape, bool)
             loaded.truth, loaded.truth_source = GroundTruth(ds.ground_truth_normals, gt_mask), str(capture)
