@@ -464,7 +464,18 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         "vertices)" % BOUNDS["step"][1],
     )
     _choice(p, RunOptions, "ptm_format", help="coefficients.ptm as LRGB (default: one luminance polynomial and a colour per pixel) or RGB (one per channel)")
-    _choice(p, RunOptions, "ptm_encoding", help="what coefficients.ptm, .rti and web/ hold: srgb (default: the photographs "
+    _choice(p, RunOptions, "basis",
+            help="the relighting basis of web/ (the page and OpenLIME's files), the report and `reconstruct relight`: "
+                 "auto (default) = the one that best predicts each photograph left out of its fit, measured on this "
+                 "capture; ptm; hsh2, hsh3, hsh4 (hemispherical harmonics; OpenLIME shows up to hsh3); rbf, bilinear "
+                 "(relight's interpolation of the photographs, compressed to 9 planes)")
+    _choice(p, RunOptions, "basis_encoding",
+            help="what the published basis is fitted to: srgb (the photographs as displayed), linear (linear light), "
+                 "or auto (default: chosen with the basis, by the same measure)")
+    _choice(p, RunOptions, "outputs",
+            help="all (default); relight: only coefficients.ptm, web/ and the report, without normals, height "
+                 "or meshes (seconds)")
+    _choice(p, RunOptions, "ptm_encoding", help="what coefficients.ptm and .rti hold: srgb (default: the photographs "
             "display-encoded, as viewers show them, whatever their bit depth) or linear (linear light, e.g. for computing "
             "with the files; viewers show it dark)")
     _choice(p, RunOptions, "solver", help="{1}-inverse of the PTM light matrix: pinv (default, least squares, minimum norm), "

@@ -3,8 +3,8 @@
 Hemispherical harmonics (Gautron, Křivánek, Pattanaik, Bouatouch: "A Novel Hemispherical Basis
 for Accurate and Efficient Rendering", EGSR 2004) are spherical harmonics whose Legendre part is
 shifted from [−1, 1] onto the upper hemisphere, cos θ ∈ [0, 1], so they are orthonormal over
-the hemisphere of light directions. An HSH of order ``n`` has ``n²`` terms: 4 for order 2 and 9
-for order 3, the two orders RTIBuilder's HSH fitter writes.
+the hemisphere of light directions. An HSH of order ``n`` has ``n²`` terms: 4 for order 2, 9
+for order 3 (the two orders RTIBuilder's HSH fitter writes) and 16 for order 4.
 
 Per pixel the luminance under a light is ``L = Σ_k c_k H_k(θ, φ)``, a linear model like the PTM's
 biquadratic, so the least-squares fit of every pixel is one K×N pseudoinverse applied to the
@@ -27,16 +27,37 @@ and with c = cos θ and s = √(c − c²) = √(cos θ (1 − cos θ)) the term
     H5 = √(30/π) · cos φ · (2c − 1) · s      H7 = √(30/π) · sin φ · (2c − 1) · s
     H6 = √(5/2π) · (6c² − 6c + 1)
 
+and, for order 4 only::
+
+    H9  = 2√(35/π) · cos 3φ · s³                      H15 = 2√(35/π) · sin 3φ · s³
+    H10 = √(210/π) · cos 2φ · (2c − 1)(c² − c)        H14 = √(210/π) · sin 2φ · (2c − 1)(c² − c)
+    H11 = 2√(21/π) · cos φ · (5c² − 5c + 1) · s       H13 = 2√(21/π) · sin φ · (5c² − 5c + 1) · s
+    H12 = √(7/2π)  · (20c³ − 30c² + 12c − 1)
+
+The ordering is the same for every order: term ``k = l² + l − m`` holds degree ``l`` and order
+``m`` of Gautron et al.'s ``H_l^m = K_l^m · P_l^|m|(2 cos θ − 1) · {cos mφ, 1, sin |m|φ}``, ``m``
+running from ``+l`` (cos lφ) down to ``−l`` (sin lφ), so order ``n`` is the first ``n²`` terms of
+order ``n + 1``. With the Condon–Shortley phase in P_l^m, RTIViewer's terms for ``m ≠ 0`` are the
+negatives of Gautron's; for ``m = 0`` they are equal.
+
 Source: RTIViewer 1.1 (Visual Computing Lab, ISTI-CNR and Cultural Heritage Imaging), ``getHSH``
-in ``util.h`` for the terms and its HSH rendering modes for θ and φ (the 0.04 rad clamp); the
-same terms and angles are in ``Rti::lightWeightsHsh`` of cnr-isti-vclab/relight
-(``src/rti.cpp``), which clamps θ at π/2 − 0.01 instead. Written from those descriptions, not
-copied. The signs are RTIViewer's (H4 and H8 go as c² − c ≤ 0, the opposite sign of the
-shifted Legendre function P₂² they come from): orthonormality over the hemisphere does not
-depend on signs, compatibility with ``.rti`` files does.
+in ``util.h`` for the terms (its ``order > 3`` branch gives the 16 terms of order 4) and its HSH
+rendering modes for θ and φ (the 0.04 rad clamp); the 9 terms of order 3 and the same angles are
+in ``Rti::lightWeightsHsh`` of cnr-isti-vclab/relight (``src/rti.cpp``), which clamps θ at
+π/2 − 0.01 instead, and in OpenLIME's ``ShaderRTI.js`` (class ``HSH``); neither has order 4.
+The order-4 terms were checked against Gautron et al.'s definition (normalisation
+K_l^m = √((2l+1)/(2π) · (l−|m|)!/(l+|m|)!), times √2 for m ≠ 0). Written from those
+descriptions, not copied. The signs are RTIViewer's (H4 and H8 go as c² − c ≤ 0, the opposite
+sign of the shifted Legendre function P₂² they come from): orthonormality over the hemisphere
+does not depend on signs, compatibility with ``.rti`` files does.
 
 Unlike RTIBuilder, which fits the 8-bit sRGB pixel values, :func:`fit_hsh` fits the linear
 luminance of the :class:`~ptmcore.images.ImageStack`, like :func:`~ptmcore.fit.fit_ptm`.
+
+Where order 4 goes: :func:`hsh_basis` and :func:`fit_hsh` take orders 2–4
+(:data:`BASIS_ORDERS`); the ``.rti`` files of :mod:`ptmcore.rtifile` and the encoded fits of
+:mod:`ptmcore.ptmencoded` stay at :data:`ORDERS` (2 and 3), because OpenLIME (9 HSH terms at
+most) and relight cannot show order 4, and this project's ``.rti`` reader refuses 16 terms.
 """
 
 from __future__ import annotations
@@ -50,8 +71,12 @@ from .fit import LinearRelighting, apply_fit_matrix
 from .images import ImageStack
 from .lp import as_directions
 
-#: HSH orders supported (RTIBuilder's choices) and their number of terms, order².
+#: HSH orders of the ``.rti`` files this project writes and reads (RTIBuilder's choices, order²
+#: terms: 4 or 9), and of the encoded fits; OpenLIME and relight show no more than order 3.
 ORDERS = (2, 3)
+#: HSH orders :func:`hsh_basis` and :func:`fit_hsh` evaluate: :data:`ORDERS` and order 4
+#: (16 terms, RTIViewer's largest).
+BASIS_ORDERS = (2, 3, 4)
 #: RTIViewer keeps θ this far (radians) above the horizon when it evaluates the basis.
 HORIZON_MARGIN = 0.04
 #: Singular values of the light matrix below this fraction of the largest are taken as zero.
@@ -65,8 +90,8 @@ RCOND = 1e-4
 
 
 def _check_order(order: int) -> int:
-    if order not in ORDERS:
-        raise ValueError(f"HSH order must be one of {ORDERS}, got {order!r}")
+    if order not in BASIS_ORDERS:
+        raise ValueError(f"HSH order must be one of {BASIS_ORDERS}, got {order!r}")
     return int(order)
 
 
@@ -109,7 +134,8 @@ def hsh_basis(directions: np.ndarray, order: int = 3) -> np.ndarray:
     directions : ndarray, shape (N, 3) or (N, 2)
         Vectors towards the lights, as for :func:`hsh_angles`.
     order : int
-        2 (4 terms) or 3 (9 terms); order 2's terms are the first four of order 3's.
+        2 (4 terms), 3 (9 terms) or 4 (16 terms); each order's terms are the first of the
+        next order's.
 
     Returns
     -------
@@ -136,6 +162,20 @@ def hsh_basis(directions: np.ndarray, order: int = 3) -> np.ndarray:
             np.sqrt(5 / (2 * np.pi)) * (6 * c * c - 6 * c + 1),
             k * sin_p * (2 * c - 1) * s,
             k * np.sin(2 * phi) * (c * c - c),
+        ]
+    if order >= 4:
+        s3 = s * s * s  # (c − c²)^1.5, RTIViewer's pow(c − c², 1.5), without its NaN at rounding
+        k3, k2, k1 = 2 * np.sqrt(35 / np.pi), np.sqrt(210 / np.pi), 2 * np.sqrt(21 / np.pi)
+        p32 = (2 * c - 1) * (c * c - c)
+        p31 = (5 * c * c - 5 * c + 1) * s
+        terms += [
+            k3 * np.cos(3 * phi) * s3,
+            k2 * np.cos(2 * phi) * p32,
+            k1 * cos_p * p31,
+            np.sqrt(7 / (2 * np.pi)) * (((20 * c - 30) * c + 12) * c - 1),
+            k1 * sin_p * p31,
+            k2 * np.sin(2 * phi) * p32,
+            k3 * np.sin(3 * phi) * s3,
         ]
     return np.stack(terms, axis=1)
 
@@ -180,7 +220,7 @@ def fit_hsh(
     directions : ndarray, shape (N, 3)
         Unit light directions, one per photograph.
     order : int
-        2 (4 coefficients) or 3 (9 coefficients).
+        2 (4 coefficients), 3 (9 coefficients) or 4 (16 coefficients).
     threads : int, optional
         Threads working on bands of rows (default: all CPUs).
     progress : callable, optional

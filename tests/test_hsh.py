@@ -19,8 +19,9 @@ def test_basis_shapes_and_nesting():
     assert b3.dtype == np.float64
     # Order 2 is the first four terms of order 3, as in RTIViewer's file layout.
     np.testing.assert_array_equal(b3[:, :4], b2)
-    with pytest.raises(ValueError):
-        hsh_basis(d, 4)
+    for bad in (1, 5, 0):
+        with pytest.raises(ValueError, match="HSH order"):
+            hsh_basis(d, bad)
     with pytest.raises(ValueError):
         hsh_basis(np.zeros((2, 3)), 3)
 
@@ -171,3 +172,116 @@ def test_ring_of_lights_from_an_lp_file_fits_without_blowing_up():
     # The fit is the projection onto the five-dimensional span: residuals at noise level.
     pred = np.stack([model.luminance(d) for d in ring])
     assert np.sqrt(((pred - values) ** 2).mean()) < 0.005
+
+
+# ---------------------------------------------------------------------------------------------
+# Order 4 (16 terms, RTIViewer's getHSH for order > 3)
+
+
+def _hemisphere_quadrature(n_c: int = 40, n_phi: int = 32):
+    """Directions and weights integrating exactly the products of the HSH up to order 4:
+    Gauss–Legendre in cos θ (products of two terms of equal m are polynomials in c, since
+    s² = c − c²) and the trapezoid rule in φ (exact for trigonometric degree < n_phi)."""
+    x, wx = np.polynomial.legendre.leggauss(n_c)
+    c, wc = (x + 1) / 2, wx / 2
+    phi = np.arange(n_phi) * 2 * np.pi / n_phi
+    cc, pp = np.meshgrid(c, phi, indexing="ij")
+    weight = np.outer(wc, np.full(n_phi, 2 * np.pi / n_phi)).ravel()
+    sin_t = np.sqrt(1 - cc**2)
+    d = np.stack([sin_t * np.cos(pp), sin_t * np.sin(pp), cc], -1).reshape(-1, 3)
+    return d, weight
+
+
+def test_order_4_is_orthonormal_over_the_hemisphere(monkeypatch):
+    monkeypatch.setattr(hsh_module, "HORIZON_MARGIN", 0.0)
+    d, weight = _hemisphere_quadrature()
+    b = hsh_basis(d, 4)
+    assert b.shape == (len(d), 16) and b.dtype == np.float64
+    gram = (b * weight[:, None]).T @ b
+    np.testing.assert_allclose(gram, np.eye(16), atol=1e-10)
+
+
+def test_order_4_nests_orders_2_and_3():
+    d = dome(25, seed=8)
+    b4 = hsh_basis(d, 4)
+    np.testing.assert_allclose(b4[:, :9], hsh_basis(d, 3), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(b4[:, :4], hsh_basis(d, 2), rtol=1e-12, atol=1e-15)
+
+
+def _gautron(l_deg: int, m: int, c: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Gautron et al.'s H_l^m written plainly: shifted associated Legendre function (with the
+    Condon–Shortley phase), SH normalisation over the hemisphere, cos mφ / sin |m|φ."""
+    from math import factorial
+
+    from scipy.special import lpmv
+
+    am = abs(m)
+    k = np.sqrt((2 * l_deg + 1) / (2 * np.pi) * factorial(l_deg - am) / factorial(l_deg + am))
+    legendre = lpmv(am, l_deg, 2 * c - 1)
+    if m > 0:
+        return np.sqrt(2) * k * legendre * np.cos(m * phi)
+    if m < 0:
+        return np.sqrt(2) * k * legendre * np.sin(am * phi)
+    return k * legendre
+
+
+def test_order_4_terms_are_gautrons_hemispherical_harmonics_with_rtiviewers_signs():
+    pytest.importorskip("scipy")
+    d = dome(30, seed=9)
+    theta, phi = hsh_angles(d)
+    c = np.cos(theta)
+    b = hsh_basis(d, 4)
+    for l_deg in range(4):
+        for m in range(l_deg, -l_deg - 1, -1):
+            k = l_deg * l_deg + l_deg - m  # the file order: m from +l down to −l
+            sign = 1.0 if m == 0 else -1.0  # RTIViewer drops the Condon–Shortley phase's sign
+            np.testing.assert_allclose(b[:, k], sign * _gautron(l_deg, m, c, phi),
+                                       rtol=1e-9, atol=1e-12, err_msg=f"l={l_deg} m={m}")
+
+
+def test_order_4_values_follow_rtiviewer_util_h():
+    # RTIViewer's getHSH, order > 3 branch, written out at azimuth 30°, elevation 40°.
+    light = _unit(30.0, 40.0)
+    c = np.cos(np.radians(50.0))
+    p = np.radians(30.0)
+    q = c - c * c
+    expected = [
+        2 * np.sqrt(35 / np.pi) * np.cos(3 * p) * q**1.5,
+        np.sqrt(210 / np.pi) * np.cos(2 * p) * (-1 + 2 * c) * (-c + c * c),
+        2 * np.sqrt(21 / np.pi) * np.cos(p) * np.sqrt(q) * (1 - 5 * c + 5 * c * c),
+        np.sqrt(7 / (2 * np.pi)) * (-1 + 12 * c - 30 * c * c + 20 * c**3),
+        2 * np.sqrt(21 / np.pi) * np.sqrt(q) * (1 - 5 * c + 5 * c * c) * np.sin(p),
+        np.sqrt(210 / np.pi) * (-1 + 2 * c) * (-c + c * c) * np.sin(2 * p),
+        2 * np.sqrt(35 / np.pi) * q**1.5 * np.sin(3 * p),
+    ]
+    np.testing.assert_allclose(hsh_basis(light[None], 4)[0, 9:], expected, rtol=1e-12)
+    # At the zenith only the zonal terms survive.
+    zenith = hsh_basis(np.array([[0.0, 0.0, 1.0]]), 4)[0]
+    zonal = [0, 2, 6, 12]
+    np.testing.assert_allclose(np.delete(zenith, zonal), 0, atol=1e-12)
+    np.testing.assert_allclose(zenith[12], np.sqrt(7 / (2 * np.pi)), rtol=1e-12)
+
+
+def test_order_4_is_finite_at_the_horizon_clamp_and_the_zenith():
+    d = np.array([[1.0, 0.0, 0.0], [0.3, -0.2, 1e-9], [0.0, 0.0, 1.0], [1e-9, 0.0, 1.0]])
+    assert np.all(np.isfinite(hsh_basis(d, 4)))
+
+
+def test_fit_recovers_order_4_coefficients():
+    rng = np.random.default_rng(4)
+    d = dome(60, seed=4, min_elev=10, max_elev=85)
+    h, w = 5, 6
+    coef = (rng.normal(size=(h, w, 16)) * 0.01).astype(np.float32)
+    coef[..., 0] += 0.5 * np.sqrt(2 * np.pi)
+    values = np.einsum("nk,hwk->nhw", hsh_basis(d, 4), coef)
+    assert values.min() > 0 and values.max() < 1
+    model = fit_hsh(stack_from_luminance(values), d, 4, threads=1)
+    assert model.order == 4 and model.coefficients.shape == (h, w, 16)
+    np.testing.assert_allclose(model.coefficients, coef, atol=1e-3)
+    np.testing.assert_allclose(model.luminance(d[0]), values[0], atol=5e-5)
+
+
+def test_rti_orders_stay_at_2_and_3():
+    # The .rti files and encoded fits keep RTIBuilder's orders; order 4 is the basis's only.
+    assert hsh_module.ORDERS == (2, 3)
+    assert hsh_module.BASIS_ORDERS == (2, 3, 4)

@@ -229,14 +229,15 @@ def test_report_json_keys(capture, tmp_path):
     run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     assert list(report) == ["inputs", "parameters", "height_unit", "capture_checks", "albedo_scale", "lights", "light_model",
-                            "intensities", "reflectance_lobe", "ptm", "leave_one_out", "accuracy", "mesh", "seconds",
+                            "intensities", "reflectance_lobe", "ptm", "relighting", "leave_one_out", "accuracy", "mesh",
+                            "seconds",
                             "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
     # The whole run's peak: the largest stage's, so no stage can hide it.
     assert report["peak_rss_mb"] == max(s["peak_rss_mb"] for s in report["stages"].values()) > 0
     # The files are written ("write") while later stages compute; the run's wall time is at
     # least any stage's.
     stages = report["stages"]
-    assert list(stages) == ["decode", "ptm", "normals", "albedo", "integrate", "mesh", "report", "write"]
+    assert list(stages) == ["decode", "ptm", "basis", "normals", "albedo", "integrate", "mesh", "report", "write"]
     assert report["seconds"] >= max(s["seconds"] for s in stages.values())
     assert report["accuracy"]["ground_truth"].endswith("ground_truth")
     assert set(report["mesh"]) == {"vertices", "faces", "unit", "step", "integrator", "integrator_reason",
@@ -272,3 +273,25 @@ def test_the_names_a_result_may_hold_cover_the_documented_layout():
             assert any(fnmatch.fnmatchcase(name, pattern) for name in described), pattern
     for name in described:
         assert any(fnmatch.fnmatchcase(name, pattern) for pattern in _OUTPUT_NAMES), name
+
+
+def test_the_published_basis_is_chosen_on_the_capture_and_reported(capture, tmp_path):
+    run_capture(capture, tmp_path / "out", RunOptions(pixel_size=0.05))
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    chosen = report["relighting"]
+    assert chosen["chosen_by"] == "leave-one-out" and chosen["unit"] == "8-bit sRGB levels"
+    assert (chosen["name"], chosen["encoding"]) == (chosen["scores"][0]["name"], chosen["scores"][0]["encoding"])
+    info = json.loads((tmp_path / "out" / "web" / "info.json").read_text())
+    viewer = json.loads((tmp_path / "out" / "web" / "viewer.json").read_text())
+    assert viewer["basis"] == chosen["name"] and viewer["encoding"] == chosen["encoding"]
+    assert info["type"] in ("ptm", "hsh", "rbf", "bilinear")
+
+
+def test_outputs_relight_writes_only_the_relightable_files(capture, tmp_path):
+    result = run_capture(capture, tmp_path / "out", RunOptions(outputs="relight", basis="rbf", basis_encoding="srgb"))
+    names = set(result.files)
+    assert {"coefficients.ptm", "web/info.json", "web/index.html", "report.json", "report.html"} <= names
+    assert not any(n.startswith(("normals", "height", "mesh", "albedo")) for n in names)
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["relighting"]["name"] == "rbf" and report["relighting"]["chosen_by"] == "asked"
+    assert report["mesh"] is None and "normals" not in report["stages"]

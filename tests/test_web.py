@@ -1,4 +1,5 @@
 import json
+import math
 import os
 
 import numpy as np
@@ -191,3 +192,422 @@ def test_bad_arrays_are_rejected(tmp_path):
         export_openlime(tmp_path, coef, rgb[:, :5])
     with pytest.raises(ValueError, match="rgb"):
         export_openlime(tmp_path, coef, rgb.astype(np.float32))
+
+
+# ---------------------------------------------------------------------------------------------
+# export_relightable: every basis in Relight's web format, decoded as OpenLIME decodes it
+
+
+from xml.etree import ElementTree  # noqa: E402
+
+from ptmcore.hsh import hsh_basis  # noqa: E402
+from ptmcore.published import PublishedBasis  # noqa: E402
+from reconstruct.report.web import DZ_OVERLAP, DZ_TILE_SIZE, export_relightable, pyramid_levels  # noqa: E402
+
+#: Lights of the comparisons, unit (x, y, z); all above OpenLIME's HSH horizon margin (0.15 rad).
+UNIT_LIGHTS = [light_direction(azimuth_deg=a, elevation_deg=e) for a, e in LIGHTS]
+
+
+def _waves(h, w, k, rng):
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float64)
+    out = np.zeros((h, w, k))
+    for i in range(k):
+        for _ in range(3):
+            fx, fy = rng.uniform(0.5, 4, 2) * 2 * np.pi / np.array([w, h])
+            out[..., i] += np.sin(fx * cols + fy * rows + rng.uniform(0, 2 * np.pi)) / 3
+    return out
+
+
+def _colour(h, w, rng):
+    return np.clip(128 + 100 * _waves(h, w, 3, rng), 0, 255).astype(np.uint8)
+
+
+def _orthonormal(d, k, rng):
+    """K orthonormal RGB components over D directions, (K, D, 3)."""
+    q, _ = np.linalg.qr(rng.normal(size=(3 * d, k)))
+    return q.T.reshape(k, d, 3)
+
+
+def make_basis(kind, h=48, w=64, seed=0, encoding="srgb"):
+    """A small synthetic PublishedBasis: smooth random planes, relit values mostly within 0–1."""
+    rng = np.random.default_rng(seed)
+    if kind == "ptm":
+        planes = 0.15 * _waves(h, w, 6, rng)
+        planes[..., 0] += 0.6
+        return PublishedBasis("ptm", "lrgb", planes.astype(np.float32), encoding, colour=_colour(h, w, rng), name="ptm")
+    if kind.startswith("hsh"):
+        order = int(kind[3:])
+        planes = 0.2 * _waves(h, w, order * order, rng)
+        planes[..., 0] += 1.5  # H0 = 1/√(2π): a mean luminance of 0.6
+        return PublishedBasis("hsh", "lrgb", planes.astype(np.float32), encoding, colour=_colour(h, w, rng),
+                              order=order, name=kind)
+    if kind == "rbf":
+        d, k = 24, 5  # 5 planes: two JPEGs, the last with one empty channel
+        lights = dome(d, seed=seed)
+        basis = np.concatenate([rng.uniform(0.3, 0.6, (1, d, 3)), _orthonormal(d, k, rng)])
+        planes = 0.8 * _waves(h, w, k, rng)
+        return PublishedBasis("rbf", "mrgb", planes.astype(np.float32), encoding, lights=lights, sigma=0.35,
+                              basis=basis.astype(np.float32), name="rbf")
+    r, k = 5, 7
+    basis = np.concatenate([rng.uniform(0.3, 0.6, (1, r * r, 3)), _orthonormal(r * r, k, rng)])
+    planes = 0.8 * _waves(h, w, k, rng)
+    return PublishedBasis("bln", "mrgb", planes.astype(np.float32), encoding, resolution=r,
+                          basis=basis.astype(np.float32), name="bilinear")
+
+
+def _read_plane(folder, j, info):
+    """Plane j's bytes (H, W, 3): the whole JPEG, or the finest level of its pyramid stitched
+    back, each tile without its overlap."""
+    whole = folder / f"plane_{j}.{info['format']}"
+    if whole.exists():
+        return np.asarray(Image.open(whole).convert("RGB"))
+    dzi = ElementTree.parse(folder / f"plane_{j}.dzi").getroot()
+    size, over = int(dzi.get("TileSize")), int(dzi.get("Overlap"))
+    h, w = info["height"], info["width"]
+    top = len(pyramid_levels(w, h, size)) - 1
+    out = np.zeros((h, w, 3), np.uint8)
+    for y in range(-(-h // size)):
+        for x in range(-(-w // size)):
+            tile = np.asarray(Image.open(folder / f"plane_{j}_files/{top}/{x}_{y}.{dzi.get('Format')}").convert("RGB"))
+            ox, oy = (over if x else 0), (over if y else 0)
+            part = out[y * size:(y + 1) * size, x * size:(x + 1) * size]
+            part[...] = tile[oy:oy + part.shape[0], ox:ox + part.shape[1]]
+    return out
+
+
+def _decoded(folder):
+    """info.json, and every channel's value as OpenLIME's shader computes it: (byte/255 − bias)·scale,
+    (H, W, 3·njpegs), with the bytes."""
+    info = json.loads((folder / "info.json").read_text())
+    material = info["materials"][0]
+    n = -(-info["nplanes"] // 3)
+    raw = np.concatenate([_read_plane(folder, j, info) for j in range(n)], axis=-1)
+    scale, bias = np.array(material["scale"]), np.array(material["bias"])
+    return info, (raw / 255.0 - bias) * scale, raw
+
+
+def _openlime_hsh(light):
+    """ShaderRTI's HSH.lightWeights, its 9 terms, with its constants (π as 3.1415, 0.15 rad)."""
+    pi = 3.1415
+    phi = np.arctan2(light[1], light[0])
+    phi = phi + 2 * pi if phi < 0 else phi
+    theta = min(np.arccos(light[2]), pi / 2 - 0.15)
+    cp, ct = np.cos(phi), np.cos(theta)
+    ct2 = ct * ct
+    s = np.sqrt(ct - ct2)
+    k = np.sqrt(30 / pi)
+    return np.array([1 / np.sqrt(2 * pi), np.sqrt(6 / pi) * cp * s, np.sqrt(3 / (2 * pi)) * (-1 + 2 * ct),
+                     np.sqrt(6 / pi) * s * np.sin(phi), k * np.cos(2 * phi) * (-ct + ct2),
+                     k * cp * (-1 + 2 * ct) * s, np.sqrt(5 / (2 * pi)) * (1 - 6 * ct + 6 * ct2),
+                     k * (-1 + 2 * ct) * s * np.sin(phi), k * (-ct + ct2) * np.sin(2 * phi)])
+
+
+def _openlime_rbf(lights, sigma, light):
+    """ShaderRTI's RBF.rbf: normalised exp(−d²/σ²), weights ≤ 0.001 dropped, renormalised."""
+    w = np.exp(-np.sum((lights - light) ** 2, axis=1) / sigma ** 2)
+    w /= w.sum()
+    w[w <= 0.001] = 0
+    return w / w.sum()
+
+
+def _openlime_bln(resolution, light):
+    """ShaderRTI's BLN.lightWeights as weights of the R² nodes (node x + y·R)."""
+    s = np.abs(light).sum()
+    x = ((light[0] + light[1]) / s + 1) / 2 * (resolution - 1)
+    y = ((light[1] - light[0]) / s + 1) / 2 * (resolution - 1)
+    sx, sy = (int(min(resolution - 2, max(0, np.floor(v)))) for v in (x, y))
+    dx, dy = x - sx, y - sy
+    w = np.zeros(resolution * resolution)
+    for (ix, iy), v in {(sx, sy): (1 - dx) * (1 - dy), (sx + 1, sy): dx * (1 - dy),
+                        (sx, sy + 1): (1 - dx) * dy, (sx + 1, sy + 1): dx * dy}.items():
+        w[ix + iy * resolution] += v
+    return w
+
+
+def lrgb_weights(info, extras, light):
+    """The weight of every coefficient channel: OpenLIME's PTM and HSH (order ≤ 3); for HSH of
+    order 4, which only this project's page shows, the page's (ptmcore.hsh) terms."""
+    channels = info["nplanes"] - 3
+    if info["type"] == "ptm":
+        terms = np.array([1.0, light[0], light[1], light[0] ** 2, light[0] * light[1], light[1] ** 2])
+    elif extras["order"] <= 3:
+        terms = _openlime_hsh(light)
+    else:
+        terms = hsh_basis(np.reshape(light, (1, 3)), extras["order"])[0]
+    return np.resize(terms, channels) if len(terms) < channels else terms[:channels]
+
+
+def mrgb_basis(info):
+    """ShaderRTI.loadBasis: (nplanes + 1, D, 3), row 0 byte/255, rows p ≥ 1 (byte − 127)/range[p − 1]."""
+    raw = np.array(info["basis"], np.float64).reshape(info["nplanes"] + 1, -1, 3)
+    ranges = np.array(info["materials"][0]["range"])
+    return np.concatenate([raw[:1] / 255.0, (raw[1:] - 127.0) / ranges[:, None, None]])
+
+
+def mrgb_light_basis(info, basis, light):
+    """OpenLIME's RBF/BLN lightWeights: B_p = Σ_d v_d · basis[p, d], (nplanes + 1, 3)."""
+    if info["type"] == "rbf":
+        v = _openlime_rbf(np.reshape(info["lights"], (-1, 3)), info["sigma"], light)
+    else:
+        v = _openlime_bln(info["resolution"], light)
+    return np.einsum("d,pdc->pc", v, basis)
+
+
+def openlime_render(folder, light):
+    """The folder rendered as OpenLIME's shader renders it (before clipping), 0–1."""
+    info, values, _ = _decoded(folder)
+    extras = json.loads((folder / "viewer.json").read_text())
+    if info["colorspace"] == "lrgb":
+        w = lrgb_weights(info, extras, light)
+        return values[..., :3] * (values[..., 3:] @ w)[..., None]
+    b = mrgb_light_basis(info, mrgb_basis(info), light)
+    return b[0] + values[..., : info["nplanes"]] @ b[1:]
+
+
+KINDS = ["ptm", "hsh2", "hsh3", "hsh4", "rbf", "bln"]
+
+
+@pytest.mark.parametrize("tiles", [False, True])
+@pytest.mark.parametrize("kind", KINDS)
+def test_openlime_decoding_matches_the_basis(tmp_path, kind, tiles):
+    """Decoded as OpenLIME decodes it, the folder renders the basis' own formula to within a
+    bound derived from the quantisation and the JPEG error, at every light.
+
+    A coefficient value is within ``scale · (0.5 + J) / 255`` (half a quantisation step, then J
+    levels of JPEG error, measured here against the exact bytes: at quality 100, J ≤ 2 for
+    whole RGB planes and J ≤ 4 for YCbCr tiles); the
+    colour within J/255; an MRGB basis row within 0.5/255 (mean) or 0.5/range (components; the
+    light's weights are non-negative and sum to 1). The bound of the rendering follows by the
+    triangle inequality, per pixel; for HSH it adds OpenLIME's own constants (π as 3.1415, the
+    horizon margin) times the coefficients.
+    """
+    basis = make_basis(kind, h=60, w=300 if tiles else 80)
+    folder = tmp_path / "web"
+    export_relightable(folder, basis, quality=100, tiles=tiles)
+    info, values, raw = _decoded(folder)
+    extras = json.loads((folder / "viewer.json").read_text())
+    material = info["materials"][0]
+    scale, bias = np.array(material["scale"]), np.array(material["bias"])
+    k = basis.planes.shape[2]
+    first = 3 if info["colorspace"] == "lrgb" else 0
+    exact = np.zeros(raw.shape)
+    exact[..., first:first + k] = (basis.planes - (-bias[first:first + k] * scale[first:first + k])) / np.where(
+        scale[first:first + k] > 0, scale[first:first + k], 1) * 255
+    if first:
+        exact[..., :3] = basis.colour
+    jpeg = np.abs(raw - np.rint(exact)).max()
+    # Whole planes are RGB JPEGs; libvips' tiles YCbCr, whose conversion rounds twice more.
+    assert jpeg <= (4 if tiles else 2), jpeg
+    eps = scale * (0.5 + jpeg) / 255  # per channel
+    eps[:first] = jpeg / 255
+    # Channels past the basis' terms are exactly zero (scale 0) whatever their bytes.
+    assert np.all(values[..., first + k:] == 0)
+    for light in UNIT_LIGHTS:
+        viewer = openlime_render(folder, light)
+        expected = basis.render(light).astype(np.float64)
+        if info["colorspace"] == "lrgb":
+            w = lrgb_weights(info, extras, light)
+            exact_w = basis.weights(light)
+            delta = np.abs(w[:k] - exact_w)
+            colour = basis.colour / 255.0
+            lum = values[..., 3:] @ w
+            bound = eps[0] * np.abs(lum)[..., None] + colour * (
+                (np.abs(w) * eps[3:]).sum() + (np.abs(basis.planes) @ delta)[..., None])
+        else:
+            ranges = np.array(material["range"])
+            b = mrgb_light_basis(info, mrgb_basis(info), light)
+            bound = 0.5 / 255 + np.abs(b[1:k + 1]).T @ eps[:k] + (np.abs(basis.planes) @ (0.5 / ranges[:k]))[..., None]
+        err = np.abs(viewer - expected)
+        assert np.all(err <= bound + 1e-6), (kind, light, (err - bound).max())
+        assert bound.max() < 0.06, bound.max()  # the bound says something: a few levels at most
+        assert err.mean() < 0.01, err.mean()
+
+
+def test_info_json_per_type(tmp_path):
+    """The keys Relight writes for each type, in the types and shapes OpenLIME reads."""
+    for kind, keys in {
+        "ptm": ["width", "height", "format", "type", "colorspace", "nplanes", "quality", "materials"],
+        "hsh2": ["width", "height", "format", "type", "colorspace", "nplanes", "quality", "materials"],
+        "rbf": ["width", "height", "format", "type", "colorspace", "sigma", "lights", "nplanes", "quality",
+                "basis", "materials"],
+        "bln": ["width", "height", "format", "type", "resolution", "colorspace", "nplanes", "quality", "basis",
+                "materials"],
+    }.items():
+        basis = make_basis(kind)
+        folder = tmp_path / kind
+        written = export_relightable(folder, basis, quality=90, tiles=False)
+        info = json.loads((folder / "info.json").read_text())
+        assert list(info) == keys
+        njpegs = -(-info["nplanes"] // 3)
+        assert [p.name for p in written] == [f"plane_{j}.jpg" for j in range(njpegs)] + [
+            "info.json", "viewer.json", "index.html"]
+        assert info["nplanes"] % 3 == 0
+        material = info["materials"][0]
+        assert all(len(material[key]) == info["nplanes"] for key in material)
+        extras = json.loads((folder / "viewer.json").read_text())
+        assert extras["layout"] == "image" and extras["terms"] == basis.planes.shape[2]
+        assert extras["basis"] == basis.name and extras["encoding"] == "srgb"
+        if kind == "ptm":
+            assert (info["type"], info["colorspace"], info["nplanes"]) == ("ptm", "lrgb", 9)
+        if kind == "hsh2":
+            # 4 terms in 6 channels: nplanes a multiple of 3 for OpenLIME's vec3 uniforms.
+            assert (info["type"], info["nplanes"], extras["order"]) == ("hsh", 9, 2)
+            assert material["scale"][-2:] == [0.0, 0.0] and material["bias"][-2:] == [0.0, 0.0]
+        if kind == "rbf":
+            assert info["colorspace"] == "mrgb" and info["nplanes"] == 6 and info["sigma"] == pytest.approx(0.35)
+            np.testing.assert_allclose(np.reshape(info["lights"], (-1, 3)), basis.lights)
+        if kind == "bln":
+            assert info["type"] == "bilinear" and info["resolution"] == 5 and info["nplanes"] == 9
+        if info["colorspace"] == "mrgb":
+            d = len(info["lights"]) // 3 if kind == "rbf" else info["resolution"] ** 2
+            assert len(info["basis"]) == (info["nplanes"] + 1) * d * 3
+            assert all(isinstance(b, int) and 0 <= b <= 255 for b in info["basis"])
+            rows = np.reshape(info["basis"], (info["nplanes"] + 1, d, 3))
+            k = basis.planes.shape[2]
+            assert (rows[k + 1:] == 127).all()  # padding components are zero
+            # Relight's ranges: each component's bytes reach 127 ± 127.
+            assert all(np.abs(rows[p] - 127).max() == 127 for p in range(1, k + 1))
+
+
+def test_hsh_order_4_is_rendered_from_16_planes(tmp_path):
+    basis = make_basis("hsh4")
+    export_relightable(tmp_path, basis, tiles=False)
+    info = json.loads((tmp_path / "info.json").read_text())
+    extras = json.loads((tmp_path / "viewer.json").read_text())
+    assert (info["nplanes"], extras["order"], extras["terms"]) == (21, 4, 16)
+
+
+def test_tiled_pyramid_layout(tmp_path):
+    """The .dzi, the levels and the tile grid of each plane, as OpenLIME's "deepzoom" layout reads them."""
+    h, w = 300, 1017  # odd: levels are halved rounding up
+    basis = make_basis("rbf", h=h, w=w)
+    written = export_relightable(tmp_path, basis, tiles=True)
+    info = json.loads((tmp_path / "info.json").read_text())
+    njpegs = -(-info["nplanes"] // 3)
+    names = [p.name for p in written]
+    assert names == [n for j in range(njpegs) for n in (f"plane_{j}.dzi", f"plane_{j}_files")] + [
+        "info.json", "viewer.json", "index.html"]
+    levels = pyramid_levels(w, h)
+    assert levels == [(128, 38), (255, 75), (509, 150), (1017, 300)]
+    # OpenLIME: nlevels = ceil(log2(max side / tile size)) + 1, level 0 the single tile.
+    assert len(levels) == math.ceil(math.log2(max(w, h) / DZ_TILE_SIZE)) + 1
+    extras = json.loads((tmp_path / "viewer.json").read_text())
+    assert extras["layout"] == "deepzoom"
+    assert extras["tiles"] == {"format": "jpg", "size": DZ_TILE_SIZE, "overlap": DZ_OVERLAP,
+                               "levels": [list(level) for level in levels]}
+    for j in range(njpegs):
+        dzi = ElementTree.parse(tmp_path / f"plane_{j}.dzi").getroot()
+        assert dzi.tag == "{http://schemas.microsoft.com/deepzoom/2008}Image"
+        assert (dzi.get("Format"), dzi.get("Overlap"), dzi.get("TileSize")) == ("jpg", "1", "254")
+        size = dzi.find("{http://schemas.microsoft.com/deepzoom/2008}Size")
+        assert (size.get("Width"), size.get("Height")) == (str(w), str(h))
+        files = tmp_path / f"plane_{j}_files"
+        assert sorted(p.name for p in files.iterdir()) == [str(n) for n in range(len(levels))]
+        for level, (lw, lh) in enumerate(levels):
+            cols, rows = -(-lw // 254), -(-lh // 254)
+            tiles = {p.name for p in (files / str(level)).iterdir()}
+            assert tiles == {f"{x}_{y}.jpg" for x in range(cols) for y in range(rows)}
+            for x in range(cols):
+                for y in range(rows):
+                    x0, y0 = max(0, 254 * x - 1), max(0, 254 * y - 1)
+                    x1, y1 = min(lw, 254 * (x + 1) + 1), min(lh, 254 * (y + 1) + 1)
+                    assert Image.open(files / str(level) / f"{x}_{y}.jpg").size == (x1 - x0, y1 - y0)
+    # No staging folder is left.
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_stitched_tiles_give_the_planes(tmp_path):
+    basis = make_basis("bln", h=270, w=530)
+    export_relightable(tmp_path / "whole", basis, quality=100, tiles=False)
+    export_relightable(tmp_path / "tiled", basis, quality=100, tiles=True)
+    _, _, whole = _decoded(tmp_path / "whole")
+    _, _, tiled = _decoded(tmp_path / "tiled")
+    assert tiled.shape == whole.shape
+    # Two JPEG encodings of the same bytes, each within J of them (2 for RGB planes, 4 for
+    # YCbCr tiles: test_openlime_decoding_matches_the_basis), so within 6 of each other; a seam or
+    # a shifted tile would be off by tens of levels along its edge.
+    diff = np.abs(tiled.astype(int) - whole)
+    assert diff.max() <= 6 and diff.mean() < 0.5, (diff.max(), diff.mean())
+
+
+def test_auto_tiles_above_the_threshold(tmp_path):
+    basis = make_basis("ptm", h=40, w=90)
+    export_relightable(tmp_path / "a", basis, tile_threshold=100)
+    assert (tmp_path / "a" / "plane_0.jpg").exists()
+    export_relightable(tmp_path / "b", basis, tile_threshold=89)
+    assert (tmp_path / "b" / "plane_0.dzi").exists() and not (tmp_path / "b" / "plane_0.jpg").exists()
+
+
+def test_a_failing_pyramid_leaves_nothing_partial(tmp_path, monkeypatch):
+    import pyvips
+
+    real = pyvips.Image.dzsave
+    calls = []
+
+    def failing(self, *args, **kwargs):
+        calls.append(1)
+        real(self, *args, **kwargs)  # the tiles are written, then the disk "fills up"
+        if len(calls) == 2:
+            raise pyvips.Error("unable to write tile", "no space left on device")
+
+    monkeypatch.setattr(pyvips.Image, "dzsave", failing)
+    with pytest.raises(InputError, match="tiles of plane_1"):
+        export_relightable(tmp_path, make_basis("ptm", h=40, w=300), tiles=True)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == ["plane_0.dzi", "plane_0_files"]  # plane_1 all or nothing; no info.json yet
+
+
+def test_rewriting_a_pyramid_replaces_it(tmp_path):
+    export_relightable(tmp_path, make_basis("ptm", h=40, w=600, seed=1), tiles=True)
+    export_relightable(tmp_path, make_basis("ptm", h=40, w=300, seed=2), tiles=True)
+    levels = sorted(p.name for p in (tmp_path / "plane_0_files").iterdir())
+    assert levels == ["0", "1"]  # the 600-pixel pyramid's third level is gone
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def _replace(published, **changes):
+    from dataclasses import replace
+
+    return replace(published, **changes)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [({"colorspace": "mrgb"}, "colour space"), ({"colour": None}, "colour"),
+     ({"planes": np.zeros((48, 64, 5), np.float32)}, "6 coefficient planes"),
+     ({"type": "cubic"}, "basis type"), ({"encoding": "gamma"}, "encoding")],
+)
+def test_bad_lrgb_bases_are_rejected(tmp_path, change, message):
+    with pytest.raises(ValueError, match=message):
+        export_relightable(tmp_path / "web", _replace(make_basis("ptm"), **change))
+    assert not (tmp_path / "web").exists()
+
+
+@pytest.mark.parametrize(
+    ("kind", "change", "message"),
+    [("hsh3", {"order": 4}, "order"), ("rbf", {"sigma": 0.0}, "sigma"),
+     ("rbf", {"lights": np.zeros((3, 3))}, "light directions"), ("bln", {"resolution": 4}, "resolution"),
+     ("bln", {"basis": np.zeros((3, 25, 3))}, "basis of shape"),
+     ("rbf", {"planes": np.full((48, 64, 5), np.nan, np.float32)}, "finite")],
+)
+def test_bad_bases_are_rejected(tmp_path, kind, change, message):
+    with pytest.raises(ValueError, match=message):
+        export_relightable(tmp_path / "web", _replace(make_basis(kind), **change))
+    assert not (tmp_path / "web").exists()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"quality": 0}, "quality"), ({"pixel_size_mm": -2.0}, "pixel size"), ({"tiles": "yes"}, "tiles"),
+     ({"tile_threshold": 0}, "tile_threshold")],
+)
+def test_bad_export_options_are_rejected(tmp_path, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        export_relightable(tmp_path / "web", make_basis("bln"), **kwargs)
+    assert not (tmp_path / "web").exists()
+
+
+def test_unwritable_folder_is_an_input_error(tmp_path):
+    (tmp_path / "taken").write_text("x")
+    with pytest.raises(InputError, match="not a folder"):
+        export_relightable(tmp_path / "taken", make_basis("hsh3"))

@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from ptmcore.images import linear_to_srgb
-from reconstruct.report.web import export_openlime, export_web_layers
+from reconstruct.report.web import export_openlime, export_relightable, export_web_layers
 
 from test_web import _synthetic_ptm
 
@@ -62,7 +62,7 @@ def test_page_uses_only_files_of_its_folder(web):
     # What the script loads: the two JSON files, the planes named by info.json, the layers by viewer.json.
     fetched = set(re.findall(r'getJSON\("([^"]+)"\)', page))
     assert fetched == {"info.json", "viewer.json"}
-    assert 'loadImage("plane_" + j + "." + info.format)' in page
+    assert "\"plane_\" + j + \".\" + info.format" in page
     info = json.loads((web / "info.json").read_text())
     extras = json.loads((web / "viewer.json").read_text())
     needed = fetched | {f"plane_{j}.{info['format']}" for j in range(-(-info["nplanes"] // 3))}
@@ -191,3 +191,93 @@ def test_chromium_shows_the_layers_and_refuses_file_urls(tmp_path, served):
     np.testing.assert_allclose(shot[_CLEAR].reshape(-1, 3).mean(0), expected.reshape(-1, 3).mean(0), atol=12)
     dom = _chromium(tmp_path, (tmp_path / "index.html").as_uri())
     assert 'data-state="error"' in dom and "python3 -m http.server" in dom
+
+
+@needs_chromium
+@pytest.mark.parametrize(("kind", "tiles"), [("hsh3", False), ("hsh4", False), ("rbf", False), ("bln", False),
+                                             ("bln", True), ("hsh2", True)])
+def test_chromium_renders_every_basis(tmp_path, served, kind, tiles):
+    """The page renders each basis (and its tiles, 254-pixel DeepZoom tiles at the image's own
+    level) as its PublishedBasis formula does, at two lights, 1:1 in the window.
+
+    The page's formula is the basis' (HSH with this project's angles, for every order), on the
+    decoded planes: the difference is the quantisation and JPEG error, then the framebuffer's 8
+    bits. Measured here (SwiftShader) at quality 95: mean |Δ| 0.27–0.34 grey levels, max 1.6
+    (whole planes and tiles alike; HSH of order 2 in tiles, mean 0.44, max 2.6); the
+    tolerances are a mean of 1 and a max of 4.
+    """
+    from test_web import make_basis
+
+    basis = make_basis(kind, h=600, w=800, seed=3)
+    export_relightable(tmp_path, basis, tiles=tiles)
+    dom = _chromium(tmp_path, f"{served}/index.html#light=0.5,0.3")
+    assert 'data-state="ready"' in dom, re.findall(r'<div id="status"[^>]*>[^<]*', dom)
+    shots = []
+    for x, y in ((0.5, 0.3), (-0.6, -0.2)):
+        shot = _chromium(tmp_path, f"{served}/index.html#light={x},{y}", screenshot=tmp_path / f"shot{x}.png")
+        expected = 255 * np.clip(basis.render((x, y, np.sqrt(1 - x * x - y * y))), 0, 1)
+        region = shot[_CLEAR]
+        assert region.std() > 5, "the relit image is blank"
+        err = np.abs(region - expected[_CLEAR])
+        assert err.mean() < 1.0, ((x, y), err.mean())
+        assert err.max() <= 4, ((x, y), err.max())
+        shots.append(region)
+    assert np.abs(shots[0] - shots[1]).mean() > 5  # the light moves the shading
+
+
+@needs_chromium
+def test_chromium_streams_only_the_visible_tiles(tmp_path, served):
+    """A 1600×1200 pyramid in an 800×600 window: the page asks for level 0's single tile and for
+    the tiles of level 2 (800×600, one pixel per screen pixel), none of the full-size level 3,
+    and draws them in place: the picture is the basis' rendering averaged over 2×2 pixels
+    (libvips' levels are 2×2 means, and the rendering is linear in the planes)."""
+    from test_web import make_basis
+
+    requested = []
+
+    class Logging(_QuietHandler):
+        def do_GET(self):
+            requested.append(self.path)
+            super().do_GET()
+
+    handler = functools.partial(Logging, directory=str(tmp_path))
+    server = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        basis = make_basis("ptm", h=1200, w=1600, seed=4)
+        export_relightable(tmp_path, basis, tiles=True)
+        # The image fits the 800×600 window at half size: level 2 (800×600) of 0…3 fills it 1:1.
+        url = f"http://127.0.0.1:{server.server_address[1]}/index.html"
+        dom = _chromium(tmp_path, url)
+        assert 'data-state="ready"' in dom
+        shot = _chromium(tmp_path, url + "#light=0.4,0.4", screenshot=tmp_path / "half.png")
+    finally:
+        server.shutdown()
+        server.server_close()
+        thread.join()
+    tiles = {p.split("_files/")[1] for p in requested if "_files/" in p and p.startswith("/plane_0")}
+    assert tiles == {"0/0_0.jpg"} | {f"2/{x}_{y}.jpg" for x in range(4) for y in range(3)}
+    expected = 255 * np.clip(basis.render((0.4, 0.4, np.sqrt(1 - 0.32))), 0, 1)
+    expected = expected.reshape(600, 2, 800, 2, 3).mean(axis=(1, 3))
+    err = np.abs(shot[_CLEAR] - expected[_CLEAR])
+    assert err.mean() < 1.0 and err.max() <= 6, (err.mean(), err.max())
+
+
+@needs_chromium
+def test_chromium_renders_with_webgl1(tmp_path, served):
+    """Without WebGL 2 (the page's first choice), WebGL 1 renders tiles the same: the page is
+    edited to ask for WebGL 1 only, as a browser without WebGL 2 would answer."""
+    from test_web import make_basis
+
+    basis = make_basis("bln", h=600, w=800, seed=5)
+    export_relightable(tmp_path, basis, tiles=True)
+    page = (tmp_path / "index.html").read_text()
+    asked = 'view.getContext("webgl2", { antialias: false }) || '
+    assert asked in page
+    (tmp_path / "index.html").write_text(page.replace(asked, ""))
+    assert 'data-state="ready"' in _chromium(tmp_path, f"{served}/index.html#light=-0.3,0.6")
+    shot = _chromium(tmp_path, f"{served}/index.html#light=-0.3,0.6", screenshot=tmp_path / "gl1.png")
+    expected = 255 * np.clip(basis.render((-0.3, 0.6, np.sqrt(1 - 0.45))), 0, 1)
+    err = np.abs(shot[_CLEAR] - expected[_CLEAR])
+    assert err.mean() < 1.0 and err.max() <= 4, (err.mean(), err.max())

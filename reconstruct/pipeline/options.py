@@ -58,6 +58,13 @@ Solver = Literal["pinv", "lstsq", "rohde"]
 Flattening = Literal["plane", "poly2", "poly3", "highpass"]
 #: Whether photographs displaced by the camera's drift are resampled onto one frame.
 Align = Literal["auto", "off"]
+#: The relighting basis published in web/ (ptmcore.bases.NAMES); auto: the one that predicts
+#: left-out photographs best, among those OpenLIME renders (ptmcore.bases.AUTO).
+Basis = Literal["auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear"]
+#: What the published basis is fitted to; auto: chosen with the basis, by the same score.
+BasisEncoding = Literal["auto", "srgb", "linear"]
+#: What a run writes: everything, or only the relightable files (no normals, height or meshes).
+Outputs = Literal["all", "relight"]
 ScanUnit = Literal["mm", "cm", "m", "in"]
 
 #: The range, inclusive, of each length (and grid spacing) a run or comparison accepts. Values
@@ -207,8 +214,20 @@ class RunOptions:
     ptm_format : {"lrgb", "rgb"}
         Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
         one polynomial per channel.
+    basis : {"auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear"}
+        The relighting basis of ``web/`` (the page, OpenLIME's files), the report's relit
+        pictures and ``reconstruct relight`` (:mod:`ptmcore.bases`). ``"auto"`` (default): the
+        basis that predicts each photograph left out of its fit best, measured on the capture,
+        among those OpenLIME renders too (``hsh4`` only when asked for).
+    basis_encoding : {"auto", "srgb", "linear"}
+        What the published basis is fitted to: the photographs display-encoded (as relight and
+        RTIBuilder fit them), or linear light, which the page encodes for display; ``"auto"``:
+        chosen with the basis by the same measure (8-bit linear planes lose the shadows' levels).
+    outputs : {"all", "relight"}
+        ``"relight"``: only the relightable files (``coefficients.ptm``, ``web/``) and the
+        report, without normals, height or meshes — seconds instead of minutes.
     ptm_encoding : {"srgb", "linear"}
-        What ``coefficients.ptm``, ``coefficients.rti`` and ``web/`` hold: the photographs
+        What ``coefficients.ptm`` and ``coefficients.rti`` hold: the photographs
         display-encoded as sRGB, as viewers (RTIViewer, OpenLIME) show them, whatever their bit
         depth (8-bit sRGB photographs as they are, as HP's PTMfitter fits them; 16-bit and float
         ones encoded), or linear light, for those who compute with the files.
@@ -334,6 +353,9 @@ class RunOptions:
     ambient: Path | None = None
     flat_field: Path | None = None
     reference_region: str | None = None
+    basis: Basis = "auto"
+    basis_encoding: BasisEncoding = "auto"
+    outputs: Outputs = "all"
 
     def __post_init__(self) -> None:
         _check_choices(self)

@@ -203,7 +203,7 @@ class RunReport:
     inputs: CaptureInputs | PtmInputs | NormalMapInputs
     parameters: dict[str, Any]
     height_unit: str
-    mesh: MeshFacts
+    mesh: MeshFacts | None
     stages: dict[str, dict[str, float]]
     peak_rss_scope: str
     warnings: list[str]
@@ -217,6 +217,7 @@ class RunReport:
     ptm: PtmSummary | None = None
     leave_one_out: dict | None = None
     capture_checks: dict | None = None
+    relighting: dict | None = None
     versions: dict[str, str] = field(default_factory=versions)
     fingerprint: str | None = None
     seconds: float | None = None
@@ -230,7 +231,7 @@ class RunReport:
         keys = ["inputs", "parameters", "height_unit"]
         if isinstance(self.inputs, CaptureInputs):
             keys += ["capture_checks", "albedo_scale", "lights", "light_model", "intensities", "reflectance_lobe", "ptm",
-                     "leave_one_out"]
+                     "relighting", "leave_one_out"]
         keys += ["accuracy", "mesh", "seconds", "stages", "peak_rss_mb", "peak_rss_scope", "versions", "warnings"]
         if self.fingerprint is not None:
             keys.append("fingerprint")

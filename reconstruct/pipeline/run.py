@@ -11,7 +11,9 @@ Output folder layout (stable; later versions add files, never rename them)::
     coefficients.ptm   the PTM, HP PTM 1.2 (LRGB or RGB), as HP's PTMfitter fits it, of the
                        photographs display-encoded (sRGB) unless --ptm-encoding linear
     web/               a relighting page to publish (index.html, viewer.json, normals.png,
-                       height.png) and the PTM for OpenLIME (info.json, plane_0..2.jpg; LRGB)
+                       height.png) and the relighting basis chosen for the capture (--basis) in
+                       Relight's format for OpenLIME (info.json, plane_*.jpg, or plane_*.dzi
+                       and plane_*_files/ tiles for large images)
     normals.npy        H×W×3 float32 unit normals (x right, y up, z towards the camera)
     normals.png        16-bit RGB normal map, OpenGL convention (R=x, G=y, B=z)
     albedo.png         8-bit sRGB albedo
@@ -40,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.bases import BasisChoice
 from ptmcore.diskstack import is_disk_array
 from ptmcore.fit import evaluate_at
 from ptmcore.images import LUMA_WEIGHTS
@@ -62,12 +65,14 @@ from reconstruct.pipeline.report import (
 )
 from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.pipeline.stages import (
+    Relighting,
     estimate_normals,
     fit_relighting,
     integrate_surface,
     leave_one_out,
     light_model,
     make_mesh,
+    publish_relighting,
     resolve_mask,
     web_export,
     write_height,
@@ -207,6 +212,32 @@ def _capture_inputs(capture: Capture, mask: np.ndarray | None, opt: RunOptions) 
         "file" if is_disk_array(capture.stack.luminance) else "memory")
 
 
+def _relight_only(loaded: Capture, opt: RunOptions, staged: StagedOutput, stages: Stages, writer: FileWriter,
+                  relit: Relighting | None, web_names: list[str], choice: BasisChoice, *,
+                  fingerprint: str | None, then: Then | None) -> RunResult:
+    """The rest of a run of ``--outputs relight``: ``coefficients.ptm`` (if not yet written)
+    and the report; no normals, height or meshes."""
+    h, w = loaded.shape
+    thumbnails = {k: figures.stack_thumbnail(loaded.stack, k) for k in contact_sheet_picks(len(loaded.lights))}
+    inputs = _capture_inputs(loaded, loaded.mask, opt)
+    loaded.stack = None
+    if relit is None:
+        with stages("ptm", len(loaded.lights)) as advance:
+            relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance,
+                                   corrections=loaded.corrections)
+    _, end_write = stages.begin("write")
+    report = RunReport(
+        inputs, _parameters(opt, 0), "", None, {}, "", [*loaded.warnings, *relit.warnings],
+        lights=LightLayout.from_rank(loaded.rank), light_model=light_model(loaded.near, (h, w), opt),
+        intensities=json_safe(loaded.intensities), ptm=relit.summary,
+        capture_checks=json_safe(loaded.checks), fingerprint=fingerprint, relighting=choice.to_dict(),
+    )
+    files = _finish(staged, report, stages, [*relit.names, *web_names], writer=writer, end_write=end_write,
+                    then=then, photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
+                    thumbnails=thumbnails)
+    return RunResult(staged.output, files, report)
+
+
 def run_capture(
     capture: str | os.PathLike,
     output: str | os.PathLike,
@@ -257,6 +288,11 @@ def run_capture(
             with stages("ptm", len(loaded.lights)) as advance:
                 relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance, fits=loaded.fits)
             loaded.fits = None
+        with stages("basis", h) as advance:
+            web_names, choice = publish_relighting(loaded, opt, staged.staging, progress=advance)
+        if opt.outputs == "relight":
+            return _relight_only(loaded, opt, staged, stages, writer, relit, web_names, choice,
+                                 fingerprint=fingerprint, then=then)
         with stages("normals", h) as advance:
             found = estimate_normals(loaded, opt, progress=advance)
         if found.undetermined:
@@ -286,7 +322,7 @@ def run_capture(
             accuracy=_accuracy(loaded, found.normals, height, opt), albedo_scale=albedo_scale,
             lights=LightLayout.from_rank(loaded.rank), light_model=light_model(loaded.near, (h, w), opt),
             intensities=json_safe(loaded.intensities), reflectance_lobe=found.lobe, ptm=relit.summary, leave_one_out=loo,
-            capture_checks=json_safe(loaded.checks), fingerprint=fingerprint,
+            capture_checks=json_safe(loaded.checks), fingerprint=fingerprint, relighting=choice.to_dict(),
         )
         if loaded.near is not None:
             write_light_positions(staged / "light_positions.csv", [p.name for p in loaded.lights.paths],
@@ -298,7 +334,8 @@ def run_capture(
             write_lp(staged / "lights.lp", [p.name for p in loaded.lights.paths], loaded.lights.directions)
             names.append("lights.lp")
         loo_names = [f"loo_{b}.tif" for b in (loo or {}).get("rms_levels", {})]
-        files = _finish(staged, report, stages, [*relit.names, *loo_names, *names], writer=writer, end_write=end_write,
+        files = _finish(staged, report, stages, [*relit.names, *web_names, *loo_names, *names], writer=writer,
+                        end_write=end_write,
                         then=then,
                         photographs=list(zip(loaded.lights.paths, loaded.lights.directions)),
                         thumbnails=thumbnails,

@@ -33,6 +33,7 @@ from ptmcore.lp import LightSet
 from ptmcore.png import write_png
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+from ptmcore.bases import BasisChoice
 from ptmcore.ptmencoded import EncodedFits
 from ptmcore import (
     debiased_normals,
@@ -54,7 +55,7 @@ from reconstruct.pipeline.options import RunOptions
 from reconstruct.pipeline.report import LightModel, PtmSummary
 from reconstruct.pipeline.writer import FileWriter
 from reconstruct.report import outputs
-from reconstruct.report.web import export_openlime
+from reconstruct.report.web import export_openlime, export_relightable
 from reconstruct.surface.flatten import flatten
 from reconstruct.surface.integrate import integrate
 from reconstruct.surface.perspective import integrate_perspective
@@ -232,7 +233,7 @@ class Relighting:
 def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathLike, *,
                    progress: Advance | None = None, fits: EncodedFits | None = None,
                    corrections: Corrections | None = None) -> Relighting:
-    """Write ``coefficients.ptm``, ``web/`` (LRGB only) and, with ``options.hsh``, ``coefficients.rti``.
+    """Write ``coefficients.ptm`` and, with ``options.hsh``, ``coefficients.rti``.
 
     The fits are HP's PTMfitter's (its files are reproduced byte for byte) of the photographs
     display-encoded as sRGB (8-bit sRGB photographs as they are; 16-bit and float ones encoded),
@@ -277,10 +278,6 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
     del made
     written = write_ptm(folder / "coefficients.ptm", coef8, rgb8)
     result = Relighting(["coefficients.ptm"], PtmSummary.from_written(written, options.ptm_encoding))
-    if rgb8 is not None:
-        result.names += web_export(folder, coef8, rgb8, options.pixel_size, options.ptm_encoding)
-    else:
-        result.warnings.append("no web/ export: the OpenLIME export takes an LRGB PTM (use --ptm-format lrgb)")
     del coef8, rgb8
     if options.hsh:
         hsh = fits.take_hsh(3) if usable else None
@@ -302,6 +299,33 @@ def fit_relighting(lights: LightSet, options: RunOptions, folder: str | os.PathL
 #: lights, and agreed with the PTM with 48 lights; twice its coefficients is the usual margin
 #: of a least-squares fit.
 HSH_MIN_LIGHTS = 18
+
+
+def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.PathLike, *,
+                       progress: Advance | None = None) -> tuple[list[str], BasisChoice]:
+    """Choose the relighting basis (``options.basis``, ``options.basis_encoding``), fit it to
+    the stack and write it as ``web/``: OpenLIME's files and the page.
+
+    ``"auto"`` scores every candidate on the capture by leave-one-out error
+    (:func:`ptmcore.bases.choose_basis`); the choice and every score go into report.json.
+
+    Returns
+    -------
+    names : list of str
+        The files written, relative to ``folder``.
+    choice : BasisChoice
+    """
+    from ptmcore.bases import AUTO, ENCODINGS, choose_basis, fit_published  # scipy.linalg etc. only when used
+
+    directions = capture.lights.directions
+    candidates = AUTO if options.basis == "auto" else (options.basis,)
+    encodings = ENCODINGS if options.basis_encoding == "auto" else (options.basis_encoding,)
+    choice = choose_basis(capture.stack, directions, candidates=candidates, encodings=encodings, mask=capture.mask)
+    basis = fit_published(capture.stack, directions, choice.name, choice.encoding, threads=options.threads,
+                          progress=progress)
+    folder = Path(folder)
+    written = export_relightable(folder / "web", basis, pixel_size_mm=options.pixel_size)
+    return [p.relative_to(folder).as_posix() for p in written], choice
 
 
 def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None,

@@ -1,63 +1,95 @@
-"""Export of an LRGB PTM for the OpenLIME web viewer (its ``rti`` layer, "relight" format).
+"""Relightable images for the web: Relight's format (what OpenLIME reads), tiled when large.
 
-The layout is the one written by Relight (``relight-cli``/RelightLab, cnr-isti-vclab/relight)
-for a PTM with the ``lrgb`` colour space and read by OpenLIME (cnr-isti-vclab/openlime)
-``LayerRTI`` + ``ShaderRTI``; it was taken from their sources, not guessed:
+A relighting basis (:class:`ptmcore.published.PublishedBasis`: PTM, HSH, RBF or bilinear) is
+written in the layout Relight (``relight-cli``/RelightLab, cnr-isti-vclab/relight) writes and
+OpenLIME (cnr-isti-vclab/openlime) reads with ``LayerRTI`` + ``ShaderRTI``; the layout was taken
+from their sources (Relight ``RtiBuilder::saveJSON``/``save``, ``Rti::load``; OpenLIME
+``ShaderRTI.init``/``loadBasis``, ``LayoutTiles.initDeepzoom``), not guessed.
 
-* ``info.json`` — ``width``, ``height``, ``format: "jpg"`` (the planes' file suffix),
-  ``type: "ptm"``, ``colorspace: "lrgb"``, ``nplanes: 9``, ``quality``, ``pixelSizeInMM``
-  (only when known) and ``materials: [{"scale": [9 numbers], "bias": [9 numbers]}]``.
-  ``nplanes`` counts the colour planes too: the viewer loads ``ceil(nplanes / 3)`` images
-  named ``plane_0.jpg``, ``plane_1.jpg``, … (Relight ``convert_rti.cpp`` sets 9 for an
-  LRGB ``.ptm``; its builder accepts only 6 or 9 for LRGB PTMs). ``quality`` is not read by
-  OpenLIME but Relight's converter back to ``.ptm`` takes its JPEG quality from it.
-* ``plane_0.jpg`` — the base colour, scale 1 and bias 0.
-* ``plane_1.jpg`` — the constant and linear terms in the channels (R, G, B) = (1, x, y), i.e.
-  (a5, a3, a4) of ``L = a0·lu² + a1·lv² + a2·lu·lv + a3·lu + a4·lv + a5``.
-* ``plane_2.jpg`` — the quadratic terms (R, G, B) = (x², xy, y²), i.e. (a0, a2, a1). (Relight
-  ``legacy_rti.cpp``: "lrgb ptm order is x^2, y^2, xy, x, y, 1, r, g, b while we use r, g, b,
-  1, x, y, x2 xy y2".)
+``info.json``
+-------------
+Keys, in Relight's order: ``width``, ``height``, ``format: "jpg"`` (the planes' suffix),
+``pixelSizeInMM`` (only when known: OpenLIME's scale bar), ``type`` — ``"ptm"``, ``"hsh"``,
+``"rbf"`` or ``"bilinear"`` (Relight's name of ``bln``: OpenLIME sets the basis' dimension
+``resolution²`` only for that name) —, ``resolution`` (bilinear), ``colorspace`` (``"lrgb"`` or
+``"mrgb"``), ``sigma`` and ``lights`` (RBF: the Gaussians' width and the D unit directions,
+flattened ``x0, y0, z0, x1, …``), ``nplanes``, ``quality`` (not read by OpenLIME; Relight's
+converter back to ``.ptm`` takes its JPEG quality from it), ``basis`` (MRGB, below) and
+``materials: [{"range": […] (MRGB), "scale": […], "bias": […]}]``, one entry per plane channel.
 
-``scale`` and ``bias`` hold one entry per channel in plane order (plane_0 R, G, B, plane_1
-R, G, B, plane_2 R, G, B): the shader's uniforms ``vec3 scale[]``/``bias[]`` indexed by plane.
-The viewer samples a channel as ``c = byte / 255`` and dequantises it as
-``value = (c − bias) · scale``. For the LRGB PTM it computes per pixel (``ShaderRTI`` class
-``LRGB.render`` with ``PTM.lightWeights``)::
+The planes are JPEGs ``plane_0.jpg``, ``plane_1.jpg``, … three channels each; a viewer loads
+``ceil(nplanes / 3)`` of them. A channel's byte ``b`` holds ``value = (b/255 − bias) · scale``
+(OpenLIME's shader). Each coefficient channel is quantised linearly over its full range
+[m, M]: ``scale = M − m``, ``bias = −m / scale``, ``b = rint((value − m) / scale · 255)``, within
+half a step, ``scale / 510``, before JPEG compression (Relight takes a quantile of the range,
+clipping outliers; the full range never clips). A constant channel has scale 1 and bytes 0.
 
-    l     = Σ_k w_k · value_k,  w = (1, x, y, x², x·y, y²) over plane_1 then plane_2
-    color = l · basecolor,      basecolor = (plane_0 − bias) · scale = rgb / 255
+* ``"lrgb"`` (PTM, HSH): ``plane_0`` is the colour (scale 1, bias 0), then the K coefficients
+  of the luminance, three per JPEG in the order of the basis terms (PTM ``1, x, y, x², x·y,
+  y²``; HSH H0 … H(K−1)); ``nplanes = 3 + 3·ceil(K/3)`` counts the colour channels too.
+  OpenLIME computes ``l = Σ_k w_k(light) · value_k`` over every coefficient channel and shows
+  ``l · colour/255``. Channels past K (HSH of order 2: 4 terms in 6 channels) have scale 0 and
+  bias 0, so they are exactly 0 whatever OpenLIME weighs them with; OpenLIME needs ``nplanes``
+  a multiple of 3 (its uniforms ``vec3 scale[]``/``bias[]``). OpenLIME's HSH knows 9 terms at
+  most: an HSH of order 4 (16 terms) is rendered only by this folder's own page.
+* ``"mrgb"`` (RBF, bilinear): the K coefficient planes, three per JPEG
+  (``nplanes = 3·ceil(K/3)``; missing ones are zero, scale 0), and ``basis``, the RGB basis
+  shared by all pixels as bytes in OpenLIME's order ``[plane p][direction d][channel]``,
+  ``(nplanes + 1)·D·3`` of them: row 0 the mean, ``byte = rint(255 · mean)`` (clamped to
+  0–1, as Relight clamps it), read as ``byte/255``; row p ≥ 1 component p,
+  ``byte = rint(127 + range_p · B)`` with ``range_p = 127 / max|B_p|`` (Relight's choice: the
+  bytes span 0–254), read as ``(byte − 127) / range_p``; ``materials[0].range`` holds the
+  ``range_p``. OpenLIME interpolates the basis rows at the light — RBF: normalised Gaussians
+  ``exp(−|l_d − light|²/σ²)``, weights ≤ 0.001 dropped and the rest renormalised; bilinear: the
+  four nodes around the light's point on the rotated octahedral grid, node ``x + y·R`` — and
+  shows ``B₀ + Σ_k value_k · B_k`` (:mod:`ptmcore.published`).
 
-with (x, y) the first two components of the unit light vector (``ShaderRTI.setLight`` maps
-a point of the square to the disk and sets z = √(1 − x² − y²)); the light pad's y grows
-upwards (``Controller2D.project``), the frame used here. ``color`` is written to the 8-bit
-framebuffer, which clips it to 0–1. For this to equal RTIViewer's ``rgb · L / 255`` (L in
-0–255 luminance units, see :mod:`ptmcore.relight`), each value is the coefficient in 0–1
-luminance units, ``a / 255`` — the units Relight's builder uses, whose scales are the
-coefficient range divided by 255 (``RtiBuilder::finalizeMaterial``).
+The values are the basis' own: 0–1 units of its ``encoding``. The JPEGs of whole planes are
+written in the RGB colour space without chroma subsampling (Pillow's ``keep_rgb``,
+``subsampling=0``), as Relight writes LRGB planes (``JCS_RGB``): a YCbCr transform would spread
+each coefficient's compression error over the other two channels of its plane. Rows are in
+image order (row 0 at the top). The planes are data, so they carry no colour tag (no ICC
+profile), unlike the images for people (:mod:`ptmcore.colourtags`).
 
-Quantisation: each coefficient channel is mapped linearly onto 0–255 over its full range
-[m, M] of a/255: ``scale = M − m``, ``bias = −m / scale`` and
-``byte = round((value − m) / scale · 255)``, so ``value = (byte/255 − bias) · scale`` is within
-half a step, ``scale / 510``, before JPEG compression. (Relight takes a quantile of the
-range instead, clipping outliers; the full range never clips.)
+For the LRGB PTM (:func:`export_openlime`), the coefficient channels hold ``a / 255`` of
+``L = a0·lu² + a1·lv² + a2·lu·lv + a3·lu + a4·lv + a5`` (0–255 luminance units, RTIViewer's):
+``plane_1`` = (1, x, y) = (a5, a3, a4) and ``plane_2`` = (x², xy, y²) = (a0, a2, a1), so that
+OpenLIME shows RTIViewer's ``rgb · L / 255`` (Relight ``legacy_rti.cpp``: "lrgb ptm order is x^2,
+y^2, xy, x, y, 1, r, g, b while we use r, g, b, 1, x, y, x2 xy y2").
 
-The JPEGs are written in the RGB colour space without chroma subsampling (Pillow's
-``keep_rgb``, ``subsampling=0``), as Relight writes LRGB planes (``JCS_RGB``): a YCbCr
-transform would spread each coefficient's compression error over the other two channels of
-its plane. Rows are in image order (row 0 at the top), as the viewer displays them. The planes
-and the layers below are data, so they carry no colour tag (no ICC profile, no PNG ``sRGB``
-chunk, unlike the images for people, :mod:`ptmcore.colourtags`); the page uploads them with
-``UNPACK_COLORSPACE_CONVERSION_WEBGL`` off.
+Tiles
+-----
+Above :data:`TILE_THRESHOLD` pixels on the longer side (or when asked), each plane is written
+as a DeepZoom pyramid instead of one JPEG (libvips ``dzsave``, as Relight's ``deepzoom``):
+``plane_i.dzi`` (``TileSize`` 254, ``Overlap`` 1, ``Format`` jpg) and
+``plane_i_files/<level>/<column>_<row>.jpg``. Level 0 is the first level that fits in one tile
+(OpenLIME's ``"deepzoom"`` layout, Relight's numbering, libvips' ``depth="onetile"``); each level
+above doubles the size, the last one is the image; a level's size is the next one's halved,
+rounded up. Tile (c, r) of a level holds its pixels
+``[254·c − 1 (if c > 0), min(254·(c + 1) + 1, width))`` across, the same down: one pixel of
+overlap with its neighbours, so linear filtering shows no seams. ``info.json`` is the same; in
+OpenLIME, open it with ``new OpenLIME.Layer({type: 'rti', layout: 'deepzoom', url: '…/info.json'})``
+(``layout: 'image'`` for whole planes). Tiles are JPEGs in libvips' YCbCr, 4:4:4, at the same
+quality (libvips cannot write RGB JPEGs).
 
+The folder's own page
+---------------------
 Beside these, the folder gets its own viewer, so that it can be published as it is:
 
 * ``index.html`` — a relighting page in plain WebGL, no library (the package's
-  ``webviewer.html``, copied): it renders the planes as OpenLIME's shader does, the mouse (or a
-  hemisphere widget, or the arrow keys) moving the light; wheel zoom and pan; the light and layer
-  in the address (``#light=x,y&layer=relit|normals|height``), so a link shows what its sender saw.
+  ``webviewer.html``, copied). It renders every basis above with the formulas of
+  :mod:`ptmcore.published` (HSH with this project's angles, :mod:`ptmcore.hsh`, up to order 4),
+  streams the tiles of a pyramid (the level that matches the zoom, only the visible tiles), the
+  mouse (or a hemisphere widget, or the arrow keys) moving the light; wheel zoom and pan; the
+  light and layer in the address (``#light=x,y&layer=relit|normals|height``), so a link shows
+  what its sender saw.
 * ``viewer.json`` — what the page needs beyond ``info.json``: ``encoding`` (``"srgb"``, or
-  ``"linear"`` for a PTM of linear light, which the page encodes to sRGB for display) and
-  ``layers``, the optional normal-map and height-map images :func:`export_web_layers` adds.
+  ``"linear"`` for values of linear light, which the page encodes to sRGB for display),
+  ``layers`` (the optional normal-map and height-map images :func:`export_web_layers` adds) and,
+  from :func:`export_relightable`: ``basis`` (the basis' name), ``terms`` (K, the coefficient
+  planes before padding), ``order`` (HSH), ``layout`` (``"image"`` or ``"deepzoom"``) and, for a
+  pyramid, ``tiles``: ``format``, ``size``, ``overlap`` and ``levels``, the ``[width, height]`` of
+  each level, level 0 first.
 """
 
 from __future__ import annotations
@@ -66,10 +98,12 @@ import io
 import json
 import math
 import os
+import secrets
+import shutil
 from concurrent.futures import ThreadPoolExecutor
 from importlib.resources import files
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
@@ -78,7 +112,21 @@ from ptmcore.errors import InputError
 from ptmcore.png import write_png
 from reconstruct.report.figures import normal_colors, thin
 
-__all__ = ["LAYER_SIDE", "PLANE_TERMS", "export_openlime", "export_web_layers", "lrgb_planes"]
+if TYPE_CHECKING:
+    from ptmcore.published import PublishedBasis
+
+__all__ = [
+    "DZ_OVERLAP",
+    "DZ_TILE_SIZE",
+    "LAYER_SIDE",
+    "PLANE_TERMS",
+    "TILE_THRESHOLD",
+    "export_openlime",
+    "export_relightable",
+    "export_web_layers",
+    "lrgb_planes",
+    "pyramid_levels",
+]
 
 #: Coefficient index (a0..a5) in each channel of plane_1 and plane_2: (1, x, y) and (x², xy, y²).
 PLANE_TERMS = ((5, 3, 4), (0, 2, 1))
@@ -90,8 +138,23 @@ _NPLANES = 9
 #: whole object's view, and 12 MB of decoded textures at most (the relit planes stay full size).
 LAYER_SIDE = 2048
 
+#: Longest side, pixels, above which ``tiles="auto"`` writes pyramids. 4096 is the texture side
+#: every WebGL device of the last decade takes (larger planes must be shrunk on the GPU, losing
+#: the detail they were published for), and a whole 4096² plane is already a 3–6 MB JPEG and
+#: 64 MB of decoded RGBA texture, times 3 to 7 planes, all downloaded before the first picture;
+#: tiles show the first picture after a few 254² tiles, whatever the size.
+TILE_THRESHOLD = 4096
+
+#: DeepZoom tile side and overlap, pixels: Relight's and libvips' defaults, what OpenLIME's
+#: documentation calls the typical tile (254 + 2 · 1 = 256, a power of two with its overlap).
+DZ_TILE_SIZE = 254
+DZ_OVERLAP = 1
+
 # The page, in the package: see the module docstring.
 _VIEWER_PAGE = "webviewer.html"
+
+# PublishedBasis.type → Relight's name in info.json and the colour space it goes with.
+_RELIGHT_TYPES = {"ptm": ("ptm", "lrgb"), "hsh": ("hsh", "lrgb"), "rbf": ("rbf", "mrgb"), "bln": ("bilinear", "mrgb")}
 
 
 def _checked(coefficients: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -162,6 +225,44 @@ def lrgb_planes(
     return planes, scale, bias
 
 
+def _quantised_planes(planes: np.ndarray, channels: int) -> tuple[list[np.ndarray], list[float], list[float]]:
+    """Coefficient planes ``(H, W, K)`` as ``channels / 3`` RGB images of bytes, each channel
+    over its own range (see the module docstring), with the scales and biases; channels past K
+    are zero with scale 0, so that they decode to exactly 0."""
+    h, w, k = planes.shape
+    codes = np.zeros((h, w, channels), np.uint8)
+    scale = [0.0] * channels
+    bias = [0.0] * channels
+    for c in range(k):
+        v = np.asarray(planes[..., c], dtype=np.float32)
+        lo, hi = float(v.min()), float(v.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(f"coefficient plane {c} is not finite everywhere")
+        span = hi - lo
+        # A constant channel is all zeros, which decodes to lo; scale 1 keeps the bias finite.
+        scale[c] = span if span > 0 else 1.0
+        bias[c] = -lo / scale[c]
+        if span > 0:
+            codes[..., c] = np.clip(np.rint((v - np.float32(lo)) * np.float32(255.0 / span)), 0, 255)
+    images = [np.ascontiguousarray(codes[..., j : j + 3]) for j in range(0, channels, 3)]
+    return images, scale, bias
+
+
+def _basis_bytes(basis: np.ndarray, rows: int) -> tuple[list[int], list[float]]:
+    """An MRGB basis ``(K + 1, D, 3)`` as OpenLIME's bytes, ``rows`` rows after the mean (rows
+    past K are zero), and each component row's range (see the module docstring)."""
+    k, d = basis.shape[0] - 1, basis.shape[1]
+    out = np.full((rows + 1, d, 3), 127, np.int64)
+    out[0] = np.rint(np.clip(basis[0], 0.0, 1.0) * 255.0)
+    ranges = [1.0] * rows  # a zero row is 127 whatever its range; 1 keeps it finite
+    for p in range(1, k + 1):
+        largest = float(np.abs(basis[p]).max())
+        if largest > 0:
+            ranges[p - 1] = 127.0 / largest
+            out[p] = np.clip(np.rint(127.0 + ranges[p - 1] * basis[p]), 0, 254)
+    return out.ravel().tolist(), ranges
+
+
 def _encode_jpeg(image: np.ndarray, quality: int) -> bytes:
     """RGB JPEG without the YCbCr transform and without chroma subsampling."""
     from PIL import Image
@@ -183,6 +284,119 @@ def _make_folder(folder: Path) -> None:
         raise InputError(f"cannot be created ({exc.strerror or exc})", folder) from exc
 
 
+def _check_options(quality: object, pixel_size_mm: object, encoding: object) -> None:
+    if encoding not in ("srgb", "linear"):
+        raise ValueError(f"encoding must be 'srgb' or 'linear', not {encoding!r}")
+    if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 1 <= quality <= 100:
+        raise ValueError(f"JPEG quality must be an integer from 1 to 100, not {quality!r}")
+    if pixel_size_mm is not None and not (
+        isinstance(pixel_size_mm, (int, float, np.number))
+        and math.isfinite(float(pixel_size_mm))
+        and float(pixel_size_mm) > 0
+    ):
+        raise ValueError(f"pixel size must be a positive number of millimetres, not {pixel_size_mm!r}")
+
+
+def _tiled(tiles: bool | str, shape: tuple[int, int], threshold: int) -> bool:
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, np.integer)) or threshold < 1:
+        raise ValueError(f"tile_threshold must be a positive number of pixels, not {threshold!r}")
+    if tiles == "auto":
+        return max(shape) > threshold
+    if isinstance(tiles, bool):
+        return tiles
+    raise ValueError(f"tiles must be True, False or 'auto', not {tiles!r}")
+
+
+def pyramid_levels(width: int, height: int, tile_size: int = DZ_TILE_SIZE) -> list[tuple[int, int]]:
+    """The ``(width, height)`` of a DeepZoom pyramid's levels, level 0 (the first that fits in
+    one tile) first and the image last: each level is the next one halved, rounded up (libvips).
+    """
+    levels = [(int(width), int(height))]
+    while max(levels[-1]) > tile_size:
+        w, h = levels[-1]
+        levels.append((-(-w // 2), -(-h // 2)))
+    return levels[::-1]
+
+
+def _write_pyramid(folder: Path, name: str, image: np.ndarray, quality: int) -> list[Path]:
+    """One plane as a DeepZoom pyramid, ``name.dzi`` and ``name_files/``, built in a hidden
+    folder and moved into place only when complete, so that an error leaves no partial pyramid
+    (and an existing one intact until the new one replaces it)."""
+    import pyvips  # a large library: imported only when a plane is tiled
+
+    staging = folder / f".{name}.{secrets.token_hex(4)}.tmp"
+    try:
+        staging.mkdir()
+        vips = pyvips.Image.new_from_array(np.ascontiguousarray(image))
+        # 4:4:4 as the whole planes: subsampled chroma would blur the coefficients of 2 channels.
+        vips.dzsave(str(staging / name), suffix=f".jpg[Q={int(quality)},subsample_mode=off]",
+                    tile_size=DZ_TILE_SIZE, overlap=DZ_OVERLAP, depth="onetile", layout="dz")
+        tiles = staging / f"{name}_files"
+        (tiles / "vips-properties.xml").unlink(missing_ok=True)  # libvips' metadata: no viewer reads it
+        target = folder / f"{name}_files"
+        if target.exists():
+            # A directory cannot be replaced in one rename: the old one is moved aside first.
+            target.rename(staging / "old")
+        os.replace(tiles, target)
+        dzi = folder / f"{name}.dzi"
+        with atomic_write(dzi, "wb") as f:
+            f.write((staging / f"{name}.dzi").read_bytes())
+    except pyvips.Error as exc:  # libvips could not write a tile: the disk, most likely
+        raise InputError(f"cannot write the tiles of {name} ({exc.message.strip()})", folder) from exc
+    except OSError as exc:
+        raise InputError(f"cannot write the tiles of {name} ({exc.strerror or exc})", folder) from exc
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return [dzi, target]
+
+
+def _write_planes(folder: Path, images: list[np.ndarray], quality: int, tiled: bool) -> list[Path]:
+    """The planes, ``plane_0`` first: whole JPEGs encoded in parallel threads, each written
+    while the ones after it are still encoding; or pyramids, one after the other (libvips
+    spreads each over the cores)."""
+    written: list[Path] = []
+    if tiled:
+        for i, image in enumerate(images):
+            written += _write_pyramid(folder, f"plane_{i}", image, quality)
+        return written
+    with ThreadPoolExecutor(max_workers=max(1, len(images))) as pool:
+        jobs = [pool.submit(_encode_jpeg, image, int(quality)) for image in images]
+        try:
+            for i, job in enumerate(jobs):
+                data = job.result()
+                path = folder / f"plane_{i}.jpg"
+                with atomic_write(path, "wb") as f:
+                    f.write(data)
+                written.append(path)
+        finally:
+            for job in jobs:  # after an error: nothing more is written, so nothing more is encoded
+                job.cancel()
+    return written
+
+
+def _finish(folder: Path, info: dict, extras: dict) -> list[Path]:
+    """``info.json`` (after the planes: a viewer never finds one whose planes are missing),
+    ``viewer.json`` and ``index.html``."""
+    path = folder / "info.json"
+    with atomic_write(path, "w") as f:
+        f.write(json.dumps(info, indent=1) + "\n")
+    written = [path, _write_viewer_json(folder, extras)]
+    path = folder / "index.html"
+    with atomic_write(path, "wb") as f:
+        f.write(files(__package__).joinpath(_VIEWER_PAGE).read_bytes())
+    written.append(path)
+    return written
+
+
+def _layout(extras: dict, tiled: bool, shape: tuple[int, int]) -> dict:
+    extras["layout"] = "deepzoom" if tiled else "image"
+    if tiled:
+        levels = pyramid_levels(shape[1], shape[0])
+        extras["tiles"] = {"format": "jpg", "size": DZ_TILE_SIZE, "overlap": DZ_OVERLAP,
+                           "levels": [list(level) for level in levels]}
+    return extras
+
+
 def export_openlime(
     folder: str | os.PathLike,
     coefficients: np.ndarray,
@@ -191,6 +405,8 @@ def export_openlime(
     pixel_size_mm: float | None = None,
     quality: int = 95,
     encoding: Literal["srgb", "linear"] = "srgb",
+    tiles: bool | Literal["auto"] = False,
+    tile_threshold: int = TILE_THRESHOLD,
 ) -> list[Path]:
     """Write an LRGB PTM in the layout of OpenLIME's RTI layer (Relight's web format), with
     a relighting page of its own.
@@ -219,12 +435,17 @@ def export_openlime(
         (sRGB-encoded) values, or linear light,
         which ``index.html`` encodes to sRGB for display (OpenLIME itself shows them as they
         are).
+    tiles : bool or "auto"
+        Write DeepZoom pyramids instead of whole planes (as :func:`export_relightable`); off by
+        default, which keeps this function's output as it always was.
+    tile_threshold : int
+        With ``tiles="auto"``, the longest side above which the planes are tiled.
 
     Returns
     -------
     list of Path
-        The files written, in the order written: the three planes, ``info.json``,
-        ``viewer.json``, ``index.html``.
+        The files written, in the order written: the three planes (for pyramids, each
+        ``.dzi`` and its ``_files`` folder), ``info.json``, ``viewer.json``, ``index.html``.
 
     Raises
     ------
@@ -234,34 +455,14 @@ def export_openlime(
         If the arrays do not match, a coefficient is not finite, the quality is not 1–100,
         the pixel size is not a positive number or the encoding is neither sRGB nor linear.
     """
-    if encoding not in ("srgb", "linear"):
-        raise ValueError(f"encoding must be 'srgb' or 'linear', not {encoding!r}")
-    if isinstance(quality, bool) or not isinstance(quality, (int, np.integer)) or not 1 <= quality <= 100:
-        raise ValueError(f"JPEG quality must be an integer from 1 to 100, not {quality!r}")
-    if pixel_size_mm is not None and not (math.isfinite(float(pixel_size_mm)) and float(pixel_size_mm) > 0):
-        raise ValueError(f"pixel size must be a positive number of millimetres, not {pixel_size_mm!r}")
+    _check_options(quality, pixel_size_mm, encoding)
     coef, col = _checked(coefficients, rgb)
     h, w = col.shape[:2]
+    tiled = _tiled(tiles, (h, w), tile_threshold)
     folder = Path(folder)
-    written = []
-    with ThreadPoolExecutor(max_workers=-(-_NPLANES // 3)) as pool:
-        # The colour plane needs no quantising: its JPEG is encoded while the coefficient planes
-        # are computed, and each plane is written while the ones after it are still encoding.
-        jobs = [pool.submit(_encode_jpeg, np.ascontiguousarray(col), int(quality))]
-        try:
-            planes, scale, bias = lrgb_planes(coef, col)
-            jobs += [pool.submit(_encode_jpeg, plane, int(quality)) for plane in planes[1:]]
-            _make_folder(folder)
-            for i, job in enumerate(jobs):
-                data = job.result()
-                path = folder / f"plane_{i}.jpg"
-                with atomic_write(path, "wb") as f:
-                    f.write(data)
-                written.append(path)
-        finally:
-            for job in jobs:  # after an error: nothing more is written, so nothing more is encoded
-                job.cancel()
-
+    planes, scale, bias = lrgb_planes(coef, col)
+    _make_folder(folder)
+    written = _write_planes(folder, planes, quality, tiled)
     info: dict = {"width": int(w), "height": int(h), "format": "jpg"}
     if pixel_size_mm is not None:
         info["pixelSizeInMM"] = float(pixel_size_mm)
@@ -274,16 +475,141 @@ def export_openlime(
             "materials": [{"scale": scale, "bias": bias}],
         }
     )
-    path = folder / "info.json"
-    with atomic_write(path, "w") as f:
-        f.write(json.dumps(info, indent=1) + "\n")
-    written.append(path)
-    written.append(_write_viewer_json(folder, {"encoding": encoding, "layers": {}}))
-    path = folder / "index.html"
-    with atomic_write(path, "wb") as f:
-        f.write(files(__package__).joinpath(_VIEWER_PAGE).read_bytes())
-    written.append(path)
-    return written
+    extras: dict = {"encoding": encoding, "layers": {}}
+    if tiled:
+        _layout(extras, tiled, (h, w))
+    return written + _finish(folder, info, extras)
+
+
+def _checked_basis(basis: PublishedBasis) -> tuple[np.ndarray, int]:
+    """The basis' planes as an array, checked against its type, and the number of basis
+    directions D (0 for LRGB)."""
+    if basis.type not in _RELIGHT_TYPES:
+        raise ValueError(f"basis type must be one of {sorted(_RELIGHT_TYPES)}, not {basis.type!r}")
+    colorspace = _RELIGHT_TYPES[basis.type][1]
+    if basis.colorspace != colorspace:
+        raise ValueError(f"a {basis.type} basis is in the {colorspace!r} colour space, not {basis.colorspace!r}")
+    planes = np.asarray(basis.planes)
+    if planes.ndim != 3 or planes.shape[2] < 1 or min(planes.shape[:2]) < 1:
+        raise ValueError(f"planes must be (H, W, K) with K ≥ 1, not {planes.shape}")
+    h, w, k = planes.shape
+    if colorspace == "lrgb":
+        colour = None if basis.colour is None else np.asarray(basis.colour)
+        if colour is None or colour.shape != (h, w, 3) or colour.dtype != np.uint8:
+            got = "none" if colour is None else f"{colour.dtype} {colour.shape}"
+            raise ValueError(f"an lrgb basis needs a uint8 colour of shape {(h, w, 3)}, not {got}")
+        if basis.type == "ptm" and k != 6:
+            raise ValueError(f"a PTM has 6 coefficient planes, not {k}")
+        if basis.type == "hsh" and (basis.order not in (2, 3, 4) or k != basis.order ** 2):
+            raise ValueError(f"an HSH needs an order of 2, 3 or 4 and order² planes, not order "
+                             f"{basis.order!r} with {k} planes")
+        return planes, 0
+    vectors = None if basis.basis is None else np.asarray(basis.basis, dtype=np.float64)
+    if vectors is None or vectors.ndim != 3 or vectors.shape[0] != k + 1 or vectors.shape[2] != 3:
+        got = "none" if vectors is None else vectors.shape
+        raise ValueError(f"an mrgb basis needs a basis of shape ({k + 1}, D, 3) for {k} planes, not {got}")
+    if not np.isfinite(vectors).all():
+        raise ValueError("the basis is not finite everywhere")
+    d = vectors.shape[1]
+    if basis.type == "rbf":
+        lights = None if basis.lights is None else np.asarray(basis.lights, dtype=np.float64)
+        if lights is None or lights.shape != (d, 3) or not np.isfinite(lights).all():
+            raise ValueError(f"an rbf basis needs {d} finite light directions (D, 3) to match its basis")
+        sigma = basis.sigma
+        if sigma is None or not (math.isfinite(float(sigma)) and float(sigma) > 0):
+            raise ValueError(f"an rbf basis needs a positive sigma, not {sigma!r}")
+    else:
+        r = basis.resolution
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or r < 2 or r * r != d:
+            raise ValueError(f"a bln basis needs a resolution R ≥ 2 with R² = D = {d} directions, not {r!r}")
+    return planes, d
+
+
+def export_relightable(
+    folder: str | os.PathLike,
+    basis: PublishedBasis,
+    *,
+    pixel_size_mm: float | None = None,
+    quality: int = 95,
+    tiles: bool | Literal["auto"] = "auto",
+    tile_threshold: int = TILE_THRESHOLD,
+) -> list[Path]:
+    """Write a relighting basis in Relight's web format (what OpenLIME reads), with a
+    relighting page of its own.
+
+    Writes the planes (whole JPEGs, or DeepZoom pyramids for large images), then
+    ``info.json``, ``viewer.json`` and ``index.html``, each file through
+    :func:`ptmcore.atomic.atomic_write` and each pyramid moved into place complete. See the
+    module docstring for the format: PTM and HSH of order 2 or 3, RBF and bilinear bases are
+    shown by OpenLIME as by the folder's page; an HSH of order 4 (16 planes) only by the page,
+    OpenLIME's HSH having 9 terms.
+
+    Parameters
+    ----------
+    folder : str or os.PathLike
+        Output folder; created with its parents if missing.
+    basis : PublishedBasis
+        The basis (its ``encoding`` goes to ``viewer.json``).
+    pixel_size_mm : float, optional
+        Size of a pixel on the object, written as ``pixelSizeInMM`` (OpenLIME's scale bar).
+    quality : int
+        JPEG quality, 1–100.
+    tiles : bool or "auto"
+        Write each plane as a DeepZoom pyramid; ``"auto"``: when the longer side of the image
+        exceeds ``tile_threshold``.
+    tile_threshold : int
+        Pixels; :data:`TILE_THRESHOLD` by default.
+
+    Returns
+    -------
+    list of Path
+        What was written, in order: the planes (``plane_i.jpg``, or ``plane_i.dzi`` and the
+        folder ``plane_i_files``), ``info.json``, ``viewer.json``, ``index.html``.
+
+    Raises
+    ------
+    InputError
+        If the folder cannot be created or written to.
+    ValueError
+        If the basis is not consistent (shapes, type and colour space, missing attributes of
+        its type), a value is not finite, or an option is out of range.
+    """
+    _check_options(quality, pixel_size_mm, basis.encoding)
+    planes, _ = _checked_basis(basis)
+    h, w, k = planes.shape
+    tiled = _tiled(tiles, (h, w), tile_threshold)
+    relight_type, colorspace = _RELIGHT_TYPES[basis.type]
+    channels = 3 * -(-k // 3)  # OpenLIME's uniforms hold whole vec3s: K rounded up to planes of 3
+    images, scale, bias = _quantised_planes(planes, channels)
+    info: dict = {"width": int(w), "height": int(h), "format": "jpg"}
+    if pixel_size_mm is not None:
+        info["pixelSizeInMM"] = float(pixel_size_mm)
+    info["type"] = relight_type
+    if basis.type == "bln":
+        info["resolution"] = int(basis.resolution)
+    info["colorspace"] = colorspace
+    if basis.type == "rbf":
+        info["sigma"] = float(basis.sigma)
+        info["lights"] = np.asarray(basis.lights, dtype=np.float64).ravel().tolist()
+    material: dict = {}
+    if colorspace == "lrgb":
+        images.insert(0, np.ascontiguousarray(basis.colour))
+        scale, bias = [1.0, 1.0, 1.0] + scale, [0.0, 0.0, 0.0] + bias
+        info["nplanes"] = 3 + channels
+        info["quality"] = int(quality)
+    else:
+        info["nplanes"] = channels
+        info["quality"] = int(quality)
+        info["basis"], material["range"] = _basis_bytes(np.asarray(basis.basis, dtype=np.float64), channels)
+    material.update({"scale": scale, "bias": bias})
+    info["materials"] = [material]
+    extras: dict = {"encoding": basis.encoding, "layers": {}, "basis": basis.name or basis.type, "terms": int(k)}
+    if basis.type == "hsh":
+        extras["order"] = int(basis.order)
+    _layout(extras, tiled, (h, w))
+    folder = Path(folder)
+    _make_folder(folder)
+    return _write_planes(folder, images, quality, tiled) + _finish(folder, info, extras)
 
 
 def _write_viewer_json(folder: Path, extras: dict) -> Path:

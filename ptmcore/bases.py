@@ -1,0 +1,422 @@
+"""Every relighting basis fitted from a stack, scored on the capture itself, and the best chosen.
+
+A capture can be published for relighting in several bases (:data:`NAMES`), none best
+everywhere: HSH on most objects, interpolation of the photographs over the light hemisphere
+on glossy ones, RBF on coins' fine structure. This module fits any of them from an
+:class:`~ptmcore.images.ImageStack` into the form viewers read,
+:class:`~ptmcore.published.PublishedBasis`, and chooses among them by measuring each on the
+capture: how well it predicts a photograph left out of its fit (:func:`score_bases`,
+:func:`choose_basis`).
+
+The bases, each in the encoding it is fitted in (``"srgb"``: the photographs display-encoded,
+as RTIBuilder and relight fit them; ``"linear"``: linear light, which a viewer encodes for
+display):
+
+* ``ptm`` — the biquadratic of Malzbender et al. 2001, and ``hsh2``, ``hsh3``, ``hsh4`` —
+  hemispherical harmonics (:mod:`ptmcore.hsh`): LRGB, a least-squares luminance fit times a
+  per-pixel colour, PTMfitter's way (:mod:`ptmcore.ptmencoded`): each pixel's luminance
+  normalised by its brightest photograph, the colour the least-squares colour of the samples.
+* ``rbf`` and ``bilinear`` — relight's interpolating bases (:mod:`ptmcore.interpolation`): the
+  RGB samples of all lights (``bilinear``: resampled onto a grid over the hemisphere) compressed
+  by principal components shared by all pixels (:data:`PCA_PLANES` per-pixel coefficients;
+  relight's "mrgb"), relit by interpolating the components between the lights.
+
+**Scoring.** On a grid of about :data:`SAMPLE_PIXELS` lit pixels, each photograph is predicted
+by the basis fitted without it, and compared with it in 8-bit sRGB levels, as a screen would
+show the difference: for the least-squares bases exactly, by the PRESS identity
+(:mod:`ptmcore.loo`); for the interpolating ones by interpolating the other lights'
+compressed samples (the principal components are those of all lights: a left-out light
+contributes one of N samples to them; for ``bilinear`` they are taken at the lights, where the
+published ones are those of the grid's values). To that is added the error of storing the planes in
+8 bits (each plane quantised over its range, and the colour plane of LRGB bases, uniform
+error of a twelfth of a step squared, carried through the basis to the display: in linear encoding it is multiplied by the slope of
+the sRGB curve, steep in the shadows). The viewers' JPEG compression is not counted; it is
+alike for all bases.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .bands import BAND_BYTES, band_rows, run_bands
+from .hsh import RCOND, hsh_basis
+from .images import LUMA_WEIGHTS, ImageStack, linear_to_srgb
+from .interpolation import (
+    DEFAULT_PLANES,
+    DEFAULT_RESOLUTION,
+    bilinear_loo_matrix,
+    default_sigma,
+    pca,
+    resample_matrix,
+    rbf_loo_matrix,
+)
+from .loo import loo_residuals
+from .lp import as_directions
+from .published import PublishedBasis, ptm_weights
+
+__all__ = ["AUTO", "ENCODINGS", "NAMES", "BasisChoice", "BasisScore", "choose_basis", "fit_published",
+           "sample_stack", "score_bases"]
+
+#: Every basis by the name the command line gives it.
+NAMES = ("ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear")
+#: The bases ``--basis auto`` chooses among: those OpenLIME renders too (its HSH has 9 terms,
+#: so ``hsh4`` is published only when asked for, and shown by this project's page alone).
+AUTO = ("ptm", "hsh2", "hsh3", "rbf", "bilinear")
+#: What a basis may be fitted to.
+ENCODINGS = ("srgb", "linear")
+#: Per-pixel coefficient planes of the interpolating bases (relight's default for "mrgb").
+PCA_PLANES = DEFAULT_PLANES
+#: Side of the bilinear basis's grid of light directions (relight's default).
+BILINEAR_RESOLUTION = DEFAULT_RESOLUTION
+#: Pixels scored (and from which the principal components are found).
+SAMPLE_PIXELS = 20_000
+#: Pixels darker than this fraction of the brightest pixel's mean are left out of the score:
+#: a black background is predicted perfectly by every basis and would only dilute it.
+DARK_FRACTION = 0.02
+
+
+@dataclass(frozen=True)
+class BasisScore:
+    """How faithfully one basis, in one encoding, relights a capture under lights it was not
+    fitted to.
+
+    Attributes
+    ----------
+    name, encoding : str
+        The basis (:data:`NAMES`) and what it is fitted to (:data:`ENCODINGS`).
+    planes : int
+        Coefficient planes per pixel (the colour plane of LRGB bases not counted).
+    prediction : float
+        RMS difference between each left-out photograph and its prediction, 8-bit sRGB levels
+        of R, G and B.
+    storage : float
+        RMS error of storing the planes in 8 bits, the same levels.
+    rms : float
+        The two together, √(prediction² + storage²).
+    psnr : float
+        20·log10(255 / rms), dB.
+    """
+
+    name: str
+    encoding: str
+    planes: int
+    prediction: float
+    storage: float
+    rms: float
+    psnr: float
+
+
+@dataclass(frozen=True)
+class BasisChoice:
+    """The basis a capture is published in, and the scores it was chosen by.
+
+    Attributes
+    ----------
+    name, encoding : str
+        The chosen basis and encoding.
+    scores : tuple of BasisScore
+        Every candidate's score, best first.
+    pixels : int
+        Pixels the scores were measured on.
+    chosen_by : str
+        ``"leave-one-out"`` when chosen by the scores, ``"asked"`` when named by the user.
+    """
+
+    name: str
+    encoding: str
+    scores: tuple[BasisScore, ...]
+    pixels: int
+    chosen_by: str = "leave-one-out"
+
+    @property
+    def best(self) -> BasisScore | None:
+        """The score of the chosen basis, if it was scored."""
+        return next((s for s in self.scores if (s.name, s.encoding) == (self.name, self.encoding)), None)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary (report.json's ``relighting.basis``)."""
+        best = self.best
+        runner = next((s for s in self.scores if s is not best), None)
+        out = {"name": self.name, "encoding": self.encoding, "chosen_by": self.chosen_by, "pixels": self.pixels,
+               "unit": "8-bit sRGB levels",
+               "scores": [{k: (round(v, 3) if isinstance(v, float) else v) for k, v in asdict(s).items()}
+                          for s in self.scores]}
+        if best is not None and runner is not None:
+            out["margin_db"] = round(best.psnr - runner.psnr, 2)
+            out["runner_up"] = f"{runner.name} ({runner.encoding})"
+        return out
+
+
+def _check_name(name: str) -> str:
+    if name not in NAMES:
+        raise ValueError(f"unknown relighting basis {name!r}; one of {', '.join(NAMES)}")
+    return name
+
+
+def _check_encoding(encoding: str) -> str:
+    if encoding not in ENCODINGS:
+        raise ValueError(f"encoding must be one of {ENCODINGS}, not {encoding!r}")
+    return encoding
+
+
+def _hsh_order(name: str) -> int:
+    return int(name[3:])
+
+
+def least_squares_matrix(name: str, directions: np.ndarray) -> np.ndarray:
+    """The ``(N, K)`` basis functions of ``ptm`` or ``hshN`` at each light, in the order of
+    the published planes (the PTM's in OpenLIME's order 1, x, y, x², x·y, y²)."""
+    if name == "ptm":
+        return ptm_weights(directions)
+    if name.startswith("hsh"):
+        return hsh_basis(directions, _hsh_order(name))
+    raise ValueError(f"{name!r} is not a least-squares basis")
+
+
+def _display(rgb: np.ndarray, encoding: str) -> np.ndarray:
+    """Linear RGB in [0, 1] as the values a basis of ``encoding`` is fitted to."""
+    rgb = np.clip(rgb, 0.0, 1.0)
+    return linear_to_srgb(rgb) if encoding == "srgb" else rgb
+
+
+def _lrgb(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """PTMfitter's split of RGB samples ``(N, P, 3)`` into a luminance ``(N, P)`` and a colour
+    ``(P, 3)`` in [0, 1] with ``samples ≈ colour · luminance``.
+
+    Luminance is normalised by each pixel's brightest sample, the colour the least-squares
+    colour of the samples; where that colour would exceed 1 (a saturated colour), it is scaled
+    down and the luminance up by the same factor, so nothing is clipped.
+    """
+    y = samples @ LUMA_WEIGHTS.astype(samples.dtype)
+    peak = y.max(axis=0)
+    energy = np.einsum("np,np->p", y, y)
+    colour = np.einsum("npc,np->pc", samples, y) * (peak / np.where(energy > 0, energy, 1.0))[:, None]
+    over = np.maximum(colour.max(axis=1), 1.0)
+    colour /= over[:, None]
+    scale = over / np.where(peak > 0, peak, 1.0)
+    return y * scale[None, :], colour
+
+
+def sample_stack(stack: ImageStack, count: int = SAMPLE_PIXELS, mask: np.ndarray | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear luminance ``(N, P)`` and chroma ``(P, 3)`` of the lit pixels of a grid over the stack.
+
+    The grid has about ``count`` pixels (every s-th row and column); pixels outside ``mask``
+    or darker than :data:`DARK_FRACTION` of the brightest are dropped.
+    """
+    h, w = stack.shape
+    step = max(1, int(np.ceil(np.sqrt(h * w / max(1, count)))))
+    codes = stack.grid(step)
+    luminance = stack.table[codes].reshape(len(stack), -1).astype(np.float32)
+    chroma = stack.chroma[step // 2::step, step // 2::step].reshape(-1, 3).astype(np.float32)
+    keep = np.ones(luminance.shape[1], bool)
+    if mask is not None:
+        keep &= np.asarray(mask, bool)[step // 2::step, step // 2::step].reshape(-1)
+    mean = luminance.mean(axis=0)
+    if keep.any():
+        keep &= mean >= DARK_FRACTION * mean[keep].max()
+    if not keep.any():
+        keep = mean >= mean.max()
+    return luminance[:, keep], chroma[keep]
+
+
+def _loo_predictor(name: str, directions: np.ndarray) -> np.ndarray:
+    """``(N, N)``: row i predicts light i from the others, as ``name`` interpolates."""
+    sigma = default_sigma(directions)
+    if name == "rbf":
+        return rbf_loo_matrix(directions, sigma)
+    return bilinear_loo_matrix(directions, BILINEAR_RESOLUTION, sigma)
+
+
+def _storage_var(planes: np.ndarray) -> np.ndarray:
+    """Variance ``(K,)`` of quantising each plane ``(P, K)`` to 8 bits over its range."""
+    step = (planes.max(axis=0) - planes.min(axis=0)) / 255.0
+    return step.astype(np.float64) ** 2 / 12.0
+
+
+def _score(name: str, encoding: str, luminance: np.ndarray, chroma: np.ndarray,
+           directions: np.ndarray) -> BasisScore:
+    observed_linear = chroma[None] * luminance[..., None]  # (N, P, 3)
+    observed = 255.0 * linear_to_srgb(observed_linear)
+    fitted = _display(observed_linear, encoding).astype(np.float64)
+    if name in ("rbf", "bilinear"):
+        predictor = _loo_predictor(name, directions)
+        n, p = luminance.shape
+        vectors = fitted.transpose(1, 0, 2).reshape(p, -1)  # (P, N·3)
+        mean, components = pca(vectors, PCA_PLANES)
+        coefficients = (vectors - mean) @ components.T  # (P, K)
+        compressed = (mean + coefficients @ components).reshape(p, n, 3).transpose(1, 0, 2)
+        at_lights = components.reshape(len(components), n, 3)
+        predicted = np.einsum("ij,jpc->ipc", predictor, compressed)
+        used = np.arange(n)
+        variance = np.einsum("knc,k->nc", at_lights ** 2, _storage_var(coefficients))[:, None, :]
+        planes = PCA_PLANES
+    else:
+        matrix = least_squares_matrix(name, directions)
+        values, colour = _lrgb(fitted)
+        residuals, used = loo_residuals(values, matrix, rcond=RCOND, warn=False)
+        predicted = colour[None] * (values[used] - residuals)[..., None]
+        fit = np.linalg.pinv(matrix, rcond=RCOND)
+        coefficients = (fit @ values).T  # (P, K)
+        w2 = matrix[used] ** 2  # (M, K)
+        # The planes' quantisation through the basis, and the 8-bit colour plane's through the
+        # luminance (a dark object's brightness is in its colour: few levels in linear light).
+        variance = ((w2 @ _storage_var(coefficients))[:, None, None] * colour[None] ** 2
+                    + (values[used] ** 2)[..., None] / (12.0 * 255.0 ** 2))
+        planes = matrix.shape[1]
+    if encoding == "srgb":
+        shown = 255.0 * np.clip(predicted, 0.0, 1.0)
+        slope = 255.0
+    else:
+        shown = 255.0 * linear_to_srgb(predicted)
+        slope = 255.0 * _srgb_slope(np.clip(predicted, 0.0, 1.0))
+    prediction = float(np.sqrt(np.mean((shown - observed[used]) ** 2)))
+    storage = float(np.sqrt(np.mean(variance * slope ** 2)))
+    rms = float(np.hypot(prediction, storage))
+    return BasisScore(name, encoding, int(planes), prediction, storage, rms,
+                      float(20 * np.log10(255.0 / max(rms, 1e-9))))
+
+
+def _srgb_slope(v: np.ndarray) -> np.ndarray:
+    """d sRGB / d linear, finite at 0 (the curve's linear toe)."""
+    return np.where(v <= 0.0031308, 12.92, 1.055 / 2.4 * np.maximum(v, 0.0031308) ** (1 / 2.4 - 1))
+
+
+def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarray,
+                names: Sequence[str] = AUTO, encodings: Sequence[str] = ENCODINGS) -> list[BasisScore]:
+    """Score relighting bases on samples of a capture, best first.
+
+    Parameters
+    ----------
+    luminance : ndarray, shape (N, P)
+        Linear luminance of P pixels under each of the N lights (:func:`sample_stack`).
+    chroma : ndarray, shape (P, 3)
+        The pixels' colour of unit luminance.
+    directions : ndarray, shape (N, 3)
+        Unit light directions.
+    names, encodings : sequence of str
+        The bases (:data:`NAMES`) and encodings (:data:`ENCODINGS`) to score, every pair.
+
+    Returns
+    -------
+    list of BasisScore
+        Sorted by ``rms``, lowest first. A basis with no more lights than terms cannot be
+        scored (every light is needed to fit it) and is left out.
+    """
+    luminance = np.asarray(luminance, np.float32)
+    chroma = np.asarray(chroma, np.float32)
+    directions = as_directions(directions, luminance.shape[0])
+    if chroma.shape != (luminance.shape[1], 3):
+        raise ValueError(f"chroma must be ({luminance.shape[1]}, 3) to match the samples, not {chroma.shape}")
+    scores = []
+    for name in names:
+        _check_name(name)
+        terms = PCA_PLANES + 1 if name in ("rbf", "bilinear") else least_squares_matrix(name, directions[:1]).shape[1]
+        if len(directions) <= terms:
+            continue
+        for encoding in encodings:
+            scores.append(_score(name, _check_encoding(encoding), luminance, chroma, directions))
+    return sorted(scores, key=lambda s: s.rms)
+
+
+def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Sequence[str] = AUTO,
+                 encodings: Sequence[str] = ENCODINGS, mask: np.ndarray | None = None,
+                 pixels: int = SAMPLE_PIXELS) -> BasisChoice:
+    """The basis and encoding that relight this capture most faithfully (:func:`score_bases`).
+
+    With one candidate and one encoding the choice is that one, still scored. Falls back to
+    the PTM in sRGB when no candidate can be scored (as few lights as terms).
+    """
+    luminance, chroma = sample_stack(stack, pixels, mask)
+    scores = score_bases(luminance, chroma, directions, candidates, encodings)
+    chosen_by = "leave-one-out" if len(candidates) * len(encodings) > 1 else "asked"
+    if not scores:
+        return BasisChoice(candidates[0] if len(candidates) == 1 else "ptm", encodings[0], (), luminance.shape[1],
+                           "asked" if len(candidates) == 1 else "fewest terms")
+    return BasisChoice(scores[0].name, scores[0].encoding, tuple(scores), luminance.shape[1], chosen_by)
+
+
+def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding: str = "srgb", *,
+                  threads: int | None = None, progress: Callable[[int], None] | None = None,
+                  pixels: int = SAMPLE_PIXELS) -> PublishedBasis:
+    """Fit one basis to a whole stack, in the form viewers read.
+
+    Parameters
+    ----------
+    stack : ImageStack
+        The photographs' linear luminance and colour.
+    directions : ndarray, shape (N, 3)
+        Unit light directions.
+    name : str
+        One of :data:`NAMES`.
+    encoding : {"srgb", "linear"}
+        What the basis is fitted to.
+    threads : int, optional
+        Threads working on bands of rows.
+    progress : callable, optional
+        Called with the number of rows done after each band.
+    pixels : int
+        Pixels of the grid the principal components of ``rbf`` and ``bilinear`` are found on.
+
+    Returns
+    -------
+    PublishedBasis
+    """
+    _check_name(name)
+    _check_encoding(encoding)
+    directions = as_directions(directions, len(stack))
+    n = len(stack)
+    h, w = stack.shape
+    if name in ("rbf", "bilinear"):
+        sigma = default_sigma(directions)
+        grid = resample_matrix(directions, BILINEAR_RESOLUTION, sigma) if name == "bilinear" else None
+        grid_t = None if grid is None else np.ascontiguousarray(grid.T, dtype=np.float32)
+        luminance, chroma = sample_stack(stack, pixels)
+
+        def vectors_of(lum: np.ndarray, chr_: np.ndarray) -> np.ndarray:
+            rgb = _display(chr_[None] * lum[..., None], encoding).transpose(1, 0, 2)  # (P, N, 3)
+            if grid is not None:  # one matrix product (an einsum here took seconds a megapixel)
+                p_, n_, _ = rgb.shape
+                rgb = (rgb.transpose(0, 2, 1).reshape(-1, n_) @ grid_t).reshape(p_, 3, -1).transpose(0, 2, 1)
+            return np.ascontiguousarray(rgb).reshape(len(rgb), -1)
+
+        mean, components = pca(vectors_of(luminance, chroma).astype(np.float64), PCA_PLANES)
+        mean32, comp32 = mean.astype(np.float32), components.T.astype(np.float32)
+        planes = np.empty((h, w, PCA_PLANES), np.float32)
+
+        def work(r0: int, r1: int) -> None:
+            lum, _ = stack.band(r0, r1)
+            vectors = vectors_of(lum.reshape(n, -1), stack.chroma[r0:r1].reshape(-1, 3))
+            planes[r0:r1] = ((vectors - mean32) @ comp32).reshape(r1 - r0, w, PCA_PLANES)
+
+        rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
+        run_bands(h, rows, work, threads=threads, progress=progress)
+        dims = len(directions) if grid is None else BILINEAR_RESOLUTION ** 2
+        basis = np.concatenate([mean[None], components]).reshape(PCA_PLANES + 1, dims, 3).astype(np.float32)
+        if grid is None:
+            return PublishedBasis("rbf", "mrgb", planes, encoding, lights=directions.copy(), sigma=sigma,
+                                  basis=basis, name=name)
+        return PublishedBasis("bln", "mrgb", planes, encoding, resolution=BILINEAR_RESOLUTION, basis=basis,
+                              name=name)
+
+    matrix = least_squares_matrix(name, directions)
+    fit = np.linalg.pinv(matrix, rcond=RCOND).astype(np.float32)  # (K, N)
+    k = fit.shape[0]
+    planes = np.empty((h, w, k), np.float32)
+    colour = np.empty((h, w, 3), np.uint8)
+
+    def work(r0: int, r1: int) -> None:
+        lum, _ = stack.band(r0, r1)
+        rgb = _display(stack.chroma[r0:r1][None] * lum[..., None], encoding).reshape(n, -1, 3)
+        values, col = _lrgb(rgb)
+        planes[r0:r1] = (fit @ values).T.reshape(r1 - r0, w, k)
+        colour[r0:r1] = np.rint(255.0 * col).reshape(r1 - r0, w, 3).astype(np.uint8)
+
+    rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
+    run_bands(h, rows, work, threads=threads, progress=progress)
+    kind = "ptm" if name == "ptm" else "hsh"
+    return PublishedBasis(kind, "lrgb", planes, encoding, colour=colour,
+                          order=_hsh_order(name) if kind == "hsh" else None, name=name)

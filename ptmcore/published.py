@@ -1,0 +1,131 @@
+"""A relighting basis as it is published: per-pixel coefficient planes and what weighs them.
+
+Every basis this project publishes for people to relight (PTM, HSH, RBF, bilinear) renders a
+pixel under a light as a linear combination of its per-pixel planes, with weights that depend
+only on the light. :class:`PublishedBasis` holds that form, in the two colour spaces of
+Relight's web format that OpenLIME reads (its ``ShaderRTI``):
+
+* ``"lrgb"`` (``type`` ``"ptm"`` or ``"hsh"``): a luminance model times a per-pixel colour::
+
+      display_rgb = colour / 255 · Σ_k w_k(light) · planes[..., k]
+
+  with ``w`` the basis functions at the light (:meth:`PublishedBasis.weights`), the planes in
+  the order of the basis terms (PTM: ``1, x, y, x², x·y, y²``, OpenLIME's order; HSH:
+  H0 … H(order²−1), :mod:`ptmcore.hsh`), in 0–1 units of ``encoding``.
+* ``"mrgb"`` (``type`` ``"rbf"`` or ``"bln"``): a principal-component basis of RGB samples
+  shared by all pixels, per-pixel coefficients::
+
+      display_rgb = B₀(light) + Σ_k planes[..., k] · B_{k+1}(light)
+
+  with ``B_p(light) = Σ_d v_d(light) · basis[p, d]`` (an RGB triple), ``v`` the interpolation
+  weights of the light over the ``D`` basis directions: the capture's lights for ``"rbf"``
+  (normalised Gaussians of width ``sigma``), the nodes of a ``resolution × resolution`` grid
+  over the hemisphere for ``"bln"`` (bilinear). ``basis[0]`` is the mean of the samples, in
+  0–1 units of ``encoding``.
+
+``encoding`` says what the rendered values are: ``"srgb"``, display values as they are, or
+``"linear"``, linear light that a viewer encodes to sRGB for display.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+__all__ = ["PublishedBasis", "ptm_weights"]
+
+
+def ptm_weights(directions: np.ndarray) -> np.ndarray:
+    """The PTM's six basis functions ``(N, 6)`` at unit light directions, in OpenLIME's plane
+    order ``1, x, y, x², x·y, y²`` (HP's a0…a5 are ``x², y², x·y, x, y, 1``)."""
+    d = np.asarray(directions, dtype=np.float64).reshape(-1, np.shape(directions)[-1])
+    x, y = d[:, 0], d[:, 1]
+    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+
+
+@dataclass
+class PublishedBasis:
+    """A relighting basis in the form published for viewers (see the module docstring).
+
+    Attributes
+    ----------
+    type : {"ptm", "hsh", "rbf", "bln"}
+        The basis, as Relight's ``info.json`` names it.
+    colorspace : {"lrgb", "mrgb"}
+        ``"lrgb"`` for PTM and HSH, ``"mrgb"`` for RBF and bilinear.
+    planes : ndarray, shape (H, W, K), float32
+        Per-pixel coefficients.
+    encoding : {"srgb", "linear"}
+        What the rendered values are.
+    colour : ndarray, shape (H, W, 3), uint8, optional
+        The per-pixel colour of ``"lrgb"``.
+    lights : ndarray, shape (D, 3), optional
+        ``"rbf"``: the unit directions the basis is given at (the capture's lights).
+    sigma : float, optional
+        ``"rbf"``: the Gaussians' width, in units of the distance between unit vectors.
+    resolution : int, optional
+        ``"bln"``: the grid's side.
+    basis : ndarray, shape (K + 1, D, 3), float32, optional
+        ``"mrgb"``: the mean (row 0) and the K components at each basis direction, RGB.
+    order : int, optional
+        ``"hsh"``: the order (K = order²).
+    name : str
+        The basis as the command line names it (``ptm``, ``hsh3``, ``rbf``, ``bilinear``…).
+    """
+
+    type: Literal["ptm", "hsh", "rbf", "bln"]
+    colorspace: Literal["lrgb", "mrgb"]
+    planes: np.ndarray
+    encoding: Literal["srgb", "linear"] = "srgb"
+    colour: np.ndarray | None = None
+    lights: np.ndarray | None = None
+    sigma: float | None = None
+    resolution: int | None = None
+    basis: np.ndarray | None = None
+    order: int | None = None
+    name: str = field(default="")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image height and width."""
+        return self.planes.shape[:2]
+
+    def weights(self, light: np.ndarray) -> np.ndarray:
+        """What weighs the planes under one light (x, y, z), unit or not.
+
+        Returns
+        -------
+        ndarray, float64
+            ``"lrgb"``: the K basis functions, shape (K,). ``"mrgb"``: the RGB triples
+            ``B_0 … B_K`` of the module docstring, shape (K + 1, 3).
+        """
+        from .hsh import hsh_basis
+        from .interpolation import bilinear_weights, rbf_weights
+
+        d = np.asarray(light, dtype=np.float64).reshape(1, 3)
+        d = d / np.linalg.norm(d)
+        if self.type == "ptm":
+            return ptm_weights(d)[0]
+        if self.type == "hsh":
+            return hsh_basis(d, int(self.order))[0]
+        v = rbf_weights(self.lights, d, self.sigma) if self.type == "rbf" else bilinear_weights(d, self.resolution)
+        return np.einsum("d,pdc->pc", v[0], self.basis.astype(np.float64))
+
+    def render(self, light: np.ndarray) -> np.ndarray:
+        """The image ``(H, W, 3)`` float32 under one light, in the values of ``encoding``
+        (0–1, not clipped; :meth:`display` for an image to look at)."""
+        w = self.weights(light).astype(np.float32)
+        if self.colorspace == "lrgb":
+            return self.colour.astype(np.float32) / np.float32(255.0) * (self.planes @ w)[..., None]
+        return w[0] + self.planes @ w[1:]
+
+    def display(self, light: np.ndarray) -> np.ndarray:
+        """The image ``(H, W, 3)`` uint8 sRGB under one light, as a viewer shows it."""
+        from .images import linear_to_srgb
+
+        rgb = np.clip(self.render(light), 0.0, 1.0)
+        if self.encoding == "linear":
+            rgb = linear_to_srgb(rgb)
+        return np.rint(rgb * np.float32(255.0)).astype(np.uint8)
