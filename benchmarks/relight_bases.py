@@ -169,14 +169,14 @@ def real_capture(paths: list[Path], directions: np.ndarray, *, linearize: bool) 
     return measure(stack, directions[~held], np.stack(truths), directions[held])
 
 
-def real() -> dict:
+def real(which: str = "all") -> dict:
     out = {}
     icon = REAL / "neuralrti_icon" / "dirs.lp"
     if icon.is_file():
         lights = read_lp(icon)
         out["icon (real, 72 JPEG)"] = real_capture(lights.paths, lights.directions, linearize=True)
     cat = REAL / "diligent_cat"
-    if (cat / "light_directions.txt").is_file():
+    if which == "all" and (cat / "light_directions.txt").is_file():
         names = (cat / "filenames.txt").read_text().split()
         dirs = np.loadtxt(cat / "light_directions.txt")
         dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
@@ -248,6 +248,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="three rendered scenes, no real captures")
     parser.add_argument("--no-24mp", action="store_true", help="skip the 24 MP timing")
+    parser.add_argument("--real", choices=("all", "icon", "none"), default="all",
+                        help="which real captures of ../shared/real to measure (default all)")
     args = parser.parse_args()
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -255,8 +257,8 @@ def main() -> None:
             t0 = time.perf_counter()
             results[name] = rendered(name, spec, 0, Path(tmp))
             print(f"{name}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
-    if not args.quick:
-        results.update(real())
+    if not args.quick and args.real != "none":
+        results.update(real(args.real))
     report = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "auto_candidates": list(AUTO),
               "captures": results}
     if not args.no_24mp:

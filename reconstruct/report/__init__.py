@@ -15,6 +15,6 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
                     "write_npy"],
         "raster": ["render_mesh"],
         "rendering": ["plotter", "render_image"],
-        "web": ["export_openlime", "lrgb_planes"],
+        "web": ["export_openlime", "export_relightable", "lrgb_planes"],
     },
 )
