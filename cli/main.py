@@ -397,15 +397,8 @@ def _cmd_integrate(args: argparse.Namespace) -> int:
         result = run_normals(args.normal_map, args.output, options, progress=progress)
     report = result.report
     print(f"Results in {result.output}/ ({report.inputs.width}×{report.inputs.height} normal map)")
-    if report.mesh is not None:
-        print(f"  heights in {unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
-              f"{report.mesh.faces:,} triangles (step {report.mesh.step})")
-    chosen = getattr(report, "relighting", None)
-    if chosen:
-        margin = f", {chosen['margin_db']:+.1f} dB over {chosen['runner_up']}" if "margin_db" in chosen else ""
-        best = chosen["scores"][0]["psnr"] if chosen.get("scores") else None
-        said = f" (leave-one-out {best:.1f} dB{margin})" if best is not None and chosen["chosen_by"] == "leave-one-out" else ""
-        print(f"  relighting basis in web/: {chosen['name']}, {chosen['encoding']}{said}")
+    print(f"  heights in {unit_words(report.height_unit)}; mesh: {report.mesh.vertices:,} vertices, "
+          f"{report.mesh.faces:,} triangles (step {report.mesh.step})")
     for w in report.warnings:
         print(f"  warning: {w}")
     return 0
