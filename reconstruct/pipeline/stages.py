@@ -315,7 +315,7 @@ def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.P
         The files written, relative to ``folder``.
     choice : BasisChoice
     """
-    from ptmcore.bases import AUTO, ENCODINGS, choose_basis, fit_published  # scipy.linalg etc. only when used
+    from ptmcore.bases import AUTO, ENCODINGS, choose_basis, fit_published
 
     directions = capture.lights.directions
     candidates = AUTO if options.basis == "auto" else (options.basis,)
