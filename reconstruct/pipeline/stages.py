@@ -33,7 +33,7 @@ from ptmcore.lp import LightSet
 from ptmcore.png import write_png
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
-from ptmcore.bases import BasisChoice
+from ptmcore.bases import AUTO, ENCODINGS, BasisChoice, choose_basis, fit_published
 from ptmcore.ptmencoded import EncodedFits
 from ptmcore import (
     debiased_normals,
@@ -315,8 +315,6 @@ def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.P
         The files written, relative to ``folder``.
     choice : BasisChoice
     """
-    from ptmcore.bases import AUTO, ENCODINGS, choose_basis, fit_published
-
     directions = capture.lights.directions
     candidates = AUTO if options.basis == "auto" else (options.basis,)
     encodings = ENCODINGS if options.basis_encoding == "auto" else (options.basis_encoding,)
