@@ -103,9 +103,10 @@ def test_relit_16_bit_capture_is_as_bright_as_its_photographs(capture16, tmp_pat
     assert main(["run", str(capture16), "-o", str(out), "--ptm-encoding", encoding]) == 0
     report = json.loads((out / "report.json").read_text())
     assert report["ptm"]["encoding"] == {"srgb": "sRGB", "linear": "linear"}[encoding]
-    # The web page knows what its planes hold, and has the run's normal and height maps.
+    # The web page knows what its planes hold (the published basis's own encoding, chosen with
+    # it: --basis-encoding), and has the run's normal and height maps.
     viewer = json.loads((out / "web" / "viewer.json").read_text())
-    assert viewer["encoding"] == encoding and set(viewer["layers"]) == {"normals", "height"}
+    assert viewer["encoding"] == report["relighting"]["encoding"] and set(viewer["layers"]) == {"normals", "height"}
     assert all((out / "web" / layer["src"]).is_file() for layer in viewer["layers"].values())
     lights = read_lp(next(capture16.glob("*.lp")))
     for k in (0, len(lights) // 2):
