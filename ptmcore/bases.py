@@ -237,21 +237,26 @@ def _storage_var(planes: np.ndarray) -> np.ndarray:
     return step.astype(np.float64) ** 2 / 12.0
 
 
-def _score(name: str, encoding: str, luminance: np.ndarray, chroma: np.ndarray,
-           directions: np.ndarray) -> BasisScore:
-    observed_linear = chroma[None] * luminance[..., None]  # (N, P, 3)
-    observed = 255.0 * linear_to_srgb(observed_linear)
-    fitted = _display(observed_linear, encoding).astype(np.float64)
+def _compress(fitted: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The samples ``(N, P, 3)`` through :data:`PCA_PLANES` principal components, as the
+    interpolating bases store them: the compressed samples, the components at the lights
+    ``(K, N, 3)`` and the per-pixel coefficients ``(P, K)``."""
+    n, p, _ = fitted.shape
+    vectors = fitted.transpose(1, 0, 2).reshape(p, -1)  # (P, N·3)
+    mean, components = pca(vectors, PCA_PLANES)
+    coefficients = (vectors - mean) @ components.T
+    compressed = (mean + coefficients @ components).reshape(p, n, 3).transpose(1, 0, 2)
+    return compressed, components.reshape(len(components), n, 3), coefficients
+
+
+def _score(name: str, encoding: str, fitted: np.ndarray, observed: np.ndarray, directions: np.ndarray,
+           compression: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> BasisScore:
+    """One basis's score; ``fitted`` the samples in ``encoding``, ``observed`` in 8-bit sRGB
+    levels, ``compression`` :func:`_compress` of ``fitted`` (for ``rbf`` and ``bilinear``)."""
     if name in ("rbf", "bilinear"):
-        predictor = _loo_predictor(name, directions)
-        n, p = luminance.shape
-        vectors = fitted.transpose(1, 0, 2).reshape(p, -1)  # (P, N·3)
-        mean, components = pca(vectors, PCA_PLANES)
-        coefficients = (vectors - mean) @ components.T  # (P, K)
-        compressed = (mean + coefficients @ components).reshape(p, n, 3).transpose(1, 0, 2)
-        at_lights = components.reshape(len(components), n, 3)
-        predicted = np.einsum("ij,jpc->ipc", predictor, compressed)
-        used = np.arange(n)
+        compressed, at_lights, coefficients = compression
+        predicted = np.einsum("ij,jpc->ipc", _loo_predictor(name, directions), compressed)
+        used = np.arange(len(directions))
         variance = np.einsum("knc,k->nc", at_lights ** 2, _storage_var(coefficients))[:, None, :]
         planes = PCA_PLANES
     else:
@@ -311,14 +316,20 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
     directions = as_directions(directions, luminance.shape[0])
     if chroma.shape != (luminance.shape[1], 3):
         raise ValueError(f"chroma must be ({luminance.shape[1]}, 3) to match the samples, not {chroma.shape}")
-    scores = []
+    scorable = []
     for name in names:
         _check_name(name)
         terms = PCA_PLANES + 1 if name in ("rbf", "bilinear") else least_squares_matrix(name, directions[:1]).shape[1]
-        if len(directions) <= terms:
-            continue
-        for encoding in encodings:
-            scores.append(_score(name, _check_encoding(encoding), luminance, chroma, directions))
+        if len(directions) > terms:
+            scorable.append(name)
+    observed_linear = chroma[None] * luminance[..., None]  # (N, P, 3)
+    observed = 255.0 * linear_to_srgb(observed_linear)
+    scores = []
+    for encoding in encodings:
+        fitted = _display(observed_linear, _check_encoding(encoding)).astype(np.float64)
+        # One compression of the samples serves both interpolating bases.
+        compression = _compress(fitted) if {"rbf", "bilinear"} & set(scorable) else None
+        scores += [_score(name, encoding, fitted, observed, directions, compression) for name in scorable]
     return sorted(scores, key=lambda s: s.rms)
 
 

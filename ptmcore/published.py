@@ -34,15 +34,19 @@ from typing import Literal
 
 import numpy as np
 
-__all__ = ["PublishedBasis", "ptm_weights"]
+__all__ = ["OPENLIME_PTM_ORDER", "PublishedBasis", "ptm_weights"]
+
+#: HP's a0…a5 (:func:`ptmcore.fit.light_matrix`) in OpenLIME's plane order 1, x, y, x², x·y, y².
+OPENLIME_PTM_ORDER = [5, 3, 4, 0, 2, 1]
 
 
 def ptm_weights(directions: np.ndarray) -> np.ndarray:
     """The PTM's six basis functions ``(N, 6)`` at unit light directions, in OpenLIME's plane
     order ``1, x, y, x², x·y, y²`` (HP's a0…a5 are ``x², y², x·y, x, y, 1``)."""
+    from .fit import light_matrix
+
     d = np.asarray(directions, dtype=np.float64).reshape(-1, np.shape(directions)[-1])
-    x, y = d[:, 0], d[:, 1]
-    return np.stack([np.ones_like(x), x, y, x * x, x * y, y * y], axis=1)
+    return light_matrix(d)[:, OPENLIME_PTM_ORDER]
 
 
 @dataclass
