@@ -220,7 +220,7 @@ def _print_summary(report, out: Path) -> None:
     if chosen:
         margin = f", {chosen['margin_db']:+.1f} dB over {chosen['runner_up']}" if "margin_db" in chosen else ""
         best = chosen["scores"][0]["psnr"] if chosen.get("scores") else None
-        said = f" (leave-one-out {best:.1f} dB{margin})" if best is not None and chosen["chosen_by"] == "leave-one-out" else ""
+        said = f" ({chosen['chosen_by']} {best:.1f} dB{margin})" if best is not None and chosen["chosen_by"] != "asked" else ""
         print(f"  relighting basis in web/: {chosen['name']}, {chosen['encoding']}{said}")
     acc = report.accuracy
     if acc:
@@ -281,11 +281,13 @@ def _relight_params(args: argparse.Namespace) -> dict[str, float]:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
+    from ptmcore.published import PublishedBasis
     from ptmcore.relight import light_direction
-    from reconstruct.report.figures import for_display
+    from reconstruct.report.figures import for_display, holds_linear_light
     from reconstruct.viewer.relighting import (
         check_sweep,
-        holds_linear_light,
+        describe,
+        image_size,
         load_source,
         render,
         renders,
@@ -315,21 +317,22 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         if not 0 < elevation <= 90:
             raise InputError(f"--elevation must be in (0, 90] degrees, got {elevation}")
     resolve_output(args.output)
-    ptm = load_source(args.source, args.basis)
+    ptm = load_source(args.source, args.basis, mode=args.mode)
     for w in getattr(ptm, "warnings", ()):  # a .ptm of little use (PTMFile.warnings); an .rti has none
         print(f"  warning: {w}", file=sys.stderr)
-    # Every image a person sees is display-encoded: a file of linear light is encoded here.
-    linear = holds_linear_light(args.source)
+    # Every image a person sees is display-encoded: a published basis encodes its own (display);
+    # a file of linear light is encoded here.
+    linear = not isinstance(ptm, PublishedBasis) and holds_linear_light(args.source)
     try:
         if args.sweep is None:
             write_image(args.output, for_display(render(ptm, light, args.mode, **params), linear))
         else:
-            check_sweep(args.sweep, ptm.width, ptm.height, args.source)
+            check_sweep(args.sweep, *image_size(ptm), args.source)
             write_gif(args.output, (for_display(image, linear)
                                     for image in renders(ptm, sweep_lights(args.sweep, elevation), args.mode, **params)))
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    print(f"Wrote {args.output}")
+    print(f"Wrote {args.output} ({describe(ptm)})")
     return 0
 
 

@@ -18,7 +18,7 @@ from ptmcore import __version__
 from ptmcore.relight import DEFAULT_EXPONENT, DEFAULT_GAIN, DEFAULT_KD, DEFAULT_KS
 from reconstruct.pipeline.options import BOUNDS, STACK_FILE_MB, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.preview import MAX_PIXELS as PREVIEW_PIXELS, MAX_SIDE as PREVIEW_SIDE
-from reconstruct.viewer.relighting import MAX_SWEEP, MODES as RELIGHT_MODES
+from reconstruct.viewer.relighting import BASES as RELIGHT_BASES, MAX_SWEEP, MODES as RELIGHT_MODES
 from reconstruct.viewer.scene import MODES as VIEW_MODES
 from reconstruct.viewer.keys import help_text as preview_keys
 
@@ -252,28 +252,34 @@ def _add_batch_command(sub: argparse._SubParsersAction) -> None:
 def _add_relight_command(sub: argparse._SubParsersAction) -> None:
     rel = sub.add_parser(
         "relight",
-        help="render a PTM under a chosen light (RTIViewer's modes), or a GIF of a circling light",
-        description="Render a PTM or HSH file under any light, as RTIViewer does. SOURCE is a .ptm or "
-        ".rti (HSH) file, or an output folder of `reconstruct run` (its coefficients.ptm, or with "
-        "--basis hsh its coefficients.rti).",
+        help="render a result under a chosen light (its published basis, or a PTM in RTIViewer's modes), "
+        "or a GIF of a circling light",
+        description="Render a relightable image under any light. SOURCE is an output folder of `reconstruct "
+        "run` (by default the relighting basis published in its web/, as its page shows it; else its "
+        "coefficients.ptm), a web/ folder or its info.json, or a .ptm or .rti (HSH) file, rendered as "
+        "RTIViewer does.",
         epilog=RELIGHT_EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    rel.add_argument("source", type=_path, help=".ptm file or output folder")
+    rel.add_argument("source", type=_path, help="output folder, web/ folder or its info.json, .ptm or .rti file")
     rel.add_argument("-o", "--output", type=_path, required=True, help="image to write (.png, .jpg, .tif; .gif with --sweep)")
     rel.add_argument("--light", metavar="X,Y,Z", help="direction towards the light (x right, y up, z towards the camera)")
     rel.add_argument("--azimuth", type=float, metavar="DEG", help="light azimuth: 0 = from the right, 90 = from the top")
     rel.add_argument("--elevation", type=float, metavar="DEG", help="light elevation above the object (default with --sweep: 30)")
     rel.add_argument("--mode", choices=RELIGHT_MODES, default=RELIGHT_MODES[0],
-                     help="default rendering, specular enhancement, or diffuse gain (default: default)")
+                     help="default rendering, or RTIViewer's specular enhancement or diffuse gain, which are "
+                          "defined on a PTM's polynomial: with an output folder they render its coefficients.ptm "
+                          "(a web/ folder alone has none) (default: default)")
     # No defaults here: given with another --mode they would do nothing, which is an error
     # (cli.main); render() holds the defaults.
     rel.add_argument("--kd", type=float, help=f"with --mode specular: diffuse weight (default {DEFAULT_KD:g})")
     rel.add_argument("--ks", type=float, help=f"with --mode specular: specular weight (default {DEFAULT_KS:g})")
     rel.add_argument("--exponent", type=float, help=f"with --mode specular: Phong exponent (default {DEFAULT_EXPONENT:g})")
     rel.add_argument("--gain", type=float, help=f"with --mode diffuse-gain: the gain (default {DEFAULT_GAIN:g})")
-    rel.add_argument("--basis", choices=("ptm", "hsh"), default="ptm",
-                     help="with an output folder: relight its coefficients.ptm (default) or its HSH coefficients.rti")
+    rel.add_argument("--basis", choices=RELIGHT_BASES, default=RELIGHT_BASES[0],
+                     help="with an output folder: auto (default) the basis published in its web/ (the one "
+                          "`reconstruct run --basis` chose), else its coefficients.ptm; ptm its coefficients.ptm; "
+                          "hsh its HSH coefficients.rti")
     rel.add_argument("--sweep", type=_whole(1, MAX_SWEEP), metavar="N",
                      help=f"write an animated GIF of N frames (at most {MAX_SWEEP}) with the light circling the object")
 
@@ -467,8 +473,12 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     _choice(p, RunOptions, "basis",
             help="the relighting basis of web/ (the page and OpenLIME's files), the report and `reconstruct relight`: "
                  "auto (default) = the one that best predicts each photograph left out of its fit, measured on this "
-                 "capture; ptm; hsh2, hsh3, hsh4 (hemispherical harmonics; OpenLIME shows up to hsh3); rbf, bilinear "
-                 "(relight's interpolation of the photographs, compressed to 9 planes)")
+                 "capture, among --basis-candidates; ptm; hsh2, hsh3, hsh4 (hemispherical harmonics; OpenLIME shows up "
+                 "to hsh3); rbf, bilinear (relight's interpolation of the photographs, compressed to 9 planes); neural "
+                 "(NeuralRTI's learned basis: tens of seconds of training)")
+    _choice(p, RunOptions, "basis_candidates",
+            help="what --basis auto chooses from: standard (default: every basis but neural), openlime (only those "
+                 "OpenLIME shows too: no hsh4), all (with neural; its training adds tens of seconds)")
     _choice(p, RunOptions, "basis_encoding",
             help="what the published basis is fitted to: srgb (the photographs as displayed), linear (linear light), "
                  "or auto (default: chosen with the basis, by the same measure)")
@@ -486,7 +496,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hsh", action="store_true",
                    help="also write coefficients.rti, an HSH (order 3) relighting file that RTIViewer opens")
     p.add_argument("--loo", action="store_true",
-                   help="compare relighting bases (PTM, HSH orders 2 and 3) by leave-one-out error: "
+                   help="compare relighting bases (PTM, HSH orders 2-4, RBF, bilinear) by leave-one-out error: "
                    "loo_*.tif maps and their RMS in report.json")
     p.add_argument("--mask", metavar="FILE|auto",
                    help="image whose non-zero pixels are the object, or 'auto' to find the object against its "

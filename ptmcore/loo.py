@@ -212,25 +212,67 @@ def loo_error(
     b = np.asarray(basis_matrix, dtype=np.float64)
     if b.ndim != 2 or b.shape[0] != n:
         raise ValueError(f"basis matrix must have {n} rows (one per photograph), got shape {b.shape}")
+    u, used, scale = _plan(b, rcond, warn=True)
+    u_used = u[used]
+
+    def residuals(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        observed = flat[used]
+        err = observed - u_used @ (u.T @ flat)
+        err *= scale[:, None]
+        return observed, err
+
+    return _error_map(stack, residuals, len(used), mask, transform, threads, progress)
+
+
+def loo_interpolated(
+    stack: ImageStack,
+    predictor: np.ndarray,
+    *,
+    mask: np.ndarray | None = None,
+    transform: Callable[[np.ndarray], np.ndarray] | None = None,
+    threads: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[np.ndarray, float]:
+    """Leave-one-out relighting error of every pixel of a stack, for an interpolating basis.
+
+    As :func:`loo_error`, with each photograph predicted by a given linear combination of the
+    others instead of a least-squares refit: row ``i`` of ``predictor`` ``(N, N)`` (zero on the
+    diagonal) weighs the other photographs to predict photograph ``i``
+    (:func:`ptmcore.interpolation.rbf_loo_matrix`, :func:`~ptmcore.interpolation.bilinear_loo_matrix`).
+    The photographs' luminance is interpolated as it is, not through principal components.
+    """
+    n = len(stack)
+    m = np.asarray(predictor, dtype=np.float64)
+    if m.shape != (n, n):
+        raise ValueError(f"predictor must be ({n}, {n}), one row per photograph, got shape {m.shape}")
+
+    def residuals(flat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return flat, flat - m @ flat
+
+    return _error_map(stack, residuals, n, None if mask is None else mask, transform, threads, progress)
+
+
+def _error_map(stack: ImageStack, residuals: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]], counted: int,
+               mask: np.ndarray | None, transform: Callable[[np.ndarray], np.ndarray] | None,
+               threads: int | None, progress: Callable[[int], None] | None) -> tuple[np.ndarray, float]:
+    """Per-pixel RMS over ``counted`` lights of ``residuals(band)`` → (observed, error), and
+    its root mean square over ``mask``, band by band."""
+    n = len(stack)
+    h, w = stack.shape
     if mask is not None:
         mask = np.asarray(mask, dtype=bool)
         if mask.shape != (h, w):
             raise ValueError(f"mask must have shape {(h, w)}, got {mask.shape}")
         if not mask.any():
             raise ValueError("mask selects no pixel")
-    u, used, scale = _plan(b, rcond, warn=True)
-    u_used = u[used]
     mean_square = np.empty((h, w), dtype=np.float64)
 
     def work(r0: int, r1: int) -> None:
         values, _ = stack.band(r0, r1)
-        flat = values.reshape(n, -1).astype(np.float64)
-        observed = flat[used]
-        err = observed - u_used @ (u.T @ flat)
-        err *= scale[:, None]
+        observed, err = residuals(values.reshape(n, -1).astype(np.float64))
         if transform is not None:
             err = transform(observed) - transform(observed - err)
-        mean_square[r0:r1] = np.einsum("mp,mp->p", err, err).reshape(r1 - r0, w) / len(used)
+        mean_square[r0:r1] = np.einsum("mp,mp->p", err, err).reshape(r1 - r0, w) / counted
 
     # float64 band plus its residuals and their transform: budget about 4× 8 bytes a sample.
     rows = band_rows(n, w, bytes_per_sample=32, budget=BAND_BYTES)

@@ -91,6 +91,28 @@ def test_loo_error_map_shape_and_values_match_brute_force():
     np.testing.assert_allclose(mean, np.sqrt((expected_map**2).mean()), rtol=1e-9)
 
 
+def test_loo_interpolated_map_is_each_photograph_against_its_interpolation():
+    from ptmcore.interpolation import default_sigma, rbf_loo_matrix
+    from ptmcore.loo import loo_interpolated
+
+    rng = np.random.default_rng(8)
+    d = dome(16, seed=8)
+    stack = stack_from_luminance(rng.uniform(0.05, 0.95, size=(16, 6, 5)))
+    predictor = rbf_loo_matrix(d, default_sigma(d))
+    stored = stack.band(0, 6)[0].astype(np.float64).reshape(16, -1)
+    # Brute force: each photograph against the weighted sum of the others, one at a time.
+    errors = np.stack([stored[i] - sum(predictor[i, j] * stored[j] for j in range(16) if j != i)
+                       for i in range(16)])
+    rms_map, mean = loo_interpolated(stack, predictor, threads=2)
+    np.testing.assert_allclose(rms_map, np.sqrt((errors ** 2).mean(axis=0)).reshape(6, 5), rtol=1e-6)
+    mask = np.zeros((6, 5), bool)
+    mask[2:4] = True
+    _, masked = loo_interpolated(stack, predictor, mask=mask)
+    np.testing.assert_allclose(masked, np.sqrt((rms_map[mask].astype(np.float64) ** 2).mean()), rtol=1e-6)
+    with pytest.raises(ValueError, match="predictor"):
+        loo_interpolated(stack, predictor[:5])
+
+
 def test_threads_and_bands_do_not_change_the_result():
     rng = np.random.default_rng(5)
     d = dome(12, seed=5)

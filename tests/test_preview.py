@@ -12,9 +12,12 @@ from helpers import run_cli
 
 from data_synthetic import write_capture
 from ptmcore.errors import InputError
+from ptmcore.published import PublishedBasis
 from ptmcore.relight import light_direction
 from reconstruct.compare.figures import write_distance_ply
 from reconstruct.pipeline import RunOptions, run_capture
+from reconstruct.report.web import export_relightable
+from reconstruct.report.webread import read_relightable
 from reconstruct.viewer.measurements import free_paths
 from reconstruct.viewer.preview import _BACKGROUND, build_plotter
 from reconstruct.viewer.scene import (
@@ -92,25 +95,74 @@ def test_folder_scene_follows_the_output_layout(folder, scene):
     assert scene.distance_limit == pytest.approx(LIMIT)
 
 
-def test_relit_texture_is_the_ptm_relit(folder, scene):
-    from ptmcore.relight import display_srgb
-
+def test_relit_texture_is_the_published_basis(folder, scene):
+    """The relit view shows the basis the run chose and published in web/, as its page does;
+    RTIViewer's modes stay the PTM's."""
     light = light_from_angles(120, 35)
-    rendered = render(load_source(folder), light)
-    np.testing.assert_array_equal(relit_texture(scene, light),
-                                  display_srgb(rendered) if scene.linear_ptm else rendered)
+    published = read_relightable(folder / "web")
+    assert scene.published is not None and scene.published.name == published.name
+    np.testing.assert_array_equal(relit_texture(scene, light), published.display(light))
+    np.testing.assert_array_equal(mode_colors(scene, "relit", light), published.display(light))
     other = relit_texture(scene, light_from_angles(300, 35))
     assert np.abs(other.astype(int) - relit_texture(scene, light)).mean() > 2
+    assert scene.coefficients is not None and "specular" in scene.modes
+    with pytest.raises(ValueError, match="horizon"):
+        relit_texture(scene, (0.3, 0.2, -0.5))
+
+
+def test_relit_texture_is_the_ptm_without_a_published_basis(folder, tmp_path):
+    """An older folder (web/ of the PTM itself, or none) shows its PTM relit, as before."""
+    from ptmcore.relight import display_srgb
+
+    copy = tmp_path / "old"
+    shutil.copytree(folder, copy)
+    viewer = json.loads((copy / "web" / "viewer.json").read_text())
+    del viewer["basis"]  # export_openlime's viewer.json names no basis
+    (copy / "web" / "viewer.json").write_text(json.dumps(viewer))
+    scene = load_scene(copy)
+    assert scene.published is None
+    light = light_from_angles(120, 35)
+    rendered = render(load_source(copy), light)
+    assert not isinstance(load_source(copy), PublishedBasis)
+    np.testing.assert_array_equal(relit_texture(scene, light),
+                                  display_srgb(rendered) if scene.linear_ptm else rendered)
+
+
+def test_a_linear_published_basis_is_shown_display_encoded(folder, tmp_path):
+    """A basis of linear light (its viewer.json says so) is encoded for display once, as its page
+    encodes it, whatever report.json says of the PTM."""
+    copy = tmp_path / "linear_basis"
+    shutil.copytree(folder, copy)
+    basis = dataclasses.replace(read_relightable(copy / "web"), encoding="linear")
+    export_relightable(copy / "web", basis, tiles=False)
+    scene = load_scene(copy)
+    assert scene.published.encoding == "linear" and not scene.linear_ptm
+    light = light_from_angles(120, 35)
+    read = read_relightable(copy / "web")
+    np.testing.assert_array_equal(relit_texture(scene, light), read.display(light))
+    raw = np.rint(np.clip(read.render(light), 0, 1) * 255)
+    assert relit_texture(scene, light).mean() > raw.mean() + 20  # not dark
+
+
+def test_a_published_basis_of_another_size_is_refused(folder, tmp_path):
+    copy = tmp_path / "mismatch"
+    shutil.copytree(folder, copy)
+    small = read_relightable(copy / "web", max_side=40)
+    export_relightable(copy / "web", small, tiles=False)
+    with pytest.raises(InputError, match="web/info.json is"):
+        load_scene(copy)
 
 
 @pytest.mark.parametrize("source", ["folder", "bare_ptm"])
 def test_a_linear_ptm_is_shown_display_encoded(folder, tmp_path, source):
     """A PTM whose report.json says it holds linear light (16-bit captures) is encoded as sRGB in
-    every lit view, in its output folder and as a .ptm beside that report."""
+    every lit view, in its output folder (without a published basis) and as a .ptm beside that
+    report."""
     from ptmcore.relight import display_srgb, specular_enhancement
 
     copy = tmp_path / "linear"
     shutil.copytree(folder, copy)
+    shutil.rmtree(copy / "web")
     report = json.loads((copy / "report.json").read_text())
     report.setdefault("ptm", {})["encoding"] = "linear"
     (copy / "report.json").write_text(json.dumps(report))
@@ -144,6 +196,16 @@ def test_large_sources_are_bounded(folder):
     assert small.normals.shape[:2] == small.coefficients.shape[:2]
     np.testing.assert_allclose(np.linalg.norm(small.normals, axis=-1), 1, atol=1e-5)
     assert relit_texture(small, (0, 0, 1)).shape == small.coefficients.shape[:2] + (3,)
+    # The published basis is read at the texture's size (a DCT-scaled decode) and averaged to
+    # it: the relit texture is the full-size one averaged, within a few levels.
+    import cv2
+
+    assert small.published.planes.shape[:2] == small.coefficients.shape[:2]
+    light = light_from_angles(60, 40)
+    full = read_relightable(folder / "web").display(light)
+    h, w = small.coefficients.shape[:2]
+    expected = cv2.resize(full, (w, h), interpolation=cv2.INTER_AREA).astype(int)
+    assert np.abs(relit_texture(small, light).astype(int) - expected).mean() < 3
 
 
 def test_lambert_relight_without_a_ptm():
@@ -493,6 +555,11 @@ def test_folder_without_ptm_relights_from_normals(folder, tmp_path):
     shutil.copytree(folder, copy)
     (copy / "coefficients.ptm").unlink()
     scene = load_scene(copy)
-    assert scene.coefficients is None and "relit" in scene.modes
+    # The published basis alone: relit, but no specular enhancement nor diffuse gain.
+    assert scene.coefficients is None and scene.published is not None
+    assert "relit" in scene.modes and "specular" not in scene.modes and "diffuse-gain" not in scene.modes
+    shutil.rmtree(copy / "web")
+    scene = load_scene(copy)
+    assert scene.coefficients is None and scene.published is None and "relit" in scene.modes
     a, b = relit_texture(scene, light_from_angles(0, 25)), relit_texture(scene, light_from_angles(180, 25))
     assert np.abs(a.astype(int) - b).mean() > 2

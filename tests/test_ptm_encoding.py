@@ -128,3 +128,18 @@ def test_ptm_file_of_16_bit_capture_is_display_encoded(capture16, tmp_path):
     shown = np.mean([_display_mean(p) for p in lights.paths])
     relit = np.mean([ptm.render(d).astype(np.float64).mean() for d in lights.directions])
     assert abs(relit - shown) < 0.08 * shown, (relit, shown)
+
+
+def test_a_run_from_a_linear_ptm_publishes_it_as_linear(capture16, tmp_path):
+    """`reconstruct run coefficients.ptm` of a run whose report.json says the PTM holds linear
+    light writes web/ saying so, so the page and `reconstruct relight` encode it for display."""
+    first = tmp_path / "first"
+    assert main(["run", str(capture16), "-o", str(first), "--ptm-encoding", "linear", "--outputs", "relight"]) == 0
+    again = tmp_path / "again"
+    assert main(["run", str(first / "coefficients.ptm"), "-o", str(again)]) == 0
+    assert json.loads((again / "web" / "viewer.json").read_text())["encoding"] == "linear"
+    plain = tmp_path / "plain"
+    (plain / "in").mkdir(parents=True)
+    (plain / "in" / "c.ptm").write_bytes((first / "coefficients.ptm").read_bytes())  # no report beside it
+    assert main(["run", str(plain / "in" / "c.ptm"), "-o", str(plain / "out")]) == 0
+    assert json.loads((plain / "out" / "web" / "viewer.json").read_text())["encoding"] == "srgb"

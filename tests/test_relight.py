@@ -3,12 +3,19 @@ import math
 
 import numpy as np
 import pytest
+from PIL import Image
 
+from ptmcore.errors import InputError
 from ptmcore.fit import fit_ptm, light_matrix
 from ptmcore.normals import normals_from_ptm, ptm_maximum
+from ptmcore.ptmfile import PTMFile, read_ptm, write_ptm
+from ptmcore.published import PublishedBasis
 from ptmcore.relight import diffuse_gain, light_angles, light_direction, relight, specular_enhancement
+from reconstruct.report.web import export_openlime, export_relightable
+from reconstruct.report.webread import read_relightable
+from reconstruct.viewer.relighting import load_source, render, renders, sweep_lights
 
-from helpers import dome, stack_from_luminance
+from helpers import dome, run_cli, stack_from_luminance
 
 S = math.sqrt(0.5)
 
@@ -321,3 +328,154 @@ def test_display_srgb_is_the_srgb_transfer_function():
     # Monotonic, black and white kept, mid-grey brightened as sRGB does (0.5 → 188).
     assert (np.diff(out.ravel().astype(int)) >= 0).all()
     assert out.ravel()[0] == 0 and out.ravel()[255] == 255 and out.ravel()[128] == 188
+
+
+# ---------------------------------------------------------------- reconstruct relight: the published basis
+
+
+def _published_basis(kind, h=30, w=40, encoding="srgb"):
+    """A small basis unlike the folder's PTM (so that which one was relit shows)."""
+    rng = np.random.default_rng(11)
+    rows, cols = np.mgrid[0:h, 0:w].astype(np.float32)
+    colour = np.stack([100 + 80 * np.sin(cols / 5), 120 + 60 * np.cos(rows / 4), np.full((h, w), 150.0)], -1)
+    if kind == "hsh3":
+        planes = 0.1 * rng.normal(size=(h, w, 9)).astype(np.float32)
+        planes[..., 0] += 1.2
+        planes[..., 1] += 0.8 * np.sin(cols / 3)  # relief that turns with the light
+        return PublishedBasis("hsh", "lrgb", planes, encoding, colour=colour.astype(np.uint8), order=3, name="hsh3")
+    d = 25
+    q, _ = np.linalg.qr(rng.normal(size=(3 * d, 4)))
+    basis = np.concatenate([rng.uniform(0.2, 0.5, (1, d, 3)), q.T.reshape(4, d, 3)]).astype(np.float32)
+    planes = np.stack([np.sin(cols / (3 + k) + k) * np.cos(rows / (4 + k)) for k in range(4)], -1)
+    return PublishedBasis("bln", "mrgb", planes.astype(np.float32), encoding, resolution=5, basis=basis,
+                          name="bilinear")
+
+
+def _ptm_coefficients(h=30, w=40):
+    """A grey PTM whose slope turns across the image (a PTM of one polynomial is refused)."""
+    coef = np.broadcast_to(np.float32([-40, -40, 0, 10, 5, 180]), (h, w, 6)).copy()
+    coef[..., 3] += 25 * np.sin(np.arange(w, dtype=np.float32) / 6)
+    return coef
+
+
+def _output_folder(root, kind="hsh3", encoding="srgb", ptm=True, tiles=False):
+    """An output folder as `reconstruct run` leaves it, in small: coefficients.ptm and web/."""
+    root.mkdir(parents=True, exist_ok=True)
+    if ptm:
+        write_ptm(root / "coefficients.ptm", _ptm_coefficients(), np.full((30, 40, 3), 200, np.uint8))
+    export_relightable(root / "web", _published_basis(kind, encoding=encoding), tiles=tiles)
+    return root
+
+
+def _png(path):
+    return np.asarray(Image.open(path).convert("RGB"))
+
+
+@pytest.mark.parametrize("encoding", ["srgb", "linear"])
+@pytest.mark.parametrize("kind", ["hsh3", "bln"])
+def test_relight_renders_the_published_basis_by_default(tmp_path, capsys, kind, encoding):
+    out = _output_folder(tmp_path / "out", kind, encoding)
+    light = light_direction(azimuth_deg=30, elevation_deg=40)
+    code, stdout, err = run_cli(["relight", out, "--light", ",".join(map(str, light)), "-o", tmp_path / "a.png"],
+                                capsys)
+    assert code == 0, err
+    assert f"(published basis {_published_basis(kind).name}, " in stdout
+    published = read_relightable(out / "web")
+    # As the page shows it: display-encoded once (a linear basis brighter than its values).
+    np.testing.assert_array_equal(_png(tmp_path / "a.png"), published.display(light))
+    if encoding == "linear":
+        raw = np.rint(np.clip(published.render(light), 0, 1) * 255)
+        assert _png(tmp_path / "a.png").mean() > raw.mean() + 10
+    # The web/ folder itself, or its info.json, renders the same.
+    for source in (out / "web", out / "web" / "info.json"):
+        code, _, err = run_cli(["relight", source, "--light", ",".join(map(str, light)), "-o", tmp_path / "b.png"],
+                               capsys)
+        assert code == 0, err
+        np.testing.assert_array_equal(_png(tmp_path / "b.png"), _png(tmp_path / "a.png"))
+    # --basis ptm renders the PTM (grey 200 everywhere: nothing like the basis).
+    code, stdout, err = run_cli(["relight", out, "--basis", "ptm", "--light", ",".join(map(str, light)), "-o",
+                                 tmp_path / "p.png"], capsys)
+    assert code == 0 and "(PTM)" in stdout, err
+    np.testing.assert_array_equal(_png(tmp_path / "p.png"), read_ptm(out / "coefficients.ptm").render(light))
+    assert np.abs(_png(tmp_path / "p.png").astype(int) - _png(tmp_path / "a.png")).mean() > 5
+
+
+def test_relight_modes_of_the_ptm_and_sweeps_of_the_basis(tmp_path, capsys):
+    out = _output_folder(tmp_path / "out")
+    # RTIViewer's modes are the PTM's, with the default --basis auto too.
+    code, _, err = run_cli(["relight", out, "--light", "0.5,0,0.8", "--mode", "specular", "-o", tmp_path / "s.png"],
+                           capsys)
+    assert code == 0, err
+    ptm = read_ptm(out / "coefficients.ptm")
+    np.testing.assert_array_equal(_png(tmp_path / "s.png"), render(ptm, light_direction(light=(0.5, 0, 0.8)),
+                                                                   "specular"))
+    # A sweep of the published basis: each frame is its display under that light.
+    code, _, err = run_cli(["relight", out, "--sweep", "4", "--elevation", "35", "-o", tmp_path / "turn.gif"], capsys)
+    assert code == 0, err
+    with Image.open(tmp_path / "turn.gif") as gif:
+        assert gif.n_frames == 4 and gif.size == (40, 30)
+    published = read_relightable(out / "web")
+    frames = list(renders(published, sweep_lights(4, 35.0)))
+    for frame, light in zip(frames, sweep_lights(4, 35.0)):
+        np.testing.assert_array_equal(frame, published.display(light))
+    assert np.abs(frames[0].astype(int) - frames[2]).mean() > 2  # the light turns
+    with pytest.raises(InputError, match="specular mode needs a PTM"):
+        renders(published, sweep_lights(2), "specular")
+
+
+def test_relight_falls_back_to_the_ptm(tmp_path, capsys):
+    # An older run: web/ holds the PTM itself (no basis named): coefficients.ptm is relit.
+    old = tmp_path / "old"
+    old.mkdir()
+    coef = _ptm_coefficients()
+    write_ptm(old / "coefficients.ptm", coef, np.full((30, 40, 3), 200, np.uint8))
+    export_openlime(old / "web", coef, np.full((30, 40, 3), 200, np.uint8))
+    assert isinstance(load_source(old), PTMFile)
+    # A run from a .ptm: no coefficients.ptm, web/ of that PTM: web/ is relit.
+    (old / "coefficients.ptm").unlink()
+    assert isinstance(load_source(old), PublishedBasis)
+    code, _, err = run_cli(["relight", old, "--light", "0,0,1", "--mode", "diffuse-gain", "-o", tmp_path / "x.png"],
+                           capsys)
+    assert code == 2 and "no coefficients.ptm" in err and err.count("\n") == 1
+    # No web/ and no PTM.
+    (tmp_path / "empty").mkdir()
+    code, _, err = run_cli(["relight", tmp_path / "empty", "--light", "0,0,1", "-o", tmp_path / "x.png"], capsys)
+    assert code == 2 and "no web/ and no coefficients.ptm" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("source", "args", "needles"),
+    [
+        ("web", ["--mode", "specular"], ["web", "specular mode", "coefficients.ptm"]),
+        ("web/info.json", ["--mode", "diffuse-gain"], ["info.json", "diffuse-gain mode"]),
+        ("web", ["--basis", "hsh"], ["--basis hsh", "give the output folder"]),
+        ("broken", [], ["info.json", "malformed info.json"]),
+        ("missing_plane", [], ["plane_1.jpg", "missing"]),
+    ],
+)
+def test_relight_bad_web_sources(tmp_path, capsys, source, args, needles):
+    out = _output_folder(tmp_path / "out")
+    if source == "broken":
+        (out / "web" / "info.json").write_text('{"width": 40, "height": 3')
+        source = "."
+    if source == "missing_plane":
+        (out / "web" / "plane_1.jpg").unlink()
+        source = "."
+    code, _, err = run_cli(["relight", out / source, "--light", "0,0,1", *args, "-o", tmp_path / "x.png"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, (needle, err)
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_relight_a_tiled_basis(tmp_path, capsys):
+    """A pyramid (large images) is read whole for `relight`: the tiles stitched back."""
+    out = _output_folder(tmp_path / "out", "bln", tiles=True)
+    assert (out / "web" / "plane_0.dzi").is_file()
+    code, _, err = run_cli(["relight", out, "--azimuth", "200", "--elevation", "30", "-o", tmp_path / "t.png"],
+                           capsys)
+    assert code == 0, err
+    light = light_direction(azimuth_deg=200, elevation_deg=30)
+    expected = _published_basis("bln").display(light)
+    assert np.abs(_png(tmp_path / "t.png").astype(int) - expected).mean() < 2
+    np.testing.assert_array_equal(_png(tmp_path / "t.png"), read_relightable(out).display(light))

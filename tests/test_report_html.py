@@ -2,6 +2,7 @@
 the order a person reads them (summary, pictures, files, parameters)."""
 
 import base64
+import html
 import io
 import json
 import re
@@ -169,10 +170,14 @@ def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     assert "report" in json.loads((out / "comparison.json").read_text())["stages"]
     assert "report" not in report["stages"]
     assert "accuracy" in report and "height_rmse_mm" in checker.in_section("parameters")
-    # The renderings of a PTM of linear light say they are encoded for display (report.json
-    # says which the PTM holds: sRGB by default, linear with --ptm-encoding linear).
-    assert report["ptm"]["encoding"] in ("sRGB", "linear")
-    assert ("shown sRGB-encoded" in text) == (report["ptm"]["encoding"] == "linear")
+    # The relit renderings are of the basis the run chose and published in web/, named as
+    # report.json's relighting section names it; a basis of linear light says it is encoded
+    # for display.
+    chosen = report["relighting"]
+    relit = " ".join(checker.text).split("Relit under several lights")[1].split("Specular enhancement, albedo")[0]
+    assert f"published in web/, {report_figures.basis_words(chosen['name'])} (chosen by {chosen['chosen_by']})" \
+        in relit, relit
+    assert ("shown sRGB-encoded" in relit) == (chosen["encoding"] == "linear")
 
 
 def test_compare_into_another_folder_and_escaping(scanned, tmp_path):
@@ -366,3 +371,58 @@ def test_comparison_json_times_its_reading_of_the_scan(scanned):
     throwaway timer)."""
     _, out = scanned
     assert list(json.loads((out / "comparison.json").read_text())["stages"])[:2] == ["read", "align"]
+
+
+def _relit_images(text):
+    """The relit section's pictures, decoded, by their captions."""
+    section = text.split('<section id="relit">')[1].split("</section>")[0]
+    found = re.findall(r'<img src="data:image/jpeg;base64,([A-Za-z0-9+/=]+)" alt="([^"]*)"', section)
+    return {alt: np.asarray(Image.open(io.BytesIO(base64.b64decode(data))).convert("RGB")) for data, alt in found}
+
+
+@pytest.mark.parametrize("encoding", ["srgb", "linear"])
+def test_relit_pictures_are_the_published_basis(scanned, tmp_path, encoding):
+    """The relit pictures render the basis of web/ as its page shows it, captioned with its name
+    and how report.json says it was chosen; without a published basis, the PTM; an unreadable
+    web/ is a note and the PTM."""
+    import shutil
+    from dataclasses import replace
+
+    from reconstruct.report.web import export_relightable
+    from reconstruct.report.webread import read_relightable
+
+    _, out = scanned
+    copy = tmp_path / "out"
+    shutil.copytree(out, copy)
+    basis = read_relightable(copy / "web")
+    hsh = replace(basis, type="hsh", colorspace="lrgb", order=2, name="hsh2", encoding=encoding,
+                  colour=np.full(basis.shape + (3,), 180, np.uint8),
+                  planes=np.stack([np.full(basis.shape, 1.8), *(0.3 * np.sin(np.arange(basis.shape[1]) / (4 + k))
+                                   * np.ones(basis.shape) for k in range(3))], -1).astype(np.float32),
+                  basis=None, lights=None, sigma=None, resolution=None)
+    export_relightable(copy / "web", hsh, tiles=False)
+    report = json.loads((copy / "report.json").read_text())
+    report["relighting"].update(name="hsh2", encoding=encoding, chosen_by="leave-one-out")
+    text = html.unescape(report_html(copy, report=report))
+    assert "The relighting basis published in web/, HSH order 2 (chosen by leave-one-out)" in text
+    assert ("fitted to linear light and shown sRGB-encoded" in text) == (encoding == "linear")
+    shown = _relit_images(text)
+    expected = dict(report_figures.relit_from_basis(copy / "web"))
+    assert set(shown) == set(expected) == {label for label, _, _ in report_figures.RELIGHT_LIGHTS}
+    for label, image in expected.items():
+        assert image.shape == shown[label].shape and max(image.shape) <= report_figures.RELIT_SIDE
+        assert np.abs(shown[label].astype(int) - image).mean() < 2, label  # the page's JPEG
+    # A basis asked for is said so.
+    report["relighting"]["chosen_by"] = "asked"
+    assert "HSH order 2 (as asked: --basis)" in report_html(copy, report=report)
+    # web/ of the PTM itself (no basis named): the PTM's renderings, as before.
+    viewer = json.loads((copy / "web" / "viewer.json").read_text())
+    (copy / "web" / "viewer.json").write_text(json.dumps({k: v for k, v in viewer.items() if k != "basis"}))
+    text = html.unescape(report_html(copy, report=report))
+    assert "RTIViewer's default rendering of coefficients.ptm" in text and "published in web/" not in text
+    # An unreadable web/: a note, and the PTM's renderings.
+    (copy / "web" / "viewer.json").write_text(json.dumps(viewer))
+    (copy / "web" / "plane_1.jpg").write_bytes(b"not a jpeg")
+    text = html.unescape(report_html(copy, report=report))
+    assert "no renderings of web/" in text and "plane_1.jpg" in text
+    assert "RTIViewer's default rendering of coefficients.ptm" in text

@@ -59,8 +59,10 @@ Flattening = Literal["plane", "poly2", "poly3", "highpass"]
 #: Whether photographs displaced by the camera's drift are resampled onto one frame.
 Align = Literal["auto", "off"]
 #: The relighting basis published in web/ (ptmcore.bases.NAMES); auto: the one that predicts
-#: left-out photographs best, among those OpenLIME renders (ptmcore.bases.AUTO).
-Basis = Literal["auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear"]
+#: left-out photographs best among the candidates.
+Basis = Literal["auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear", "neural"]
+#: The candidates of ``basis="auto"`` (ptmcore.bases.CANDIDATES).
+BasisCandidates = Literal["standard", "openlime", "all"]
 #: What the published basis is fitted to; auto: chosen with the basis, by the same score.
 BasisEncoding = Literal["auto", "srgb", "linear"]
 #: What a run writes: everything, or only the relightable files (no normals, height or meshes).
@@ -214,11 +216,16 @@ class RunOptions:
     ptm_format : {"lrgb", "rgb"}
         Format of ``coefficients.ptm``: one luminance polynomial and a colour per pixel, or
         one polynomial per channel.
-    basis : {"auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear"}
+    basis : {"auto", "ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear", "neural"}
         The relighting basis of ``web/`` (the page, OpenLIME's files), the report's relit
         pictures and ``reconstruct relight`` (:mod:`ptmcore.bases`). ``"auto"`` (default): the
-        basis that predicts each photograph left out of its fit best, measured on the capture,
-        among those OpenLIME renders too (``hsh4`` only when asked for).
+        candidate (``basis_candidates``) that predicts each photograph left out of its fit
+        best, measured on the capture.
+    basis_candidates : {"standard", "openlime", "all"}
+        What ``"auto"`` chooses from (:data:`ptmcore.bases.CANDIDATES`): every basis fitted in
+        seconds (default; ``hsh4`` is shown by this project's page, not by OpenLIME), those
+        OpenLIME shows too, or all of them with the learned ``neural`` basis (its training
+        adds tens of seconds, whatever the image size).
     basis_encoding : {"auto", "srgb", "linear"}
         What the published basis is fitted to: the photographs display-encoded (as relight and
         RTIBuilder fit them), or linear light, which the page encodes for display; ``"auto"``:
@@ -235,7 +242,7 @@ class RunOptions:
         The {1}-inverse of the PTM light matrix (ptmcore.solvers); pinv gives the
         least-squares, minimum-norm fit.
     loo : bool
-        Measure how well each relighting basis (PTM, HSH of orders 2 and 3) predicts every
+        Measure how well each relighting basis (PTM, HSH of orders 2–4, RBF, bilinear) predicts every
         photograph left out of its fit: ``loo_<basis>.tif`` maps and their RMS in report.json.
     fit : {"lobe", "irls", "trimmed", "plain"}
         How each pixel's samples are weighted: robustly (Tukey IRLS, or 0/1 trimming, leaving
@@ -354,6 +361,7 @@ class RunOptions:
     flat_field: Path | None = None
     reference_region: str | None = None
     basis: Basis = "auto"
+    basis_candidates: BasisCandidates = "standard"
     basis_encoding: BasisEncoding = "auto"
     outputs: Outputs = "all"
 

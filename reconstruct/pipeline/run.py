@@ -304,7 +304,7 @@ def run_capture(
                                 found.normals, warnings)
         loo = None
         if opt.loo:
-            with stages("loo", 3 * h) as advance:
+            with stages("loo", (5 + (len(loaded.lights.directions) > 16)) * h) as advance:
                 loo = leave_one_out(loaded, mask, staged.staging, threads=opt.threads, progress=advance)
         inputs = _capture_inputs(loaded, mask, opt)
         # The page's contact sheet from the decoded photographs: decoding eight 24-megapixel
@@ -385,7 +385,10 @@ def run_ptm(
         with stages("normals", h):
             normals, texture = _ptm_normals_and_texture(ptm, opt.threads)
         mask = resolve_mask(opt.mask, mask, texture.astype(np.float32) / 255, normals, warnings)
-        web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size)
+        # A run's own coefficients.ptm may hold linear light (its report.json says): the page encodes it.
+        encoding = "linear" if figures.holds_linear_light(ptm_path) else "srgb"
+        web = [] if ptm.rgb is None else web_export(staged.staging, ptm.coefficients, ptm.rgb, opt.pixel_size,
+                                                    encoding)
         height, mesh, names, end_write = _surface_and_files(normals, texture, mask, opt, staged, stages, writer)
         inputs = PtmInputs(str(ptm_path.resolve()), ptm.format, w, h, _mask_source(opt.mask, mask))
         report = RunReport(inputs, _parameters(opt, mesh.step), mesh.unit, mesh, {}, "", warnings,

@@ -33,7 +33,7 @@ from ptmcore.lp import LightSet
 from ptmcore.png import write_png
 from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
 from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
-from ptmcore.bases import AUTO, ENCODINGS, BasisChoice, choose_basis, fit_published
+from ptmcore.bases import CANDIDATES, ENCODINGS, BasisChoice, choose_basis, fit_published
 from ptmcore.ptmencoded import EncodedFits
 from ptmcore import (
     debiased_normals,
@@ -306,8 +306,9 @@ def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.P
     """Choose the relighting basis (``options.basis``, ``options.basis_encoding``), fit it to
     the stack and write it as ``web/``: OpenLIME's files and the page.
 
-    ``"auto"`` scores every candidate on the capture by leave-one-out error
-    (:func:`ptmcore.bases.choose_basis`); the choice and every score go into report.json.
+    ``"auto"`` scores every candidate of ``options.basis_candidates`` on the capture by
+    leave-one-out error (:func:`ptmcore.bases.choose_basis`); the choice and every score go
+    into report.json.
 
     Returns
     -------
@@ -316,9 +317,10 @@ def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.P
     choice : BasisChoice
     """
     directions = capture.lights.directions
-    candidates = AUTO if options.basis == "auto" else (options.basis,)
+    candidates = CANDIDATES[options.basis_candidates] if options.basis == "auto" else (options.basis,)
     encodings = ENCODINGS if options.basis_encoding == "auto" else (options.basis_encoding,)
-    choice = choose_basis(capture.stack, directions, candidates=candidates, encodings=encodings, mask=capture.mask)
+    choice = choose_basis(capture.stack, directions, candidates=candidates, encodings=encodings, mask=capture.mask,
+                          threads=options.threads)
     basis = fit_published(capture.stack, directions, choice.name, choice.encoding, threads=options.threads,
                           progress=progress)
     folder = Path(folder)
@@ -336,23 +338,32 @@ def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_si
 
 def leave_one_out(capture: Capture, mask: np.ndarray | None, folder: str | os.PathLike, *,
                   threads: int | None = None, progress: Advance | None = None) -> dict:
-    """Leave-one-out relighting error of PTM and HSH bases: ``loo_<basis>.tif`` maps written
-    into ``folder``, their RMS returned.
+    """Leave-one-out relighting error of each basis of luminance: ``loo_<basis>.tif`` maps
+    written into ``folder``, their RMS returned.
 
-    Errors are in 8-bit sRGB levels, which is how the differences would look on screen.
+    PTM and HSH of orders 2 to 4 (order 4 with more than 16 photographs) by their exact
+    leave-one-out residuals, RBF and bilinear by interpolating the other photographs
+    (:func:`ptmcore.loo.loo_interpolated`). Errors are in 8-bit sRGB levels, which is how the
+    differences would look on screen.
     """
     import tifffile
 
     from ptmcore.images import linear_to_srgb
-    from ptmcore.loo import loo_hsh, loo_ptm
+    from ptmcore.interpolation import DEFAULT_RESOLUTION, bilinear_loo_matrix, default_sigma, rbf_loo_matrix
+    from ptmcore.loo import loo_hsh, loo_interpolated, loo_ptm
 
     def levels(v: np.ndarray) -> np.ndarray:
         return 255.0 * linear_to_srgb(v)
 
     stack, directions = capture.stack, capture.lights.directions
+    sigma = default_sigma(directions)
     bases = {"ptm": lambda **kw: loo_ptm(stack, directions, **kw)}
-    for order in (2, 3):
-        bases[f"hsh{order}"] = lambda order=order, **kw: loo_hsh(stack, directions, order, **kw)
+    for order in (2, 3, 4):
+        if len(directions) > order * order:
+            bases[f"hsh{order}"] = lambda order=order, **kw: loo_hsh(stack, directions, order, **kw)
+    bases["rbf"] = lambda **kw: loo_interpolated(stack, rbf_loo_matrix(directions, sigma), **kw)
+    bases["bilinear"] = lambda **kw: loo_interpolated(
+        stack, bilinear_loo_matrix(directions, DEFAULT_RESOLUTION, sigma), **kw)
     result = {}
     for name, compute in bases.items():
         rms_map, rms = compute(mask=mask, transform=levels, threads=threads, progress=progress)

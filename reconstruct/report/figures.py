@@ -10,6 +10,7 @@ NumPy images ``(H, W, 3)`` uint8, or encoded bytes where a plotting library make
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 from collections.abc import Sequence
@@ -24,6 +25,7 @@ from ptmcore.errors import InputError, open_input_file
 from ptmcore.images import ImageStack, linear_to_srgb, srgb_to_linear
 from ptmcore.png import encode_png
 from ptmcore.ptmfile import PTMFile
+from ptmcore.published import PublishedBasis
 from ptmcore.relight import light_direction
 
 from reconstruct.report import plots, rendering
@@ -41,6 +43,10 @@ PREVIEW_SIDE = 960
 #: file: about three screen pixels per grid cell in the 900-pixel render, which smooth shading
 #: hides, at half the render time of 600.
 MESH_RENDER_SIDE = 320
+
+#: Longest side of the report's relit renderings, pixels (the PTM's subsample, the published
+#: basis' renderings).
+RELIT_SIDE = 480
 
 #: The lights of the relit renderings: (label, azimuth °, elevation °). Azimuth 0° is light
 #: from the right, 90° from the top (``ptmcore.relight.light_direction``).
@@ -117,6 +123,23 @@ def linear_ptm(report: dict | None) -> bool:
     """Whether a run's PTM holds linear light (fitted to 16-bit photographs), as its
     ``report.json`` says: its renderings are then encoded as sRGB for display."""
     return ((report or {}).get("ptm") or {}).get("encoding") == "linear"
+
+
+def holds_linear_light(source: str | os.PathLike) -> bool:
+    """Whether a relightable file, or an output folder's, holds linear light.
+
+    Its run's ``report.json`` (in the folder, or beside the file) says so in ``ptm.encoding``
+    (``--ptm-encoding linear``, and 16-bit captures before their files were display-encoded);
+    renderings of it are then encoded as sRGB for display
+    (:func:`ptmcore.relight.display_srgb`). A file without a report is taken as display-encoded,
+    as RTIViewer takes it.
+    """
+    source = Path(source)
+    try:
+        report = json.loads(((source if source.is_dir() else source.parent) / "report.json").read_text("utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(report, dict) and linear_ptm(report)
 
 
 def encode(image: np.ndarray, fmt: str = "PNG", quality: int = 85) -> bytes:
@@ -249,6 +272,33 @@ def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, lin
 
     small = ptm if isinstance(ptm, PTMFile) else read_ptm(ptm, max_side=max_side)
     return [(label, for_display(small.render(light_direction(azimuth_deg=az, elevation_deg=el)), linear))
+            for label, az, el in RELIGHT_LIGHTS]
+
+
+#: The published bases as a caption names them (``reconstruct run --basis``'s names).
+BASIS_WORDS = {"ptm": "PTM", "hsh2": "HSH order 2", "hsh3": "HSH order 3", "hsh4": "HSH order 4",
+               "rbf": "RBF interpolation of the photographs", "bilinear": "bilinear interpolation of the photographs"}
+
+
+def basis_words(name: str) -> str:
+    """A relighting basis' name in words: ``"hsh3"`` → ``"HSH order 3"`` (a name it does not
+    know, as it is)."""
+    return BASIS_WORDS.get(name, name)
+
+
+def relit_from_basis(basis: str | os.PathLike | PublishedBasis, max_side: int = 480) -> list[tuple[str, np.ndarray]]:
+    """A published relighting basis rendered as its page renders it (display-encoded, whatever
+    its encoding) under :data:`RELIGHT_LIGHTS`, at most ``max_side`` pixels on the longer side.
+
+    A ``web/`` folder is read at the size the pictures need
+    (:func:`reconstruct.report.webread.read_relightable` with ``max_side``: a pyramid level or
+    DCT-scaled planes, up to twice ``max_side``), so a basis of any size costs about the same;
+    each rendering is then area-averaged to ``max_side``.
+    """
+    from reconstruct.report.webread import read_relightable
+
+    small = basis if isinstance(basis, PublishedBasis) else read_relightable(basis, max_side=max_side)
+    return [(label, fit_side(small.display(light_direction(azimuth_deg=az, elevation_deg=el)), max_side))
             for label, az, el in RELIGHT_LIGHTS]
 
 

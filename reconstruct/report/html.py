@@ -2,7 +2,8 @@
 
 It reads top to bottom as a condition report would: a summary in words (the object, its size
 and relief depth, how the surface was made, its accuracy when known, and the warnings, first);
-then the pictures (relit renderings, specular enhancement, albedo, normal map, height map and
+then the pictures (relit renderings — of the relighting basis published in ``web/`` when the
+run chose one, else of the PTM —, specular enhancement, albedo, normal map, height map and
 its profile, the textured mesh at a stated vertical exaggeration, the lights, the photographs,
 the comparison with a scan); then the files written, each with what it is and what opens it;
 and last, folded, the technical parameters and timings.
@@ -236,12 +237,44 @@ def _ptm_preview(files: _Folder, report: dict, notes: list[str]):
 
     # Only a subsample is decoded: for a run from a .ptm file this re-reads the source file,
     # at the cost of the subsample.
-    return _attempt(lambda: (ptm.name, read_ptm(ptm, max_side=480)), f"renderings of {ptm.name}", notes)
+    return _attempt(lambda: (ptm.name, read_ptm(ptm, max_side=figures.RELIT_SIDE)), f"renderings of {ptm.name}",
+                    notes)
 
 
-def _relit(report: dict, previews: figures.Previews, ptm) -> str:
+def _published_preview(files: _Folder, notes: list[str]):
+    """The relighting basis the run published in ``web/`` (the one chosen for the capture), read
+    at the pictures' size, or None (none published, or unreadable: a note says so)."""
+    from reconstruct.report.webread import published_folder, read_relightable
+
+    def read():
+        info = files.find("web/info.json")
+        web = None if info is None else published_folder(info.parent.parent)
+        return None if web is None else read_relightable(web, max_side=figures.RELIT_SIDE)
+
+    return _attempt(read, "renderings of web/", notes)
+
+
+def _basis_caption(report: dict, basis) -> str:
+    """The published basis in words, and how it was chosen, from report.json's ``relighting``:
+    ``"HSH order 3 (chosen by leave-one-out)"``."""
+    chosen = report.get("relighting") or {}
+    words = figures.basis_words(basis.name or basis.type)
+    how = chosen.get("chosen_by") if chosen.get("name") in (None, basis.name) else None
+    if how == "asked":
+        words += " (as asked: --basis)"
+    elif isinstance(how, str) and how:
+        words += f" (chosen by {how})"
+    if basis.encoding == "linear":
+        words += ", fitted to linear light and shown sRGB-encoded"
+    return words
+
+
+def _relit(report: dict, previews: figures.Previews, ptm, published=None) -> str:
     linear = figures.linear_ptm(report)
-    if ptm is not None:
+    if published is not None:
+        images = figures.relit_from_basis(published, figures.RELIT_SIDE)
+        how = f"The relighting basis published in web/, {_basis_caption(report, published)}, as its page shows it"
+    elif ptm is not None:
         name, small = ptm
         images = figures.relit_from_ptm(small, linear=linear)
         how = f"RTIViewer's default rendering of {name}" + (
@@ -597,8 +630,10 @@ def report_html(
         with ThreadPoolExecutor(max_workers=1) as render:
             mesh_section = render.submit(_mesh, files, report, previews, extent, mesh_notes)
             ptm = _ptm_preview(files, report, notes)
+            published = _published_preview(files, notes)
             pictures.append(("relit", "Relit under several lights",
-                             _attempt(lambda: _relit(report, previews, ptm), "relit renderings", notes, _note)))
+                             _attempt(lambda: _relit(report, previews, ptm, published), "relit renderings", notes,
+                                      _note)))
             pictures.append(("surface", "Specular enhancement, albedo and normals", _surface(report, previews, ptm, notes)))
             pictures.append(("maps", "Height map and profile", _height(report, previews, notes)))
             if photographs is None:

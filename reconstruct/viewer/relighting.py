@@ -1,14 +1,19 @@
-"""``reconstruct relight``: render a PTM or HSH file under any light, or a sweep as a GIF.
+"""``reconstruct relight``: render a relightable image under any light, or a sweep as a GIF.
 
-The maths is in :mod:`ptmcore.relight` (RTIViewer's default rendering, specular enhancement
-and diffuse gain); this module finds the PTM of a source, converts RGB-format PTMs for the
-modes that need a single luminance polynomial, and writes images and animations.
+A source is the relighting basis an output folder publishes in ``web/`` (the one chosen for the
+capture, ``reconstruct run --basis``: PTM, HSH, RBF or bilinear; read by
+:func:`reconstruct.report.webread.read_relightable`), a ``web/`` folder itself, or a PTM or HSH
+file (``coefficients.ptm``, ``coefficients.rti``, or any ``.ptm``/``.rti``). The published basis
+renders as its page shows it (:meth:`ptmcore.published.PublishedBasis.display`); PTM and HSH files
+in RTIViewer's modes, whose maths is in :mod:`ptmcore.relight` (default rendering, specular
+enhancement and diffuse gain — the last two defined on the PTM's biquadratic, so they always
+render a PTM). This module finds what a source holds, converts RGB-format PTMs for the modes that
+need a single luminance polynomial, and writes images and animations.
 """
 
 from __future__ import annotations
 
 import io
-import json
 import os
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
@@ -20,6 +25,7 @@ from ptmcore.colourtags import srgb_save_options
 from ptmcore.errors import InputError
 from ptmcore.normals import normals_from_ptm
 from ptmcore.ptmfile import PTMFile, read_ptm
+from ptmcore.published import PublishedBasis
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
     DEFAULT_GAIN,
@@ -28,12 +34,19 @@ from ptmcore.relight import (
     as_lrgb,
     check_parameters,
     diffuse_gain,
+    light_direction,
     relight,
     specular_enhancement,
 )
 from ptmcore.rtifile import RTIFile, read_rti_hsh
 
 MODES = ("default", "specular", "diffuse-gain")
+#: What ``--basis`` picks in an output folder: ``auto`` the basis published in ``web/`` (else
+#: ``coefficients.ptm``), ``ptm`` its ``coefficients.ptm``, ``hsh`` its ``coefficients.rti``.
+BASES = ("auto", "ptm", "hsh")
+
+#: A relightable image as read: a PTM or HSH file, or a published basis.
+Relightable = PTMFile | RTIFile | PublishedBasis
 #: The most frames of a sweep: one per degree, a turn of 29 s at :func:`write_gif`'s pace.
 #: Every frame is a full rendering, and the GIF holds them all.
 MAX_SWEEP = 360
@@ -44,44 +57,98 @@ MAX_SWEEP_PIXELS = 2**31
 MAX_GIF_SIDE = 65535
 
 
-def holds_linear_light(source: str | os.PathLike) -> bool:
-    """Whether a relightable file, or an output folder's, holds linear light.
+def _web_source(source: Path) -> bool:
+    """Whether ``source`` is a ``web/`` folder itself or its ``info.json``."""
+    return (source.is_dir() and (source / "info.json").is_file()) or source.suffix.lower() == ".json"
 
-    Its run's ``report.json`` (in the folder, or beside the file) says so in ``ptm.encoding``
-    (``--ptm-encoding linear``, and 16-bit captures before their files were display-encoded);
-    renderings of it are then encoded as sRGB for display
-    (:func:`ptmcore.relight.display_srgb`). A file without a report is taken as display-encoded,
-    as RTIViewer takes it.
+
+def load_source(source: str | os.PathLike, basis: str = "auto", *, mode: str = "default") -> Relightable:
+    """Read what ``reconstruct relight`` renders.
+
+    Parameters
+    ----------
+    source : str or os.PathLike
+        A ``.ptm`` or HSH ``.rti`` file; a ``web/`` folder (or its ``info.json``), read as its
+        published basis; or an output folder of ``reconstruct run``, read as ``basis`` says.
+    basis : {"auto", "ptm", "hsh"}
+        In an output folder: ``"auto"`` the basis published in its ``web/`` (the one chosen for
+        the capture, :func:`reconstruct.report.webread.published_folder`), else its
+        ``coefficients.ptm``, else a ``web/`` of the PTM itself (a run from a ``.ptm`` file);
+        ``"ptm"`` its ``coefficients.ptm``; ``"hsh"`` its ``coefficients.rti``. A file is read
+        as what it is.
+    mode : {"default", "specular", "diffuse-gain"}
+        The rendering asked for: specular enhancement and diffuse gain are defined on a PTM's
+        biquadratic, so with ``"auto"`` they take the folder's ``coefficients.ptm``.
+
+    Returns
+    -------
+    PTMFile, RTIFile or PublishedBasis
+
+    Raises
+    ------
+    InputError
+        If the source is missing or unreadable, the folder holds nothing of what is asked, or
+        the mode needs a PTM and the source is a ``web/`` folder.
+    ValueError
+        For a ``basis`` or ``mode`` not among :data:`BASES` and :data:`MODES`.
     """
-    from reconstruct.report.figures import linear_ptm
+    from reconstruct.report.webread import find_web_folder, published_folder, read_relightable
 
+    if basis not in BASES:
+        raise ValueError(f"unknown basis {basis!r}; choose from {', '.join(BASES)}")
+    if mode not in MODES:
+        raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
     source = Path(source)
-    try:
-        report = json.loads(((source if source.is_dir() else source.parent) / "report.json").read_text("utf-8"))
-    except (OSError, ValueError):
-        return False
-    return isinstance(report, dict) and linear_ptm(report)
-
-
-def load_source(source: str | os.PathLike, basis: str = "ptm") -> PTMFile | RTIFile:
-    """Read a relightable file: a ``.ptm`` or HSH ``.rti`` file, or from an output folder of
-    ``reconstruct run`` its ``coefficients.ptm`` (``basis="ptm"``) or ``coefficients.rti``
-    (``basis="hsh"``)."""
-    source = Path(source)
+    if not source.exists():
+        raise InputError("not found", source)
+    if _web_source(source):
+        if basis != "auto":
+            raise InputError(f"--basis {basis} picks a file of an output folder; this is a web/ folder, "
+                             "whose published basis is read as it is: give the output folder", source)
+        if mode != "default":
+            raise InputError(f"the {mode} mode is RTIViewer's, defined on a PTM's polynomial, and a web/ folder "
+                             "holds only the published basis: give the output folder (its coefficients.ptm) "
+                             "or a .ptm file", source)
+        return read_relightable(source)
     if source.is_dir():
+        if basis == "auto" and mode == "default":
+            web = published_folder(source)
+            if web is not None:
+                return read_relightable(web)
         name = "coefficients.rti" if basis == "hsh" else "coefficients.ptm"
         candidate = source / name
         if not candidate.is_file():
+            web = find_web_folder(source)
+            if basis == "auto" and mode == "default" and web is not None:
+                return read_relightable(web)  # a run from a .ptm file: web/ holds that PTM
+            if mode != "default":
+                raise InputError(f"no {name} in this folder, and the {mode} mode is RTIViewer's, defined on a "
+                                 "PTM's polynomial: give a .ptm file", source)
             hint = " (run with --hsh to write it)" if basis == "hsh" else ""
-            raise InputError(f"no {name} in this folder{hint}; give a .ptm or .rti file or an output folder", source)
+            where = "no web/ and " if basis == "auto" and web is None else ""
+            raise InputError(f"{where}no {name} in this folder{hint}; give a .ptm or .rti file, a web/ folder "
+                             "or an output folder", source)
         source = candidate
-    elif not source.exists():
-        raise InputError("not found", source)
     return read_rti_hsh(source) if source.suffix.lower() == ".rti" else read_ptm(source)
 
 
+def image_size(image: Relightable) -> tuple[int, int]:
+    """``(width, height)`` of a relightable image as read by :func:`load_source`."""
+    if isinstance(image, PublishedBasis):
+        return image.shape[1], image.shape[0]
+    return image.width, image.height
+
+
+def describe(image: Relightable) -> str:
+    """What was relit, in a few words: ``"published basis hsh3, sRGB"``, ``"PTM"``."""
+    if isinstance(image, PublishedBasis):
+        encoding = "linear light encoded for display" if image.encoding == "linear" else "sRGB"
+        return f"published basis {image.name or image.type}, {encoding}"
+    return "HSH file" if isinstance(image, RTIFile) else "PTM"
+
+
 def render(
-    ptm: PTMFile | RTIFile,
+    ptm: Relightable,
     light: np.ndarray,
     mode: str = "default",
     *,
@@ -90,12 +157,13 @@ def render(
     exponent: float = DEFAULT_EXPONENT,
     gain: float = DEFAULT_GAIN,
 ) -> np.ndarray:
-    """Render a PTM under one light in one of RTIViewer's modes.
+    """Render a relightable image under one light: a published basis as its page shows it, a PTM
+    or HSH file in one of RTIViewer's modes.
 
     Parameters
     ----------
-    ptm : PTMFile or RTIFile
-        A PTM (every mode) or an HSH file (default mode).
+    ptm : PTMFile, RTIFile or PublishedBasis
+        A PTM (every mode), an HSH file or a published basis (default mode).
     light : ndarray, shape (3,)
         Unit vector towards the light.
     mode : {"default", "specular", "diffuse-gain"}
@@ -107,12 +175,14 @@ def render(
     Returns
     -------
     ndarray, shape (H, W, 3), uint8
+        A published basis' image is display-encoded (sRGB) whatever its encoding; a file's is
+        in the file's values (:func:`reconstruct.report.figures.holds_linear_light` says whether to encode them).
     """
     return next(renders(ptm, [light], mode, kd=kd, ks=ks, exponent=exponent, gain=gain))
 
 
 def renders(
-    ptm: PTMFile | RTIFile,
+    ptm: Relightable,
     lights: Sequence[np.ndarray],
     mode: str = "default",
     *,
@@ -121,7 +191,8 @@ def renders(
     exponent: float = DEFAULT_EXPONENT,
     gain: float = DEFAULT_GAIN,
 ) -> Iterator[np.ndarray]:
-    """Render a PTM under each of several lights (a sweep's frames), as :func:`render` does.
+    """Render a relightable image under each of several lights (a sweep's frames), as
+    :func:`render` does.
 
     What does not depend on the light is done once, when this is called: an RGB-format PTM's
     conversion to LRGB, the diffuse gain's coefficients and, for more than one light, the
@@ -131,7 +202,7 @@ def renders(
 
     Parameters
     ----------
-    ptm : PTMFile or RTIFile
+    ptm : PTMFile, RTIFile or PublishedBasis
     lights : sequence of ndarray, shape (3,)
         Unit vectors towards the lights.
     mode, kd, ks, exponent, gain
@@ -147,11 +218,18 @@ def renders(
     ValueError
         For an unknown mode, or a parameter out of its range
         (:func:`ptmcore.relight.check_parameters`), before any work.
+    InputError
+        For the specular or diffuse-gain mode of an HSH file or a published basis.
     """
     # Before the long work (the conversion to LRGB, the maxima), not in the first frame.
     check_parameters(kd=kd, ks=ks, exponent=exponent, gain=gain)
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    if isinstance(ptm, PublishedBasis):
+        if mode != "default":
+            raise InputError(f"the {mode} mode needs a PTM; the published basis {ptm.name or ptm.type} renders "
+                             "in the default mode only")
+        return (ptm.display(light_direction(light=light)) for light in lights)
     if isinstance(ptm, RTIFile):
         if mode != "default":
             raise InputError(f"the {mode} mode needs a PTM; an HSH file renders in the default mode only")

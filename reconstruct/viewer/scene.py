@@ -8,8 +8,11 @@ stays fast enough to follow a slider. The window itself is in :mod:`reconstruct.
 
 View modes:
 
-* ``relit``: the PTM relit as RTIViewer's default rendering (:func:`ptmcore.relight.relight`),
-  or, without a PTM, Lambertian shading of the albedo by the normals;
+* ``relit``: the relighting basis the output folder publishes in ``web/`` (the one chosen for
+  the capture, ``reconstruct run --basis``), rendered as its page renders it
+  (:meth:`ptmcore.published.PublishedBasis.display`); without one, the PTM relit as RTIViewer's
+  default rendering (:func:`ptmcore.relight.relight`); without a PTM, Lambertian shading of the
+  albedo by the normals;
 * ``albedo``: the surface colour without shading;
 * ``normals``: the normal map in the OpenGL mapping (R = x, G = y, B = z);
 * ``height``: the heights as a colour map (drawn by the window, with a scale bar);
@@ -19,8 +22,9 @@ View modes:
 * ``relief``: the shape alone, grey, with radiance scaling by curvature and the vertical
   exaggeration applied to the shading (for shallow reliefs; needs normals on the texture grid).
 
-Every colour is display-encoded (sRGB): renderings of a PTM that holds linear light (fitted to
-16-bit photographs, as report.json says) are encoded for display.
+Every colour is display-encoded (sRGB): a published basis of linear light (its ``viewer.json``
+says so) is encoded by its display, and renderings of a PTM that holds linear light (as
+report.json says) are encoded for display.
 
 Textured scenes (output folders and ``.ptm`` files) carry their colours as images ``(h, w,
 3)``; mesh files carry them per vertex ``(V, 3)``. The colouring functions work on either.
@@ -39,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ptmcore.errors import InputError, read_input_file, read_input_text
+from ptmcore.published import PublishedBasis
 from ptmcore.relight import (
     DEFAULT_EXPONENT,
     DEFAULT_GAIN,
@@ -117,6 +122,10 @@ class PreviewScene:
     linear_ptm : bool
         The PTM holds linear light (fitted to 16-bit photographs, as report.json says): its
         renderings are encoded as sRGB for display.
+    published : PublishedBasis or None
+        The relighting basis published in the output folder's ``web/``, at texture resolution:
+        the ``relit`` mode renders it (specular enhancement and diffuse gain, defined on the
+        PTM's polynomial, stay the PTM's).
     folder : pathlib.Path or None
         The result's folder (an output folder, or the folder of a file source), where the
         window saves figures and measurements.
@@ -142,13 +151,15 @@ class PreviewScene:
     distance_limit: float | None = None
     linear_ptm: bool = False
     folder: Path | None = None
+    published: PublishedBasis | None = None
     _kept: dict = field(default_factory=dict, repr=False, compare=False)
 
     @cached_property
     def modes(self) -> tuple[str, ...]:
         """The view modes this scene can show, in the order of :data:`MODES`."""
         have = {
-            "relit": self.coefficients is not None or (self.normals is not None and self.albedo is not None),
+            "relit": self.published is not None or self.coefficients is not None
+            or (self.normals is not None and self.albedo is not None),
             "albedo": self.albedo is not None,
             "normals": self.normals is not None,
             "height": self.height is not None or float(np.ptp(self.vertices[:, 2])) > 0,
@@ -221,8 +232,9 @@ class Style:
 def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) -> np.ndarray:
     """The scene's colours under one light.
 
-    The PTM relit as RTIViewer's default rendering when the scene has one, else the albedo
-    shaded by the normals (Lambertian).
+    The published basis as its page renders it when the scene has one (display-encoded whatever
+    its encoding), else the PTM relit as RTIViewer's default rendering, else the albedo shaded by
+    the normals (Lambertian).
 
     Parameters
     ----------
@@ -241,6 +253,8 @@ def relit_texture(scene: PreviewScene, light: np.ndarray | tuple[float, ...]) ->
     ValueError
         If the scene cannot be relit or the light is below the horizon.
     """
+    if scene.published is not None:
+        return scene.published.display(light_direction(light=light))  # checks the light
     if scene.coefficients is not None:
         image = relight(scene.coefficients, scene.rgb, light)  # checks the light
         return for_display(image, scene.linear_ptm)
@@ -397,6 +411,29 @@ def _lrgb(path: Path, max_texture: int) -> tuple[tuple[int, int], np.ndarray, np
     return (ptm.height, ptm.width), *as_lrgb(ptm)
 
 
+def _published(folder: Path, shape: tuple[int, int], tex: tuple[int, int]) -> PublishedBasis | None:
+    """The basis published in the folder's ``web/`` at texture size, or None when it has none.
+
+    Only what the texture needs is decoded (:func:`reconstruct.report.webread.read_relightable`
+    with ``max_side``: a pyramid level or DCT-scaled planes, at most twice the texture's side),
+    then area-averaged to the texture as the PTM is: the planes are linear in the light, so an
+    MRGB average relights as the average of the relit pixels (LRGB's colour times luminance
+    nearly so, as the PTM's)."""
+    from dataclasses import replace
+
+    from reconstruct.report.webread import published_folder, read_relightable, relightable_shape
+
+    web = published_folder(folder)
+    if web is None:
+        return None
+    if relightable_shape(web) != shape:
+        raise InputError(f"web/info.json is {relightable_shape(web)}, height.tif {shape}", folder)
+    basis = read_relightable(web, max_side=max(tex))
+    planes = _resize(basis.planes, tex).astype(np.float32)
+    colour = None if basis.colour is None else _resize(basis.colour, tex)
+    return replace(basis, planes=planes, colour=colour)
+
+
 def _texture_normals(normals: np.ndarray, tex: tuple[int, int], max_texture: int) -> np.ndarray:
     """Unit normals at texture size from a (memory-mapped) full-resolution normal map: strided
     as the PTM is (:func:`_lrgb`) before anything is copied, then area-averaged."""
@@ -492,6 +529,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         if full.shape != height.shape + (3,):
             raise InputError(f"normals.npy is {full.shape}, expected {height.shape + (3,)}", folder)
         normals = _texture_normals(full, tex, max_texture)
+    published = _published(folder, height.shape, tex)
     albedo = None
     for name in ("albedo.png", "mesh_texture.png"):
         if (folder / name).is_file():
@@ -517,6 +555,7 @@ def _load_folder(folder: Path, comparison: Path | None, max_vertices: int, max_t
         distance_limit=limit,
         linear_ptm=linear_ptm(report),
         folder=folder,
+        published=published,
     )
 
 
@@ -525,7 +564,7 @@ def _load_ptm(path: Path, max_vertices: int, max_texture: int) -> PreviewScene:
     no heights, and integrating its normals is what ``reconstruct run file.ptm`` does. A
     ``report.json`` beside it says whether it holds linear light."""
     from ptmcore.normals import normals_from_ptm
-    from reconstruct.viewer.relighting import holds_linear_light
+    from reconstruct.report.figures import holds_linear_light
 
     shape, coef, colour = _lrgb(path, max_texture)
     tex = _texture_shape(shape, max_texture)
