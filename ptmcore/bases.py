@@ -55,16 +55,26 @@ from .interpolation import (
 )
 from .loo import loo_residuals
 from .lp import as_directions
+from .neural import NeuralParameters
 from .published import PublishedBasis, ptm_weights
 
-__all__ = ["AUTO", "ENCODINGS", "NAMES", "BasisChoice", "BasisScore", "choose_basis", "fit_published",
-           "sample_stack", "score_bases"]
+__all__ = ["AUTO", "CANDIDATES", "ENCODINGS", "NAMES", "BasisChoice", "BasisScore", "choose_basis", "fit_published",
+           "sample_stack", "score_bases", "score_neural"]
 
 #: Every basis by the name the command line gives it.
-NAMES = ("ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear")
-#: The bases ``--basis auto`` chooses among: those OpenLIME renders too (its HSH has 9 terms,
-#: so ``hsh4`` is published only when asked for, and shown by this project's page alone).
-AUTO = ("ptm", "hsh2", "hsh3", "rbf", "bilinear")
+NAMES = ("ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear", "neural")
+#: The bases ``--basis auto`` chooses among by default: every one fitted in seconds. ``hsh4``
+#: is among them although only this project's page shows it (OpenLIME's HSH has 9 terms): it
+#: was the most faithful on five of the eight captures of ``benchmarks/relight_bases.py``.
+AUTO = ("ptm", "hsh2", "hsh3", "hsh4", "rbf", "bilinear")
+#: The sets of candidates ``--basis-candidates`` names: ``standard`` (:data:`AUTO`),
+#: ``openlime`` (those OpenLIME shows too, for a site built on it) and ``all`` (with the
+#: learned basis, whose training takes tens of seconds: :mod:`ptmcore.neural`).
+CANDIDATES = {
+    "standard": AUTO,
+    "openlime": ("ptm", "hsh2", "hsh3", "rbf", "bilinear"),
+    "all": NAMES,
+}
 #: What a basis may be fitted to.
 ENCODINGS = ("srgb", "linear")
 #: Per-pixel coefficient planes of the interpolating bases (relight's default for "mrgb").
@@ -73,6 +83,12 @@ PCA_PLANES = DEFAULT_PLANES
 BILINEAR_RESOLUTION = DEFAULT_RESOLUTION
 #: Pixels scored (and from which the principal components are found).
 SAMPLE_PIXELS = 20_000
+#: ``neural`` is scored by training it once without every this-many-th light (NeuralRTI's
+#: own validation split is a sixth) and predicting those.
+NEURAL_HOLD_OUT = 6
+#: Fewest lights ``neural`` is scored with: a sixth of them left out must still leave the
+#: network a hemisphere to learn from.
+NEURAL_MIN_LIGHTS = 18
 #: Pixels darker than this fraction of the brightest pixel's mean are left out of the score:
 #: a black background is predicted perfectly by every basis and would only dilute it.
 DARK_FRACTION = 0.02
@@ -98,6 +114,9 @@ class BasisScore:
         The two together, √(prediction² + storage²).
     psnr : float
         20·log10(255 / rms), dB.
+    measured_by : str
+        ``"leave-one-out"``, or for ``neural`` ``"held-out lights"`` (every
+        :data:`NEURAL_HOLD_OUT`-th light left out of one training).
     """
 
     name: str
@@ -107,6 +126,7 @@ class BasisScore:
     storage: float
     rms: float
     psnr: float
+    measured_by: str = "leave-one-out"
 
 
 @dataclass(frozen=True)
@@ -318,7 +338,8 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
         raise ValueError(f"chroma must be ({luminance.shape[1]}, 3) to match the samples, not {chroma.shape}")
     scorable = []
     for name in names:
-        _check_name(name)
+        if _check_name(name) == "neural":  # trained, not fitted: :func:`score_neural`
+            continue
         terms = PCA_PLANES + 1 if name in ("rbf", "bilinear") else least_squares_matrix(name, directions[:1]).shape[1]
         if len(directions) > terms:
             scorable.append(name)
@@ -333,17 +354,72 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
     return sorted(scores, key=lambda s: s.rms)
 
 
+def _rgb_samples(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
+    """Display-encoded RGB ``(P, N, 3)`` of linear luminance ``(N, P)`` and chroma ``(P, 3)``:
+    what NeuralRTI trains on (the photographs' 8-bit values)."""
+    rgb = _display(chroma[None] * luminance[..., None], "srgb")
+    return np.ascontiguousarray(rgb.transpose(1, 0, 2), dtype=np.float32)
+
+
+def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarray, *,
+                 params: NeuralParameters | None = None, threads: int | None = None) -> BasisScore | None:
+    """Score the learned basis (:mod:`ptmcore.neural`) on samples of a capture.
+
+    A network cannot be refitted once per left-out light, so it is trained once without every
+    :data:`NEURAL_HOLD_OUT`-th light and scored on predicting those, in the levels of
+    :func:`score_bases`. That leaves it fewer lights than the others' leave-one-out, so the
+    comparison, if anything, favours the fitted bases. The storage error is measured, not
+    modelled: the codes quantised to 8 bits as they are published, decoded again.
+
+    Returns
+    -------
+    BasisScore or None
+        None with fewer than :data:`NEURAL_MIN_LIGHTS` lights.
+    """
+    from .neural import decode, encode, quantize_codes, dequantize_codes, train_neural
+
+    luminance = np.asarray(luminance, np.float32)
+    directions = as_directions(directions, luminance.shape[0])
+    n = len(directions)
+    if n < NEURAL_MIN_LIGHTS:
+        return None
+    held = np.arange(n) % NEURAL_HOLD_OUT == NEURAL_HOLD_OUT // 2
+    rgb = _rgb_samples(luminance, np.asarray(chroma, np.float32))
+    model = train_neural(rgb[:, ~held], directions[~held], params, threads=threads)
+    codes = encode(model, rgb[:, ~held])
+    stored = dequantize_codes(*quantize_codes(codes))
+    observed = 255.0 * np.asarray(linear_to_srgb(np.asarray(chroma, np.float32)[None]
+                                                 * luminance[held][..., None]), np.float64)
+    prediction = storage = 0.0
+    for light, seen in zip(directions[held], observed):
+        exact = 255.0 * np.clip(decode(model, codes, light), 0.0, 1.0).astype(np.float64)
+        quantised = 255.0 * np.clip(decode(model, stored, light), 0.0, 1.0).astype(np.float64)
+        prediction += float(np.mean((exact - seen) ** 2))
+        storage += float(np.mean((quantised - exact) ** 2))
+    prediction, storage = np.sqrt(prediction / held.sum()), np.sqrt(storage / held.sum())
+    rms = float(np.hypot(prediction, storage))
+    return BasisScore("neural", "srgb", int(codes.shape[1]), float(prediction), float(storage), rms,
+                      float(20 * np.log10(255.0 / max(rms, 1e-9))), "held-out lights")
+
+
 def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Sequence[str] = AUTO,
                  encodings: Sequence[str] = ENCODINGS, mask: np.ndarray | None = None,
-                 pixels: int = SAMPLE_PIXELS) -> BasisChoice:
-    """The basis and encoding that relight this capture most faithfully (:func:`score_bases`).
+                 pixels: int = SAMPLE_PIXELS, threads: int | None = None) -> BasisChoice:
+    """The basis and encoding that relight this capture most faithfully (:func:`score_bases`,
+    and :func:`score_neural` when ``neural`` is a candidate).
 
-    With one candidate and one encoding the choice is that one, still scored. Falls back to
-    the PTM in sRGB when no candidate can be scored (as few lights as terms).
+    With one candidate and one encoding the choice is that one, still scored (``neural`` asked
+    for alone is not: scoring it is a second training). Falls back to the PTM in sRGB when no
+    candidate can be scored (as few lights as terms). ``neural`` is fitted to sRGB values only.
     """
     luminance, chroma = sample_stack(stack, pixels, mask)
     scores = score_bases(luminance, chroma, directions, candidates, encodings)
-    chosen_by = "leave-one-out" if len(candidates) * len(encodings) > 1 else "asked"
+    if "neural" in candidates and len(candidates) > 1 and "srgb" in encodings:
+        neural = score_neural(luminance, chroma, directions, threads=threads)
+        scores = sorted(scores + ([neural] if neural is not None else []), key=lambda s: s.rms)
+    if list(candidates) == ["neural"]:
+        return BasisChoice("neural", "srgb", (), luminance.shape[1], "asked")
+    chosen_by = scores[0].measured_by if scores and len(candidates) * len(encodings) > 1 else "asked"
     if not scores:
         return BasisChoice(candidates[0] if len(candidates) == 1 else "ptm", encodings[0], (), luminance.shape[1],
                            "asked" if len(candidates) == 1 else "fewest terms")
@@ -379,6 +455,10 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     _check_name(name)
     _check_encoding(encoding)
     directions = as_directions(directions, len(stack))
+    if name == "neural":
+        if encoding != "srgb":
+            raise ValueError("the neural basis is fitted to sRGB values only, as NeuralRTI is")
+        return _fit_neural(stack, directions, threads=threads, progress=progress)
     n = len(stack)
     h, w = stack.shape
     if name in ("rbf", "bilinear"):
@@ -431,3 +511,27 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     kind = "ptm" if name == "ptm" else "hsh"
     return PublishedBasis(kind, "lrgb", planes, encoding, colour=colour,
                           order=_hsh_order(name) if kind == "hsh" else None, name=name)
+
+
+def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralParameters | None = None,
+                threads: int | None = None, progress: Callable[[int], None] | None = None) -> PublishedBasis:
+    """Train the learned basis on a grid of the stack's lit pixels, then encode every pixel,
+    band by band."""
+    from .neural import encode, train_neural
+    from .published import neural_basis
+
+    params = params or NeuralParameters()
+    luminance, chroma = sample_stack(stack, params.training_pixels)
+    model = train_neural(_rgb_samples(luminance, chroma), directions, params, threads=threads)
+    n = len(stack)
+    h, w = stack.shape
+    codes = np.empty((h, w, model.code_size), np.float32)
+
+    def work(r0: int, r1: int) -> None:
+        lum, _ = stack.band(r0, r1)
+        rgb = _rgb_samples(lum.reshape(n, -1), stack.chroma[r0:r1].reshape(-1, 3))
+        codes[r0:r1] = encode(model, rgb, threads=1).reshape(r1 - r0, w, -1)
+
+    rows = band_rows(n, w, bytes_per_sample=60, budget=BAND_BYTES)
+    run_bands(h, rows, work, threads=threads, progress=progress)
+    return neural_basis(model, codes, name="neural")

@@ -127,7 +127,7 @@ def test_storage_in_8_bit_linear_planes_costs_the_shadows_levels():
     assert by["ptm", "linear"].storage > 2 * by["ptm", "srgb"].storage
 
 
-@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("name", [n for n in NAMES if n != "neural"])  # neural: its own tests below
 @pytest.mark.parametrize("encoding", ["srgb", "linear"])
 def test_fit_published_renders_the_photographs_it_was_fitted_to(name, encoding):
     lum, chroma = _ptm_scene(shape=(18, 16), seed=5)
@@ -169,7 +169,7 @@ def test_choose_basis_reports_every_candidate_best_first():
     assert choice.name == "ptm"  # the scene is a PTM
     d = choice.to_dict()
     assert d["name"] == "ptm" and d["chosen_by"] == "leave-one-out" and d["margin_db"] >= 0
-    assert len(d["scores"]) == 10 and d["unit"] == "8-bit sRGB levels"
+    assert len(d["scores"]) == 12 and d["unit"] == "8-bit sRGB levels"
 
 
 def test_choose_basis_with_one_candidate_is_asked_for():
