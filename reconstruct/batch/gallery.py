@@ -181,16 +181,25 @@ def _read_report(folder: Path) -> dict | None:
 
 
 def _relit(folder: Path, report: dict | None, max_side: int) -> bytes | None:
+    from reconstruct.report.webread import published_folder
+
     ptm = folder / "coefficients.ptm"
     source = ((report or {}).get("inputs") or {}).get("ptm")
     if not ptm.is_file() and source:
         ptm = Path(source)  # a run from a .ptm file writes none: its source is the PTM
-    if ptm.is_file():
+    web = published_folder(folder)
+    image = None
+    if web is not None:  # the basis people relight, as report.html shows it
+        try:
+            image = figures.relit_from_basis(web, max_side)[_UPPER_LEFT][1]
+        except InputError:
+            image = None
+    if image is None and ptm.is_file():
         renderings = figures.relit_from_ptm(ptm, max_side, linear=figures.linear_ptm(report))
         image = renderings[_UPPER_LEFT][1]
-    elif (folder / "albedo.png").is_file():
+    if image is None and (folder / "albedo.png").is_file():
         image = figures.photograph_thumbnail(folder / "albedo.png", max_side)
-    else:
+    if image is None:
         return None
     return figures.encode(image, "JPEG")
 
