@@ -3,30 +3,32 @@
 Which basis reproduces an object best under a light it was not fitted to? Every 4th light is
 held out; the network is trained on the rest (its encoder reads only those photographs), every
 pixel is encoded from them and decoded at the held-out lights. PTM and HSH order 3 are fitted
-by linear least squares at the same fitting lights (coefficients = pinv of the basis matrix ×
-samples) and evaluated at the held-out ones. All three are luminance only (the project's LRGB).
+per colour channel by linear least squares at the same fitting lights (coefficients = pinv of
+the basis matrix × samples) and evaluated at the held-out ones. All three model the display
+(sRGB-encoded) RGB values, 0–1, as NeuralRTI does.
 
-Reported, averaged over the held-out lights, on the whole image: PSNR of the luminance in 8-bit
-sRGB levels (255 · sRGB(luminance), so 20·log10(255 / RMSE)), and SSIM of the same images
-(``skimage.metrics.structural_similarity``, data_range 255). For the network also the PSNR
-after its codes are quantised to 8-bit planes (how NeuralRTI publishes them), the training
-time (54 or 36 fitting lights, ``NeuralParameters()`` defaults) and the time to encode every
-pixel; for the icon also the time to train on all 72 photographs.
+Reported, averaged over the held-out lights, on the whole image: PSNR of the RGB in 8-bit
+levels (predictions clipped to 0–1 as a display shows them; 20·log10(255 / RMSE)), and SSIM of
+the same images (``skimage.metrics.structural_similarity``, data_range 255, over the three
+channels). For the network also the PSNR after its codes are quantised to 8 bits per code
+number over its range (how they are published), the training time (54 or 36 fitting lights,
+``NeuralParameters()`` defaults) and the time to encode every pixel; for the icon also the
+time to train on all 72 photographs.
 
 For reference, the icon's result published with NeuralRTI (``encoded.npy``, ``header.npy`` and
 the TensorFlow.js decoder ``model.json`` + ``group1-shard1of1.bin``: RGB, three ELU layers of
-216, trained on all 72 photographs) is decoded at the same lights and scored on its luminance.
-It saw those lights in training, so its figures are a fit, not a held-out error.
+216, trained on all 72 photographs) is decoded at the same lights and scored the same way. It
+saw those lights in training, so its figures are a fit, not a held-out error.
 
 Captures:
 
 * icon — NeuralRTI's painted icon, 72 JPEG photographs 402×395 (``../shared/real/neuralrti_icon``);
 * matte, glossy, shadows — the synthetic clay tablet, 400×400, 48 lights (15°–75°), 16-bit
-  TIFF, seed 0: Lambertian without cast shadows; plus a Blinn–Phong highlight (specular 0.6,
-  shininess 40); Lambertian with cast shadows.
+  linear TIFF (sRGB-encoded here), seed 0: Lambertian without cast shadows; plus a
+  Blinn–Phong highlight (specular 0.6, shininess 40); Lambertian with cast shadows.
 
-Run: ``.venv/bin/python benchmarks/neural.py [--only icon,matte]``
-Prints a Markdown table and writes ``benchmarks/results/neural.json``.
+Run: ``.venv/bin/python benchmarks/neural.py [--only icon,matte] [--output FILE]``
+Prints a Markdown table and writes ``benchmarks/results/neural.json`` (or ``FILE``).
 """
 
 from __future__ import annotations
@@ -47,17 +49,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import ptmcore  # noqa: E402
 from procinfo import cpu_model  # noqa: E402
 from data_synthetic import write_capture  # noqa: E402
-from ptmcore.fit import light_matrix  # noqa: E402
 from ptmcore.hsh import hsh_basis  # noqa: E402
-from ptmcore.images import LUMA_WEIGHTS  # noqa: E402
+from ptmcore.images import read_image  # noqa: E402
 from ptmcore.neural import (  # noqa: E402
     NeuralParameters,
+    decode,
     dequantize_codes,
     encode,
     quantize_codes,
-    relight,
     train_neural,
 )
+from ptmcore.published import ptm_weights  # noqa: E402
 from ptmcore.resources import cpu_count  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,27 +72,35 @@ SYNTHETIC = {
 HOLD_OUT_STEP = 4
 
 
-def srgb_levels(luminance: np.ndarray) -> np.ndarray:
-    """255 · sRGB(luminance), float64."""
-    return 255.0 * ptmcore.linear_to_srgb(np.asarray(luminance, np.float64))
+def display_rgb(paths: list[Path]) -> np.ndarray:
+    """The photographs as display RGB in 0–1, (N, H, W, 3) float32: 8-bit files are sRGB
+    already (the icon's JPEGs), 16-bit ones linear (data_synthetic's TIFFs) and encoded here."""
+    images = []
+    for path in paths:
+        image = read_image(path)
+        if image.dtype == np.uint8:
+            images.append(image.astype(np.float32) / 255)
+        else:
+            images.append(ptmcore.linear_to_srgb(image.astype(np.float32) / 65535))
+    return np.stack(images)
 
 
 def scores(predicted: np.ndarray, observed: np.ndarray) -> tuple[float, float]:
-    """Mean PSNR (dB) and SSIM over held-out lights of (L, H, W) linear luminance images."""
+    """Mean PSNR (dB) and SSIM over held-out lights of (L, H, W, 3) display RGB images."""
     psnr, ssim = [], []
     for p, o in zip(predicted, observed):
-        p8, o8 = srgb_levels(p), srgb_levels(o)
+        p8, o8 = 255.0 * np.clip(p, 0, 1).astype(np.float64), 255.0 * o.astype(np.float64)
         rmse = np.sqrt(np.mean((p8 - o8) ** 2))
         psnr.append(20 * np.log10(255.0 / max(rmse, 1e-9)))
-        ssim.append(structural_similarity(o8, p8, data_range=255.0))
+        ssim.append(structural_similarity(o8, p8, data_range=255.0, channel_axis=-1))
     return float(np.mean(psnr)), float(np.mean(ssim))
 
 
 def linear_fit(basis: np.ndarray, values: np.ndarray, keep: np.ndarray, held: np.ndarray) -> np.ndarray:
-    """A linear basis fitted at ``keep`` and evaluated at ``held``: (len(held), H, W)."""
-    n, h, w = values.shape
+    """A linear basis fitted per channel at ``keep`` and evaluated at ``held``: (len(held), H, W, 3)."""
+    shape = values.shape[1:]
     coefficients = np.linalg.pinv(basis[keep]) @ values[keep].reshape(len(keep), -1)
-    return (basis[held] @ coefficients).reshape(len(held), h, w)
+    return (basis[held] @ coefficients).reshape(len(held), *shape)
 
 
 def published_icon(held: np.ndarray, directions: np.ndarray, observed: np.ndarray) -> tuple[float, float]:
@@ -98,7 +108,9 @@ def published_icon(held: np.ndarray, directions: np.ndarray, observed: np.ndarra
 
     Codes: 8-bit planes with one range (header: min, max, height, width). Decoder: the
     TensorFlow.js layers model, whose weights are the manifest's float32 arrays in order; its
-    input is the code followed by (lu, lv), its output sRGB RGB in [0, 1].
+    input is the code followed by (lu, lv), its output display values in [0, 1] in OpenCV's
+    BGR order (what OpenLIME's NeuralRTI example declares with ``colorspace: "bgr"``; read as
+    RGB, its PSNR here drops from 35 to 18 dB).
     """
     topology = json.loads((ICON / "model.json").read_text())
     flat = np.fromfile(ICON / topology["weightsManifest"][0]["paths"][0], dtype="<f4")
@@ -116,43 +128,41 @@ def published_icon(held: np.ndarray, directions: np.ndarray, observed: np.ndarra
         for name in names[:-1]:
             z = x @ weights[f"{name}/kernel"] + weights[f"{name}/bias"]
             x = np.where(z > 0, z, np.expm1(np.minimum(z, 0)))
-        rgb = np.clip(x @ weights[f"{names[-1]}/kernel"] + weights[f"{names[-1]}/bias"], 0, 1)
-        predicted.append((ptmcore.srgb_to_linear(rgb) @ LUMA_WEIGHTS).reshape(int(h), int(w)))
+        bgr = x @ weights[f"{names[-1]}/kernel"] + weights[f"{names[-1]}/bias"]
+        predicted.append(bgr[:, ::-1].reshape(int(h), int(w), 3))
     return scores(np.stack(predicted), observed)
 
 
 def evaluate(name: str, lp_path: Path, params: NeuralParameters, train_all: bool) -> dict:
     lights = ptmcore.read_lp(lp_path)
-    stack = ptmcore.load_stack(lights.paths)
+    values = display_rgb(lights.paths)
     directions = np.asarray(lights.directions, np.float64)
-    n = len(stack)
-    h, w = stack.shape
-    values = stack.band(0, h)[0]
+    n, h, w, _ = values.shape
     held = np.arange(0, n, HOLD_OUT_STEP)
     keep = np.setdiff1d(np.arange(n), held)
     observed = values[held]
     row = {"capture": name, "size": f"{w}x{h}", "lights": n, "fitting_lights": len(keep)}
 
-    samples = values[keep].reshape(len(keep), -1).T
+    samples = values.reshape(n, -1, 3).transpose(1, 0, 2)  # (P, N, 3)
     t0 = time.perf_counter()
-    model = train_neural(samples, directions[keep], params)
+    model = train_neural(samples[:, keep], directions[keep], params)
     row["train_s"] = time.perf_counter() - t0
     row["final_training_rmse_levels"] = float(255 * np.sqrt(model.loss[-1]))
     t0 = time.perf_counter()
-    codes = encode(model, stack.select(np.isin(np.arange(n), keep)))
+    codes = encode(model, samples[:, keep])
     row["encode_s"] = time.perf_counter() - t0
-    predicted = np.stack([relight(model, codes, directions[i]) for i in held])
-    row["neural_psnr"], row["neural_ssim"] = scores(predicted, observed)
-    planes, bias, scale = quantize_codes(codes)
-    quantized = dequantize_codes(planes, bias, scale)
-    row["neural_8bit_psnr"] = scores(np.stack([relight(model, quantized, directions[i]) for i in held]),
-                                     observed)[0]
-    for label, basis in (("ptm", light_matrix(directions)), ("hsh3", hsh_basis(directions, 3))):
+
+    def relit(c: np.ndarray) -> np.ndarray:
+        return np.stack([decode(model, c, directions[i]).reshape(h, w, 3) for i in held])
+
+    row["neural_psnr"], row["neural_ssim"] = scores(relit(codes), observed)
+    row["neural_8bit_psnr"] = scores(relit(dequantize_codes(*quantize_codes(codes))), observed)[0]
+    for label, basis in (("ptm", ptm_weights(directions)), ("hsh3", hsh_basis(directions, 3))):
         row[f"{label}_psnr"], row[f"{label}_ssim"] = scores(linear_fit(basis, values, keep, held), observed)
     if train_all:
         row["published_psnr"], row["published_ssim"] = published_icon(held, directions, observed)
         t0 = time.perf_counter()
-        train_neural(values.reshape(n, -1).T, directions, params)
+        train_neural(samples, directions, params)
         row["train_all_lights_s"] = time.perf_counter() - t0
     return row
 
@@ -160,6 +170,8 @@ def evaluate(name: str, lp_path: Path, params: NeuralParameters, train_all: bool
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--only", default="icon," + ",".join(SYNTHETIC), help="comma-separated captures")
+    parser.add_argument("--output", type=Path, default=ROOT / "benchmarks" / "results" / "neural.json",
+                        help="the JSON results (default: %(default)s)")
     args = parser.parse_args()
     wanted = args.only.split(",")
     params = NeuralParameters()
@@ -190,9 +202,8 @@ def main() -> None:
                   f"NeuralRTI's published {r['capture']} model (trained on all of them, so not held out) at "
                   f"the same lights: PSNR {r['published_psnr']:.2f} / SSIM {r['published_ssim']:.3f}")
 
-    out = ROOT / "benchmarks" / "results" / "neural.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps({
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "machine": cpu_model(),
         "cpus": cpu_count(),
@@ -201,7 +212,7 @@ def main() -> None:
         "params": dataclasses.asdict(params),
         "rows": rows,
     }, indent=2) + "\n")
-    print(f"\nwrote {out}")
+    print(f"\nwrote {args.output}")
 
 
 if __name__ == "__main__":

@@ -2,26 +2,29 @@
 
 Dulecha, Fanni, Ponchio, Pellacini and Giachetti, "Neural reflectance transformation imaging",
 The Visual Computer 36 (2020) 2161–2174, replace the fixed bases of PTM and HSH by an
-autoencoder trained on the capture's own pixels: an encoder MLP maps a pixel's N samples to a
-code of k = 9 numbers, a decoder MLP maps (code, lu, lv) to the pixel under that light. What is
-published is the per-pixel codes (8-bit planes, one scale and bias for all of them) and the small
-decoder, which a viewer evaluates per pixel (OpenLIME's ``ShaderNeural``).
+autoencoder trained on the capture's own pixels: an encoder MLP maps a pixel's N RGB samples
+to a code of k = 9 numbers, a decoder MLP maps (code, lu, lv) to the pixel's RGB under the
+light (lu, lv) (the x right and y up of the unit light vector). What is published is the
+per-pixel codes (8-bit planes) and the small decoder, which a viewer evaluates per pixel.
 
-Here, as in the rest of the project, the model is luminance only ("LRGB"): the encoder reads a
-pixel's N luminances and the decoder returns one luminance; colour is the stack's per-pixel
-chroma times it. Inside the network, luminance is sRGB-encoded (NeuralRTI trains on the
-photographs' 8-bit values): the squared loss then weighs errors as the 8-bit sRGB measure of
+The model is RGB, on display (sRGB-encoded) values in 0–1, as NeuralRTI trains on the
+photographs' 8-bit values: the squared loss then weighs errors as the 8-bit sRGB measure of
 :func:`held_out_error` and the eye do, instead of letting the bright highlights dominate.
 
-The architecture is NeuralRTI's: ELU hidden layers, a linear code and a linear output, Glorot
-uniform initial weights, zero biases, Adam. Its widths are not: NeuralRTI uses three hidden
-layers of 3N units on both sides (216 for 72 RGB photographs), whose decoder costs ten times the
-default's per (pixel, light) on two CPU cores, so the defaults are narrower and train on a sample of the pixels
-(:class:`NeuralParameters`). Forward and backward passes are written out here as batched matrix
-products, so BLAS does the work: the decoder's first layer is split into a code part, computed
-once per pixel, and a light part, computed once per light, and only their sums are formed for
-every (pixel, light) pair. Each batch is split among threads (data parallel), because at these
-widths the element-wise work, which NumPy does on one core, costs more than the products.
+The decoder is exactly what OpenLIME's ``ShaderNeural`` evaluates: two ELU hidden layers of
+``hidden`` units and a linear RGB output. The encoder is NeuralRTI's (ELU hidden layers, a
+linear code), of fixed widths instead of its 3N units: it is not published, and runs once per
+pixel, not once per pixel and light. Glorot uniform initial weights, zero biases, Adam, as
+NeuralRTI (Keras). The decoder's width is bounded by the viewers: OpenLIME keeps the decoder's
+weights in fragment-shader uniforms, ``hidden²/4 + 4.25·hidden`` vec4s (with 9-number codes),
+which must fit the 1024 vectors a desktop GPU gives a fragment shader (WebGL 2 guarantees only
+224): 52 units at most (OpenLIME's own example has 50; NeuralRTI's 3N would need 216).
+
+Forward and backward passes are written out here as batched matrix products, so BLAS does the
+work: the decoder's first layer is split into a code part, computed once per pixel, and a
+light part, computed once per light, and only their sums are formed for every (pixel, light)
+pair. Each batch is split among threads (data parallel), because at these widths the
+element-wise work, which NumPy does on one core, costs more than the products.
 """
 
 from __future__ import annotations
@@ -34,10 +37,12 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .bands import run_bands
-from .images import ImageStack, linear_to_srgb, srgb_to_linear
 from .resources import thread_count
 
-#: Pixels per chunk when encoding or relighting (a few megabytes of activations per thread).
+__all__ = ["Layer", "NeuralModel", "NeuralParameters", "apply_decoder", "decode", "dequantize_codes",
+           "encode", "held_out_error", "quantize_codes", "train_neural"]
+
+#: Pixels per chunk when encoding or decoding (a few megabytes of activations per thread).
 CHUNK_PIXELS = 16384
 #: Adam's constants (Kingma and Ba 2015; ε as Keras, which NeuralRTI used).
 ADAM_BETA1, ADAM_BETA2, ADAM_EPSILON = 0.9, 0.999, 1e-7
@@ -50,22 +55,31 @@ Layer = tuple[np.ndarray, np.ndarray]
 class NeuralParameters:
     """How a :class:`NeuralModel` is built and trained.
 
-    With the defaults, training on a 400 × 400 capture of 72 photographs takes about 45 s on
-    two cores of an AMD EPYC (OpenBLAS), 35 s with 54 of them and 26 s with 36
-    (``benchmarks/neural.py``). The time grows with ``training_pixels`` × ``epochs`` × the
-    number of lights and does not depend on the image size; encoding every pixel takes a
-    fraction of a second.
+    With the defaults, training on NeuralRTI's icon (402 × 395) takes 21 s with 48 of its
+    photographs, 22 s with 54 and 24 s with all 72, on two cores of an AMD EPYC (OpenBLAS);
+    the time grows with ``training_pixels`` × ``epochs`` and, less than in proportion, with the
+    number of lights, and does not depend on the image size. Encoding every pixel takes a
+    third of a second. Held out, the icon relights at 32.0 dB PSNR (48 photographs fitted, 24
+    held out; 31.1 dB with 54 and 18, where an RGB PTM gets 22.2 and HSH of order 3 26.2:
+    ``benchmarks/neural.py``).
+
+    The defaults were chosen by that held-out error at a training time of at most ~30 s:
+    at equal time, more epochs of a narrower decoder did as well as or better than a wider one
+    (hidden 32 × 20 epochs: 32.0 and 32.9 dB for two seeds, 21–26 s; 48 × 16: 31.7 and 31.6,
+    25–28 s; 52 × 16: 32.0 and 31.7, 26 s; the synthetic glossy tablet, 36 lights: 29.7
+    against 28.7 dB for 48 × 16), and the narrower one is half the work per pixel in a viewer.
+    Seeds differ by about ±0.5 dB.
 
     Attributes
     ----------
     code_size : int
-        Numbers per pixel (NeuralRTI: 9).
+        Numbers per pixel (NeuralRTI and OpenLIME: 9; OpenLIME reads no other size).
     encoder_widths : tuple of int
-        Hidden layers of the encoder (NeuralRTI: three of 3N). It runs once per pixel, so it
-        costs little next to the decoder, which runs once per pixel and light.
-    decoder_widths : tuple of int
-        Hidden layers of the decoder (NeuralRTI: three of 3N). The decoder is what a viewer
-        evaluates per pixel, and what dominates training time, so it is kept small.
+        Hidden layers of the encoder (NeuralRTI: three of 3N).
+    hidden : int
+        Units of each of the decoder's two hidden layers: what a viewer evaluates per pixel,
+        and what dominates training time. A multiple of 4 wastes nothing in OpenLIME, which
+        pads it to one; at most 52 for OpenLIME's uniforms (module docstring).
     epochs : int
         Passes over the training pixels.
     batch_size : int
@@ -85,8 +99,8 @@ class NeuralParameters:
 
     code_size: int = 9
     encoder_widths: tuple[int, ...] = (96, 96, 96)
-    decoder_widths: tuple[int, ...] = (64, 64, 64)
-    epochs: int = 16
+    hidden: int = 32
+    epochs: int = 20
     batch_size: int = 64
     learning_rate: float = 3e-3
     final_rate: float = 0.02
@@ -94,14 +108,12 @@ class NeuralParameters:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("code_size", "epochs", "batch_size", "training_pixels"):
+        for name in ("code_size", "hidden", "epochs", "batch_size", "training_pixels"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"NeuralParameters.{name} must be at least 1, not {getattr(self, name)}")
-        for name in ("encoder_widths", "decoder_widths"):
-            widths = getattr(self, name)
-            if len(widths) < 1 or min(int(w) for w in widths) < 1:
-                raise ValueError(f"NeuralParameters.{name} needs at least one hidden layer of at "
-                                 f"least one unit, not {widths}")
+        if len(self.encoder_widths) < 1 or min(int(w) for w in self.encoder_widths) < 1:
+            raise ValueError(f"NeuralParameters.encoder_widths needs at least one hidden layer of at "
+                             f"least one unit, not {self.encoder_widths}")
         if not (math.isfinite(self.learning_rate) and self.learning_rate > 0):
             raise ValueError(f"NeuralParameters.learning_rate must be positive, not {self.learning_rate}")
         if not (0 < self.final_rate <= 1):
@@ -117,17 +129,17 @@ class NeuralModel:
     encoder : list of (weights, bias)
         ELU hidden layers, then the linear layer that gives the code.
     decoder : list of (weights, bias)
-        The first layer's weights have ``code_size + 2`` rows: the code's, then lu's and lv's;
-        ELU hidden layers, then a linear output (sRGB-encoded luminance).
+        Three layers, OpenLIME's: ``(k + 2) → hidden`` (rows: the code's, then lu's and lv's),
+        ELU; ``hidden → hidden``, ELU; ``hidden → 3``, linear (display RGB).
     directions : ndarray, shape (N, 3)
         The lights of the encoder's inputs, in their order (unit vectors).
-    input_offset, input_scale : ndarray, shape (N,)
-        The encoder reads ``(sRGB(luminance) - offset) * scale``: each light's samples
-        standardised over the training pixels, so that Glorot's initial weights suit every
-        input whatever its light's brightness.
+    input_offset, input_scale : ndarray, shape (N, 3)
+        The encoder reads ``(samples - offset) * scale``, flattened light by light: each
+        light's and channel's samples standardised over the training pixels, so that Glorot's
+        initial weights suit every input whatever its light's brightness.
     loss : ndarray, shape (epochs,)
-        Mean squared error of each epoch's steps, in sRGB units (multiply the root by 255 for
-        8-bit levels).
+        Mean squared error of each epoch's steps, in display units (multiply the root by 255
+        for 8-bit levels).
     """
 
     encoder: list[Layer]
@@ -162,11 +174,6 @@ def _elu_backward(grad: np.ndarray, a: np.ndarray) -> np.ndarray:
     return grad
 
 
-def _light_inputs(directions: np.ndarray) -> np.ndarray:
-    """(lu, lv) of unit light vectors, (L, 2)."""
-    return directions[:, :2]
-
-
 def _check_directions(directions: np.ndarray, n: int | None = None) -> np.ndarray:
     d = np.asarray(directions, dtype=np.float64)
     if d.ndim != 2 or d.shape[1] != 3:
@@ -181,10 +188,15 @@ def _check_directions(directions: np.ndarray, n: int | None = None) -> np.ndarra
     return (d / norm).astype(np.float32)
 
 
+def _light_input(light: np.ndarray) -> np.ndarray:
+    """(lu, lv) of one light, (1, 2) float32: the x and y of its unit vector."""
+    return _check_directions(np.reshape(light, (1, -1)))[:, :2]
+
+
 def _check_samples(samples: np.ndarray) -> np.ndarray:
     s = np.asarray(samples)
-    if s.ndim != 2 or s.shape[0] < 1 or s.shape[1] < 1:
-        raise ValueError(f"samples must be a (pixels, lights) array, not shape {s.shape}")
+    if s.ndim != 3 or s.shape[0] < 1 or s.shape[1] < 1 or s.shape[2] != 3:
+        raise ValueError(f"samples must be a (pixels, lights, 3) array of RGB, not shape {s.shape}")
     s = s.astype(np.float32, copy=False)
     if not np.all(np.isfinite(s)):
         raise ValueError("samples contain NaN or infinite values")
@@ -192,7 +204,7 @@ def _check_samples(samples: np.ndarray) -> np.ndarray:
 
 
 def _encode_rows(encoder: list[Layer], x: np.ndarray) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Codes of standardised inputs ``x`` (B, N), and the activations backpropagation needs."""
+    """Codes of standardised inputs ``x`` (B, 3N), and the activations backpropagation needs."""
     acts = [x]
     for w, b in encoder[:-1]:
         acts.append(_elu(acts[-1] @ w + b))
@@ -201,17 +213,16 @@ def _encode_rows(encoder: list[Layer], x: np.ndarray) -> tuple[np.ndarray, list[
 
 
 def _decode_rows(decoder: list[Layer], code: np.ndarray, lights: np.ndarray
-                 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Decoder outputs (B, L) for codes (B, k) at lights (L, 2), and its activations."""
-    w1, b1 = decoder[0]
+                 ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Decoder outputs (B, L, 3) for codes (B, k) at lights (L, 2), and its two hidden layers'
+    activations (B·L, hidden)."""
+    (w1, b1), (w2, b2), (w3, b3) = decoder
     k = code.shape[1]
     # The first layer of [code, lu, lv] is code @ W_code + light @ W_light: each part once.
     z = (code @ w1[:k])[:, None, :] + (lights @ w1[k:] + b1)[None, :, :]
-    acts = [_elu(z.reshape(-1, z.shape[2]))]
-    for w, b in decoder[1:-1]:
-        acts.append(_elu(acts[-1] @ w + b))
-    w, b = decoder[-1]
-    return (acts[-1] @ w + b).reshape(code.shape[0], lights.shape[0]), acts
+    h1 = _elu(z.reshape(-1, z.shape[2]))
+    h2 = _elu(h1 @ w2 + b2)
+    return (h2 @ w3 + b3).reshape(code.shape[0], lights.shape[0], -1), (h1, h2)
 
 
 def _loss_and_gradients(encoder: list[Layer], decoder: list[Layer], x: np.ndarray,
@@ -220,9 +231,9 @@ def _loss_and_gradients(encoder: list[Layer], decoder: list[Layer], x: np.ndarra
 
     Parameters
     ----------
-    x : ndarray, shape (B, N)
+    x : ndarray, shape (B, 3N)
         Standardised encoder inputs.
-    target : ndarray, shape (B, L)
+    target : ndarray, shape (B, L, 3)
         What the decoder should give at ``lights`` (L, 2).
 
     Returns
@@ -232,28 +243,21 @@ def _loss_and_gradients(encoder: list[Layer], decoder: list[Layer], x: np.ndarra
         Shaped as the layers.
     """
     code, enc_acts = _encode_rows(encoder, x)
-    y, dec_acts = _decode_rows(decoder, code, lights)
+    y, (h1, h2) = _decode_rows(decoder, code, lights)
     residual = y - target
     loss = float(np.mean(residual * residual))
-    bsz, nl = target.shape
+    bsz, nl, _ = target.shape
+    (w1, _), (w2, _), (w3, _) = decoder
 
-    dec_grads: list[Layer] = []
-    g = (residual * (2.0 / residual.size)).reshape(-1, 1).astype(y.dtype, copy=False)
-    w, _ = decoder[-1]
-    dec_grads.append((dec_acts[-1].T @ g, g.sum(axis=0)))
-    g = g @ w.T
-    for i in range(len(decoder) - 2, 0, -1):
-        g = _elu_backward(g, dec_acts[i])
-        w, _ = decoder[i]
-        dec_grads.append((dec_acts[i - 1].T @ g, g.sum(axis=0)))
-        g = g @ w.T
-    g = _elu_backward(g, dec_acts[0]).reshape(bsz, nl, -1)
+    g = (residual * (2.0 / residual.size)).reshape(-1, residual.shape[2]).astype(y.dtype, copy=False)
+    grad3 = (h2.T @ g, g.sum(axis=0))
+    g = _elu_backward(g @ w3.T, h2)
+    grad2 = (h1.T @ g, g.sum(axis=0))
+    g = _elu_backward(g @ w2.T, h1).reshape(bsz, nl, -1)
     k = code.shape[1]
-    g_code = g.sum(axis=1)       # (B, h): each pixel's code meets every light
-    g_light = g.sum(axis=0)      # (L, h): each light meets every pixel
-    w1, _ = decoder[0]
-    dec_grads.append((np.vstack([code.T @ g_code, lights.T @ g_light]), g_light.sum(axis=0)))
-    dec_grads.reverse()
+    g_code = g.sum(axis=1)       # (B, hidden): each pixel's code meets every light
+    g_light = g.sum(axis=0)      # (L, hidden): each light meets every pixel
+    grad1 = (np.vstack([code.T @ g_code, lights.T @ g_light]), g_light.sum(axis=0))
 
     enc_grads: list[Layer] = []
     g = g_code @ w1[:k].T
@@ -267,7 +271,7 @@ def _loss_and_gradients(encoder: list[Layer], decoder: list[Layer], x: np.ndarra
         if i:
             g = g @ w.T
     enc_grads.reverse()
-    return loss, enc_grads, dec_grads
+    return loss, enc_grads, [grad1, grad2, grad3]
 
 
 def _glorot(rng: np.random.Generator, n_in: int, n_out: int) -> Layer:
@@ -278,9 +282,9 @@ def _glorot(rng: np.random.Generator, n_in: int, n_out: int) -> Layer:
 
 def _initial_layers(n_lights: int, params: NeuralParameters, rng: np.random.Generator
                     ) -> tuple[list[Layer], list[Layer]]:
-    widths = [n_lights, *params.encoder_widths, params.code_size]
+    widths = [3 * n_lights, *params.encoder_widths, params.code_size]
     encoder = [_glorot(rng, a, b) for a, b in zip(widths[:-1], widths[1:])]
-    widths = [params.code_size + 2, *params.decoder_widths, 1]
+    widths = [params.code_size + 2, params.hidden, params.hidden, 3]
     decoder = [_glorot(rng, a, b) for a, b in zip(widths[:-1], widths[1:])]
     return encoder, decoder
 
@@ -311,20 +315,24 @@ def _batch_gradients(encoder: list[Layer], decoder: list[Layer], x: np.ndarray, 
     return loss, grads
 
 
+def _standardised(samples: np.ndarray, offset: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """The encoder's inputs (P, 3N) of samples (P, N, 3)."""
+    return ((samples - offset) * scale).reshape(samples.shape[0], -1)
+
+
 def train_neural(samples: np.ndarray, directions: np.ndarray,
                  params: NeuralParameters | None = None, *, threads: int | None = None) -> NeuralModel:
-    """Train a NeuralRTI autoencoder on pixels' samples.
+    """Train a NeuralRTI autoencoder on pixels' RGB samples.
 
     Each step takes ``batch_size`` pixels, encodes their samples and decodes the codes at every
-    light of ``directions``; the loss is the mean squared difference from the samples in sRGB
-    units, minimised by Adam with a cosine-decaying step.
+    light of ``directions``; the loss is the mean squared difference from the samples,
+    minimised by Adam with a cosine-decaying step.
 
     Parameters
     ----------
-    samples : ndarray, shape (P, N)
-        Linear luminance of the training pixels under each light (e.g. rows of
-        ``ImageStack.band`` reshaped); every pixel or a sample of them, ``training_pixels`` of
-        which are used.
+    samples : ndarray, shape (P, N, 3)
+        Display (sRGB-encoded) RGB values in 0–1 of the training pixels under each light;
+        every pixel or a sample of them, ``training_pixels`` of which are used.
     directions : ndarray, shape (N, 3)
         The lights (normalised here).
     params : NeuralParameters, optional
@@ -349,11 +357,10 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
     if samples.shape[0] > params.training_pixels:
         pick = np.sort(rng.choice(samples.shape[0], params.training_pixels, replace=False))
         samples = samples[pick]
-    target = linear_to_srgb(samples)
-    offset = target.mean(axis=0)
-    scale = (1.0 / np.maximum(target.std(axis=0), 1e-3)).astype(np.float32)
-    inputs = (target - offset) * scale
-    lights = _light_inputs(dirs)
+    offset = samples.mean(axis=0)
+    scale = (1.0 / np.maximum(samples.std(axis=0), 1e-3)).astype(np.float32)
+    inputs = _standardised(samples, offset, scale)
+    lights = dirs[:, :2]
 
     encoder, decoder = _initial_layers(samples.shape[1], params, rng)
     layers = [*encoder, *decoder]
@@ -371,7 +378,7 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
             total = 0.0
             for s in range(0, n, batch):
                 rows = order[s:s + batch]
-                loss, grads = _batch_gradients(encoder, decoder, inputs[rows], target[rows], lights, pool, workers)
+                loss, grads = _batch_gradients(encoder, decoder, inputs[rows], samples[rows], lights, pool, workers)
                 total += loss * len(rows)
                 step += 1
                 rate = params.learning_rate * (params.final_rate + (1 - params.final_rate)
@@ -389,56 +396,74 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
     return NeuralModel(encoder, decoder, dirs, offset.astype(np.float32), scale, losses)
 
 
-def _encode_samples(model: NeuralModel, samples: np.ndarray) -> np.ndarray:
-    x = (linear_to_srgb(samples) - model.input_offset) * model.input_scale
-    return _encode_rows(model.encoder, x)[0]
-
-
-def encode(model: NeuralModel, data: ImageStack | np.ndarray, *, threads: int | None = None) -> np.ndarray:
-    """Codes of a stack's pixels, or of samples.
+def encode(model: NeuralModel, samples: np.ndarray, *, threads: int | None = None) -> np.ndarray:
+    """Codes of pixels from their samples.
 
     Parameters
     ----------
     model : NeuralModel
-    data : ImageStack or ndarray, shape (P, N)
-        The photographs (or samples) under the model's lights, in its order; for a held-out
-        test, the stack of the fitting photographs only (``stack.select``).
+    samples : ndarray, shape (P, N, 3)
+        Display RGB values in 0–1 under the model's lights, in its order; for a held-out test,
+        those of the fitting lights only.
     threads : int, optional
-        Bands of rows encoded at once; default: the number of CPUs.
+        Chunks of pixels encoded at once; default: the number of CPUs.
 
     Returns
     -------
-    ndarray, float32
-        ``(H, W, k)`` for a stack, ``(P, k)`` for samples.
+    ndarray, shape (P, k), float32
     """
+    samples = _check_samples(samples)
     n = len(model.directions)
-    if isinstance(data, ImageStack):
-        if len(data) != n:
-            raise ValueError(f"the model reads {n} photographs, the stack has {len(data)}")
-        h, w = data.shape
-        codes = np.empty((h, w, model.code_size), np.float32)
-
-        def work(r0: int, r1: int) -> None:
-            values, _ = data.band(r0, r1)
-            codes[r0:r1] = _encode_samples(model, values.reshape(n, -1).T).reshape(r1 - r0, w, -1)
-
-        run_bands(h, max(1, CHUNK_PIXELS // w), work, threads=threads)
-        return codes
-    samples = _check_samples(data)
     if samples.shape[1] != n:
         raise ValueError(f"the model reads {n} samples per pixel, not {samples.shape[1]}")
     codes = np.empty((samples.shape[0], model.code_size), np.float32)
 
     def chunk(r0: int, r1: int) -> None:
-        codes[r0:r1] = _encode_samples(model, samples[r0:r1])
+        x = _standardised(samples[r0:r1], model.input_offset, model.input_scale)
+        codes[r0:r1] = _encode_rows(model.encoder, x)[0]
 
     run_bands(samples.shape[0], CHUNK_PIXELS, chunk, threads=threads)
     return codes
 
 
-def relight(model: NeuralModel, codes: np.ndarray, light: np.ndarray, *,
-            threads: int | None = None) -> np.ndarray:
-    """Linear luminance of every pixel under one light.
+def apply_decoder(network: list[Layer], codes: np.ndarray, light: np.ndarray, *,
+                  threads: int | None = None) -> np.ndarray:
+    """A decoder's RGB for every code under one light, in chunks of pixels (bounded memory).
+
+    Parameters
+    ----------
+    network : list of (weights, bias)
+        The three layers of :attr:`NeuralModel.decoder`.
+    codes : ndarray, shape (..., k)
+    light : ndarray, shape (3,)
+        Light direction (normalised here); the decoder reads its x and y.
+    threads : int, optional
+        Chunks decoded at once; default: the number of CPUs.
+
+    Returns
+    -------
+    ndarray, shape (..., 3), float32
+        Display values, not clipped.
+    """
+    k = network[0][0].shape[0] - 2
+    codes = np.asarray(codes, dtype=np.float32)
+    if codes.ndim < 1 or codes.shape[-1] != k:
+        raise ValueError(f"codes must end in an axis of {k}, not shape {codes.shape}")
+    (w1, b1), (w2, b2), (w3, b3) = network
+    bias1 = _light_input(light) @ w1[k:] + b1  # the light's part of the first layer, once
+    flat = codes.reshape(-1, k)
+    out = np.empty((flat.shape[0], 3), np.float32)
+
+    def chunk(r0: int, r1: int) -> None:
+        h = _elu(flat[r0:r1] @ w1[:k] + bias1)
+        out[r0:r1] = _elu(h @ w2 + b2) @ w3 + b3
+
+    run_bands(flat.shape[0], CHUNK_PIXELS, chunk, threads=threads)
+    return out.reshape(codes.shape[:-1] + (3,))
+
+
+def decode(model: NeuralModel, codes: np.ndarray, light: np.ndarray, *, threads: int | None = None) -> np.ndarray:
+    """Every pixel's RGB under one light: :func:`apply_decoder` of the model's decoder.
 
     Parameters
     ----------
@@ -446,70 +471,62 @@ def relight(model: NeuralModel, codes: np.ndarray, light: np.ndarray, *,
     codes : ndarray, shape (..., k)
         From :func:`encode` (or :func:`dequantize_codes`).
     light : ndarray, shape (3,)
-        Light direction (normalised here).
     threads : int, optional
-        Chunks decoded at once; default: the number of CPUs.
 
     Returns
     -------
-    ndarray, shape (...), float32
-        Luminance in [0, 1] (the decoder's sRGB output clipped, then decoded).
+    ndarray, shape (..., 3), float32
+        Display values, not clipped.
     """
-    codes = np.asarray(codes, dtype=np.float32)
-    if codes.ndim < 1 or codes.shape[-1] != model.code_size:
-        raise ValueError(f"codes must end in an axis of {model.code_size}, not shape {codes.shape}")
-    lights = _light_inputs(_check_directions(np.reshape(light, (1, -1))))
-    flat = codes.reshape(-1, model.code_size)
-    out = np.empty(flat.shape[0], np.float32)
-
-    def chunk(r0: int, r1: int) -> None:
-        out[r0:r1] = srgb_to_linear(np.clip(_decode_rows(model.decoder, flat[r0:r1], lights)[0][:, 0], 0, 1))
-
-    run_bands(flat.shape[0], CHUNK_PIXELS, chunk, threads=threads)
-    return out.reshape(codes.shape[:-1])
+    return apply_decoder(model.decoder, codes, light, threads=threads)
 
 
-def quantize_codes(codes: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Codes as NeuralRTI publishes them: 8-bit planes with one bias and scale for all.
+def quantize_codes(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Codes as they are published: 8 bits per number, each code component over its range.
 
     Returns
     -------
-    planes : ndarray of uint8, same shape as ``codes``
-        ``round((code - bias) / scale)``.
-    bias, scale : float
-        The codes' minimum and (maximum - minimum) / 255.
+    planes : ndarray of uint8, same shape as ``codes`` (..., k)
+        ``rint((code - low) / (high - low) · 255)``; 0 where a component is constant.
+    low, high : ndarray, shape (k,), float32
+        Each component's minimum and maximum (OpenLIME's ``min`` and ``max``), so that
+        ``code ≈ low + planes / 255 · (high - low)`` within half a step.
     """
     codes = np.asarray(codes, dtype=np.float32)
-    lo, hi = float(codes.min()), float(codes.max())
-    scale = max(hi - lo, 1e-12) / 255.0
-    planes = np.rint((codes - lo) / scale).clip(0, 255).astype(np.uint8)
-    return planes, lo, scale
+    flat = codes.reshape(-1, codes.shape[-1])
+    low, high = flat.min(axis=0), flat.max(axis=0)
+    span = high - low
+    step = np.where(span > 0, np.float32(255.0) / np.where(span > 0, span, 1), 0).astype(np.float32)
+    planes = np.clip(np.rint((codes - low) * step), 0, 255).astype(np.uint8)
+    return planes, low, high
 
 
-def dequantize_codes(planes: np.ndarray, bias: float, scale: float) -> np.ndarray:
-    """Float codes from :func:`quantize_codes`' planes."""
-    return (planes.astype(np.float32) * np.float32(scale) + np.float32(bias))
+def dequantize_codes(planes: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """Float codes from :func:`quantize_codes`' planes, as OpenLIME decodes them."""
+    low = np.asarray(low, np.float32)
+    return planes.astype(np.float32) / np.float32(255.0) * (np.asarray(high, np.float32) - low) + low
 
 
 def held_out_error(samples: np.ndarray, directions: np.ndarray, held_out_indices: np.ndarray,
-                   params: NeuralParameters | None = None) -> float:
-    """RMSE at lights the model never saw, in 8-bit sRGB levels.
+                   params: NeuralParameters | None = None, *, threads: int | None = None) -> float:
+    """RMSE at lights the model never saw, in 8-bit sRGB levels of R, G and B.
 
     The model is trained on the other (fitting) lights: the encoder reads only their samples
     and the decoder is fitted only at them. The pixels' codes are then decoded at the held-out
-    lights and compared with the samples there, as ``255 · sRGB(luminance)``. This is the
-    measure to choose it by against the linear bases, whose own residuals at the fitting
+    lights, clipped to 0–1 as a display shows them, and compared with the samples there. This
+    is the measure to choose it by against the linear bases, whose own residuals at the fitting
     lights flatter them as the network's training loss flatters it.
 
     Parameters
     ----------
-    samples : ndarray, shape (P, N)
-        Linear luminance of the pixels to measure (all of them are encoded; training uses
-        ``params.training_pixels`` of them).
+    samples : ndarray, shape (P, N, 3)
+        Display RGB values in 0–1 of the pixels to measure (all of them are encoded; training
+        uses ``params.training_pixels`` of them).
     directions : ndarray, shape (N, 3)
     held_out_indices : array of int
         Lights left out of training; at least one, and at least three must remain.
     params : NeuralParameters, optional
+    threads : int, optional
 
     Returns
     -------
@@ -524,10 +541,10 @@ def held_out_error(samples: np.ndarray, directions: np.ndarray, held_out_indices
     keep = np.setdiff1d(np.arange(n), held)
     if keep.size < 3:
         raise ValueError(f"only {keep.size} fitting lights would remain; at least 3 are needed")
-    model = train_neural(samples[:, keep], dirs[keep], params)
-    codes = encode(model, samples[:, keep])
+    model = train_neural(samples[:, keep], dirs[keep], params, threads=threads)
+    codes = encode(model, samples[:, keep], threads=threads)
     err2 = 0.0
     for i in held:
-        predicted = linear_to_srgb(relight(model, codes, dirs[i]))
-        err2 += float(np.mean((predicted - linear_to_srgb(samples[:, i])) ** 2))
+        predicted = np.clip(decode(model, codes, dirs[i], threads=threads), 0, 1)
+        err2 += float(np.mean((predicted - samples[:, i]) ** 2))
     return 255.0 * math.sqrt(err2 / held.size)

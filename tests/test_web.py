@@ -228,9 +228,26 @@ def _orthonormal(d, k, rng):
     return q.T.reshape(k, d, 3)
 
 
+def _network(hidden, rng):
+    """A random decoder (k = 9) whose output under a light is mostly within 0–1 and changes
+    with the light as much as with the code."""
+    layers = []
+    for a, b in ((11, hidden), (hidden, hidden), (hidden, 3)):
+        layers.append((rng.normal(0, 1 / np.sqrt(a), (a, b)).astype(np.float32),
+                       rng.normal(0, 0.1, b).astype(np.float32)))
+    layers[0][0][9:] *= 3
+    layers[2][0][...] *= 0.25
+    layers[2][1][...] = 0.5
+    return layers
+
+
 def make_basis(kind, h=48, w=64, seed=0, encoding="srgb"):
     """A small synthetic PublishedBasis: smooth random planes, relit values mostly within 0–1."""
     rng = np.random.default_rng(seed)
+    if kind == "neural":
+        # 30 hidden units: padded to 32 in OpenLIME's layout.
+        return PublishedBasis("neural", "rgb", (2 * _waves(h, w, 9, rng)).astype(np.float32), encoding,
+                              network=_network(30, rng), name="neural")
     if kind == "ptm":
         planes = 0.15 * _waves(h, w, 6, rng)
         planes[..., 0] += 0.6
@@ -273,6 +290,32 @@ def _read_plane(folder, j, info):
             part = out[y * size:(y + 1) * size, x * size:(x + 1) * size]
             part[...] = tile[oy:oy + part.shape[0], ox:ox + part.shape[1]]
     return out
+
+
+def _elu(z):
+    return np.where(z > 0, z, np.expm1(np.minimum(z, 0)))
+
+
+def openlime_neural(folder, light):
+    """The folder rendered as OpenLIME's ShaderNeural renders it, written from its source: the
+    planes plane_1…plane_3 swizzled by ``colorspace``, rescaled by min and max, and the three
+    layers read from the flat padded arrays as ``layerN_weights[cols/4 · i + j]`` (vec4 j of
+    output i); the codes as decoded, (H, W, 9), and the rendering (H, W, 3), 0–1 before clipping."""
+    info = json.loads((folder / "info.json").read_text())
+    swizzle = ["rgb".index(c) for c in info["colorspace"]]
+    tex = np.concatenate([_read_plane(folder, j, info)[..., swizzle] for j in (1, 2, 3)], axis=-1) / 255.0
+    low, high = np.ravel(info["min"]), np.ravel(info["max"])
+    codes = tex * (high - low) + low
+    n = -(-info["samples"] // 4) * 4
+    c = -(-(info["planes"] + 2) // 4) * 4
+    w1, w2, w3 = (np.reshape(info["weights"][i], shape) for i, shape in enumerate([(n, c), (n, n), (3, n)]))
+    b1, b2, b3 = (np.asarray(b) for b in info["biases"])
+    x = np.zeros(codes.shape[:2] + (c,))
+    x[..., : info["planes"]] = codes
+    x[..., info["planes"]: info["planes"] + 2] = light[:2]
+    h1 = _elu(x @ w1.T + b1)
+    h2 = _elu(h1 @ w2.T + b2)
+    return codes, (h2 @ w3.T + b3)[..., swizzle]
 
 
 def _decoded(folder):
@@ -421,6 +464,71 @@ def test_openlime_decoding_matches_the_basis(tmp_path, kind, tiles):
         assert np.all(err <= bound + 1e-6), (kind, light, (err - bound).max())
         assert bound.max() < 0.06, bound.max()  # the bound says something: a few levels at most
         assert err.mean() < 0.01, err.mean()
+
+
+@pytest.mark.parametrize("tiles", [False, True])
+def test_openlime_neural_decoding_matches_the_basis(tmp_path, tiles):
+    """Decoded as OpenLIME's ShaderNeural decodes it (a NumPy transcription of its padded
+    layout), the folder gives the network's own rendering of the codes it holds, to float32
+    rounding; those codes are the basis' within half a quantisation step plus J levels of JPEG
+    error (J as in test_openlime_decoding_matches_the_basis); and so the rendering is the
+    basis' within a few levels. Measured at quality 100: mean |Δ| 0.0009 (whole planes) and
+    0.0019 (tiles), max 0.006 and 0.014 (1.5 and 3.5 levels); the tolerances are a mean of
+    0.003 and a max of 0.02."""
+    basis = make_basis("neural", h=60, w=300 if tiles else 80)
+    folder = tmp_path / "web"
+    export_relightable(folder, basis, quality=100, tiles=tiles)
+    info = json.loads((folder / "info.json").read_text())
+    low, high = np.array(info["min"]), np.array(info["max"])
+    np.testing.assert_array_equal(np.float32(low), basis.planes.reshape(-1, 9).min(0))
+    np.testing.assert_array_equal(np.float32(high), basis.planes.reshape(-1, 9).max(0))
+    codes, _ = openlime_neural(folder, UNIT_LIGHTS[0])
+    step = (high - low) / 255
+    raw = np.concatenate([_read_plane(folder, j, info) for j in (1, 2, 3)], axis=-1)
+    jpeg = np.abs(raw - np.rint((basis.planes - low) / step)).max()
+    assert jpeg <= (4 if tiles else 2), jpeg
+    assert np.all(np.abs(codes - basis.planes) <= step * (0.5 + jpeg) + 1e-6)
+    held = _replace(basis, planes=codes.astype(np.float32))
+    for light in UNIT_LIGHTS:
+        _, viewer = openlime_neural(folder, light)
+        np.testing.assert_allclose(viewer, held.render(light), atol=2e-5)
+        err = np.abs(viewer - basis.render(light))
+        assert err.mean() < 0.003 and err.max() < 0.02, (light, err.mean(), err.max())
+
+
+def test_info_json_of_a_neural_basis(tmp_path):
+    """OpenLIME's NeuralRTI keys, its plane names from 1, and the network padded as ShaderNeural
+    indexes it, every number the float32 it was."""
+    basis = make_basis("neural")
+    written = export_relightable(tmp_path, basis, quality=90, tiles=False, pixel_size_mm=0.02)
+    assert [p.name for p in written] == ["plane_1.jpg", "plane_2.jpg", "plane_3.jpg", "info.json", "viewer.json",
+                                         "index.html"]
+    info = json.loads((tmp_path / "info.json").read_text())
+    assert list(info) == ["width", "height", "format", "pixelSizeInMM", "type", "colorspace", "planes", "samples",
+                          "quality", "min", "max", "weights", "biases"]
+    assert (info["type"], info["colorspace"], info["planes"], info["samples"]) == ("neural", "rgb", 9, 30)
+    assert (info["width"], info["height"], info["quality"]) == (64, 48, 90)
+    assert [len(w) for w in info["weights"]] == [32 * 12, 32 * 32, 3 * 32]
+    assert [len(b) for b in info["biases"]] == [32, 32, 3]
+    (w1, b1), (w2, b2), (w3, b3) = basis.network
+    m1 = np.float32(info["weights"][0]).reshape(32, 12)
+    np.testing.assert_array_equal(m1[:30, :11], w1.T)
+    assert not m1[30:].any() and not m1[:, 11].any()
+    m2 = np.float32(info["weights"][1]).reshape(32, 32)
+    np.testing.assert_array_equal(m2[:30, :30], w2.T)
+    assert not m2[30:].any() and not m2[:, 30:].any()
+    m3 = np.float32(info["weights"][2]).reshape(3, 32)
+    np.testing.assert_array_equal(m3[:, :30], w3.T)
+    assert not m3[:, 30:].any()
+    for got, want in zip(info["biases"], (b1, b2, b3)):
+        np.testing.assert_array_equal(np.float32(got)[: want.size], want)
+        assert not np.any(got[want.size:])
+    extras = json.loads((tmp_path / "viewer.json").read_text())
+    assert extras == {"encoding": "srgb", "layers": {}, "basis": "neural", "terms": 9, "layout": "image"}
+    export_relightable(tmp_path / "tiled", basis, tiles=True)
+    names = sorted(p.name for p in (tmp_path / "tiled").iterdir())
+    assert names == ["index.html", "info.json", "plane_1.dzi", "plane_1_files", "plane_2.dzi", "plane_2_files",
+                     "plane_3.dzi", "plane_3_files", "viewer.json"]
 
 
 def test_info_json_per_type(tmp_path):
@@ -588,7 +696,14 @@ def test_bad_lrgb_bases_are_rejected(tmp_path, change, message):
     [("hsh3", {"order": 4}, "order"), ("rbf", {"sigma": 0.0}, "sigma"),
      ("rbf", {"lights": np.zeros((3, 3))}, "light directions"), ("bln", {"resolution": 4}, "resolution"),
      ("bln", {"basis": np.zeros((3, 25, 3))}, "basis of shape"),
-     ("rbf", {"planes": np.full((48, 64, 5), np.nan, np.float32)}, "finite")],
+     ("rbf", {"planes": np.full((48, 64, 5), np.nan, np.float32)}, "finite"),
+     ("neural", {"planes": np.zeros((48, 64, 8), np.float32)}, "9 code planes"),
+     ("neural", {"planes": np.full((48, 64, 9), np.inf, np.float32)}, "codes are not finite"),
+     ("neural", {"network": None}, "network"),
+     ("neural", {"network": [(np.zeros((11, 4)), np.zeros(4)), (np.zeros((4, 4)), np.zeros(4))]}, "three layers"),
+     ("neural", {"network": [(np.zeros((11, 4)), np.zeros(4)), (np.zeros((4, 4)), np.zeros(4)),
+                             (np.zeros((4, 3)), np.full(3, np.nan))]}, "network is not finite"),
+     ("neural", {"colorspace": "mrgb"}, "colour space")],
 )
 def test_bad_bases_are_rejected(tmp_path, kind, change, message):
     with pytest.raises(ValueError, match=message):

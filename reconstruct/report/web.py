@@ -4,7 +4,9 @@ A relighting basis (:class:`ptmcore.published.PublishedBasis`: PTM, HSH, RBF or 
 written in the layout Relight (``relight-cli``/RelightLab, cnr-isti-vclab/relight) writes and
 OpenLIME (cnr-isti-vclab/openlime) reads with ``LayerRTI`` + ``ShaderRTI``; the layout was taken
 from their sources (Relight ``RtiBuilder::saveJSON``/``save``, ``Rti::load``; OpenLIME
-``ShaderRTI.init``/``loadBasis``, ``LayoutTiles.initDeepzoom``), not guessed.
+``ShaderRTI.init``/``loadBasis``, ``LayoutTiles.initDeepzoom``), not guessed. A NeuralRTI basis
+(``"neural"``) is written as OpenLIME's ``LayerNeuralRTI`` + ``ShaderNeural`` read it (their
+sources and OpenLIME's example ``dist/assets/rti/neural/info.json``): see `NeuralRTI`_ below.
 
 ``info.json``
 -------------
@@ -57,6 +59,32 @@ For the LRGB PTM (:func:`export_openlime`), the coefficient channels hold ``a / 
 OpenLIME shows RTIViewer's ``rgb · L / 255`` (Relight ``legacy_rti.cpp``: "lrgb ptm order is x^2,
 y^2, xy, x, y, 1, r, g, b while we use r, g, b, 1, x, y, x2 xy y2").
 
+NeuralRTI
+---------
+``info.json`` keys: ``width``, ``height``, ``format: "jpg"``, ``pixelSizeInMM`` (when known),
+``type: "neural"``, ``colorspace: "rgb"`` (OpenLIME applies it as a GLSL swizzle to the planes'
+texels and to the network's output: ``"rgb"`` leaves both as they are), ``planes`` (9, the
+code's size: OpenLIME reads no other), ``samples`` (n, the decoder's hidden width), ``quality``,
+``min`` and ``max`` (9 numbers each), ``weights`` and ``biases``.
+
+The codes are three RGB JPEGs named from 1 (OpenLIME's names): ``plane_1`` holds code numbers
+0–2 in its R, G, B, ``plane_2`` 3–5, ``plane_3`` 6–8 (written as the planes above: RGB, 4:4:4,
+no colour tag). Each code number c is quantised over its range [min_c, max_c]:
+``b = rint((code − min_c) / (max_c − min_c) · 255)``, read by OpenLIME as
+``code = b/255 · (max_c − min_c) + min_c`` (within half a step before JPEG compression; bytes
+0 where the number is constant).
+
+The decoder, evaluated per pixel (:mod:`ptmcore.published`): ``h1 = elu(W1·x + b1)`` with
+``x = (code_0 … code_8, lu, lv, 0)``, ``h2 = elu(W2·h1 + b2)``, ``rgb = W3·h2 + b3``, (lu, lv)
+the x and y of the unit light. ``weights`` holds W1, W2 and W3 as flat arrays, each matrix
+row-major, outputs × inputs, as ShaderNeural reads them (``layer1_weights[3·i + j]``, the vec4
+j of output i): with n4 the hidden width n padded up to a multiple of 4, W1 is n4 × 12, W2
+n4 × n4, W3 3 × n4; ``biases`` holds b1 and b2 (n4 each) and b3 (3). The padding is zeros: a
+padded unit is elu(0) = 0 and weighs nothing. Every number is written as the shortest decimal
+that reads back as the same float32. OpenLIME keeps these in fragment-shader uniforms,
+``n4²/4 + 4.25·n4`` vec4s and a few more, which must fit the GPU's
+``MAX_FRAGMENT_UNIFORM_VECTORS`` (1024 on desktops): n ≤ 52 (:mod:`ptmcore.neural`).
+
 Tiles
 -----
 Above :data:`TILE_THRESHOLD` pixels on the longer side (or when asked), each plane is written
@@ -69,8 +97,10 @@ rounded up. Tile (c, r) of a level holds its pixels
 ``[254·c − 1 (if c > 0), min(254·(c + 1) + 1, width))`` across, the same down: one pixel of
 overlap with its neighbours, so linear filtering shows no seams. ``info.json`` is the same; in
 OpenLIME, open it with ``new OpenLIME.Layer({type: 'rti', layout: 'deepzoom', url: '…/info.json'})``
-(``layout: 'image'`` for whole planes). Tiles are JPEGs in libvips' YCbCr, 4:4:4, at the same
-quality (libvips cannot write RGB JPEGs).
+(``layout: 'image'`` for whole planes; ``type: 'neural'`` for NeuralRTI). Tiles are JPEGs in
+libvips' YCbCr, 4:4:4, at the same quality (libvips cannot write RGB JPEGs). The levels below
+the image average the planes' bytes: right for the linear bases, whose rendering is linear in
+them; for NeuralRTI's codes an approximation, as in OpenLIME.
 
 The folder's own page
 ---------------------
@@ -78,18 +108,18 @@ Beside these, the folder gets its own viewer, so that it can be published as it 
 
 * ``index.html`` — a relighting page in plain WebGL, no library (the package's
   ``webviewer.html``, copied). It renders every basis above with the formulas of
-  :mod:`ptmcore.published` (HSH with this project's angles, :mod:`ptmcore.hsh`, up to order 4),
-  streams the tiles of a pyramid (the level that matches the zoom, only the visible tiles), the
-  mouse (or a hemisphere widget, or the arrow keys) moving the light; wheel zoom and pan; the
-  light and layer in the address (``#light=x,y&layer=relit|normals|height``), so a link shows
-  what its sender saw.
+  :mod:`ptmcore.published` (HSH with this project's angles, :mod:`ptmcore.hsh`, up to order 4;
+  NeuralRTI's decoder in a fragment shader, as OpenLIME's), streams the tiles of a pyramid
+  (the level that matches the zoom, only the visible tiles), the mouse (or a hemisphere
+  widget, or the arrow keys) moving the light; wheel zoom and pan; the light and layer in the
+  address (``#light=x,y&layer=relit|normals|height``), so a link shows what its sender saw.
 * ``viewer.json`` — what the page needs beyond ``info.json``: ``encoding`` (``"srgb"``, or
   ``"linear"`` for values of linear light, which the page encodes to sRGB for display),
   ``layers`` (the optional normal-map and height-map images :func:`export_web_layers` adds) and,
   from :func:`export_relightable`: ``basis`` (the basis' name), ``terms`` (K, the coefficient
-  planes before padding), ``order`` (HSH), ``layout`` (``"image"`` or ``"deepzoom"``) and, for a
-  pyramid, ``tiles``: ``format``, ``size``, ``overlap`` and ``levels``, the ``[width, height]`` of
-  each level, level 0 first.
+  planes before padding; 9 for NeuralRTI), ``order`` (HSH), ``layout`` (``"image"`` or
+  ``"deepzoom"``) and, for a pyramid, ``tiles``: ``format``, ``size``, ``overlap`` and
+  ``levels``, the ``[width, height]`` of each level, level 0 first.
 """
 
 from __future__ import annotations
@@ -119,6 +149,7 @@ __all__ = [
     "DZ_OVERLAP",
     "DZ_TILE_SIZE",
     "LAYER_SIDE",
+    "NEURAL_PLANES",
     "PLANE_TERMS",
     "TILE_THRESHOLD",
     "export_openlime",
@@ -153,8 +184,12 @@ DZ_OVERLAP = 1
 # The page, in the package: see the module docstring.
 _VIEWER_PAGE = "webviewer.html"
 
-# PublishedBasis.type → Relight's name in info.json and the colour space it goes with.
-_RELIGHT_TYPES = {"ptm": ("ptm", "lrgb"), "hsh": ("hsh", "lrgb"), "rbf": ("rbf", "mrgb"), "bln": ("bilinear", "mrgb")}
+# PublishedBasis.type → Relight's (OpenLIME's) name in info.json and the colour space it goes with.
+_RELIGHT_TYPES = {"ptm": ("ptm", "lrgb"), "hsh": ("hsh", "lrgb"), "rbf": ("rbf", "mrgb"), "bln": ("bilinear", "mrgb"),
+                  "neural": ("neural", "rgb")}
+
+#: Code size of a NeuralRTI basis: OpenLIME's ShaderNeural reads three RGB planes.
+NEURAL_PLANES = 9
 
 
 def _checked(coefficients: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -350,19 +385,19 @@ def _write_pyramid(folder: Path, name: str, image: np.ndarray, quality: int) -> 
     return [dzi, target]
 
 
-def _write_planes(folder: Path, images: list[np.ndarray], quality: int, tiled: bool) -> list[Path]:
-    """The planes, ``plane_0`` first: whole JPEGs encoded in parallel threads, each written
-    while the ones after it are still encoding; or pyramids, one after the other (libvips
-    spreads each over the cores)."""
+def _write_planes(folder: Path, images: list[np.ndarray], quality: int, tiled: bool, first: int = 0) -> list[Path]:
+    """The planes, ``plane_<first>`` first (0 in Relight's format, 1 in OpenLIME's NeuralRTI):
+    whole JPEGs encoded in parallel threads, each written while the ones after it are still
+    encoding; or pyramids, one after the other (libvips spreads each over the cores)."""
     written: list[Path] = []
     if tiled:
-        for i, image in enumerate(images):
+        for i, image in enumerate(images, first):
             written += _write_pyramid(folder, f"plane_{i}", image, quality)
         return written
     with ThreadPoolExecutor(max_workers=max(1, len(images))) as pool:
         jobs = [pool.submit(_encode_jpeg, image, int(quality)) for image in images]
         try:
-            for i, job in enumerate(jobs):
+            for i, job in enumerate(jobs, first):
                 data = job.result()
                 path = folder / f"plane_{i}.jpg"
                 with atomic_write(path, "wb") as f:
@@ -481,9 +516,27 @@ def export_openlime(
     return written + _finish(folder, info, extras)
 
 
+def _checked_network(network: object, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A neural basis' decoder as float32 layers, checked: ``(k + 2, n)``, ``(n, n)``, ``(n, 3)``
+    weights and their biases, finite."""
+    try:
+        layers = [(np.asarray(w, np.float32), np.asarray(b, np.float32)) for w, b in network]
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"a neural basis needs a network of (weights, bias) layers ({exc})") from exc
+    n = layers[0][0].shape[-1] if layers and layers[0][0].ndim == 2 else 0
+    shapes = [(k + 2, n), (n, n), (n, 3)]
+    if n < 1 or [(w.shape, b.shape) for w, b in layers] != [(s, s[1:]) for s in shapes]:
+        got = [(w.shape, b.shape) for w, b in layers]
+        raise ValueError(f"a neural basis needs three layers of weights {shapes} (and biases) for {k} "
+                         f"planes, not {got}")
+    if not all(np.isfinite(w).all() and np.isfinite(b).all() for w, b in layers):
+        raise ValueError("the network is not finite everywhere")
+    return layers
+
+
 def _checked_basis(basis: PublishedBasis) -> tuple[np.ndarray, int]:
     """The basis' planes as an array, checked against its type, and the number of basis
-    directions D (0 for LRGB)."""
+    directions D (0 for LRGB and neural)."""
     if basis.type not in _RELIGHT_TYPES:
         raise ValueError(f"basis type must be one of {sorted(_RELIGHT_TYPES)}, not {basis.type!r}")
     colorspace = _RELIGHT_TYPES[basis.type][1]
@@ -493,6 +546,13 @@ def _checked_basis(basis: PublishedBasis) -> tuple[np.ndarray, int]:
     if planes.ndim != 3 or planes.shape[2] < 1 or min(planes.shape[:2]) < 1:
         raise ValueError(f"planes must be (H, W, K) with K ≥ 1, not {planes.shape}")
     h, w, k = planes.shape
+    if colorspace == "rgb":
+        if k != NEURAL_PLANES:
+            raise ValueError(f"a neural basis has {NEURAL_PLANES} code planes (OpenLIME's three RGB planes), not {k}")
+        if not np.isfinite(planes).all():
+            raise ValueError("the codes are not finite everywhere")
+        _checked_network(basis.network, k)
+        return planes, 0
     if colorspace == "lrgb":
         colour = None if basis.colour is None else np.asarray(basis.colour)
         if colour is None or colour.shape != (h, w, 3) or colour.dtype != np.uint8:
@@ -540,9 +600,9 @@ def export_relightable(
     Writes the planes (whole JPEGs, or DeepZoom pyramids for large images), then
     ``info.json``, ``viewer.json`` and ``index.html``, each file through
     :func:`ptmcore.atomic.atomic_write` and each pyramid moved into place complete. See the
-    module docstring for the format: PTM and HSH of order 2 or 3, RBF and bilinear bases are
-    shown by OpenLIME as by the folder's page; an HSH of order 4 (16 planes) only by the page,
-    OpenLIME's HSH having 9 terms.
+    module docstring for the format: PTM and HSH of order 2 or 3, RBF, bilinear and NeuralRTI
+    bases are shown by OpenLIME as by the folder's page; an HSH of order 4 (16 planes) only by
+    the page, OpenLIME's HSH having 9 terms.
 
     Parameters
     ----------
@@ -564,7 +624,8 @@ def export_relightable(
     -------
     list of Path
         What was written, in order: the planes (``plane_i.jpg``, or ``plane_i.dzi`` and the
-        folder ``plane_i_files``), ``info.json``, ``viewer.json``, ``index.html``.
+        folder ``plane_i_files``; i from 0, from 1 for NeuralRTI), ``info.json``,
+        ``viewer.json``, ``index.html``.
 
     Raises
     ------
@@ -578,13 +639,32 @@ def export_relightable(
     planes, _ = _checked_basis(basis)
     h, w, k = planes.shape
     tiled = _tiled(tiles, (h, w), tile_threshold)
-    relight_type, colorspace = _RELIGHT_TYPES[basis.type]
-    channels = 3 * -(-k // 3)  # OpenLIME's uniforms hold whole vec3s: K rounded up to planes of 3
-    images, scale, bias = _quantised_planes(planes, channels)
     info: dict = {"width": int(w), "height": int(h), "format": "jpg"}
     if pixel_size_mm is not None:
         info["pixelSizeInMM"] = float(pixel_size_mm)
-    info["type"] = relight_type
+    if basis.type == "neural":
+        images, more = _neural_planes(planes, basis.network, quality)
+    else:
+        images, more = _relight_planes(basis, planes, quality)
+    info.update(more)
+    extras: dict = {"encoding": basis.encoding, "layers": {}, "basis": basis.name or basis.type, "terms": int(k)}
+    if basis.type == "hsh":
+        extras["order"] = int(basis.order)
+    _layout(extras, tiled, (h, w))
+    folder = Path(folder)
+    _make_folder(folder)
+    first = 1 if basis.type == "neural" else 0  # OpenLIME names NeuralRTI's planes from 1
+    return _write_planes(folder, images, quality, tiled, first) + _finish(folder, info, extras)
+
+
+def _relight_planes(basis: PublishedBasis, planes: np.ndarray, quality: int) -> tuple[list[np.ndarray], dict]:
+    """A linear basis' JPEG images and its ``info.json`` keys after the image's, in Relight's
+    format (module docstring)."""
+    k = planes.shape[2]
+    relight_type, colorspace = _RELIGHT_TYPES[basis.type]
+    channels = 3 * -(-k // 3)  # OpenLIME's uniforms hold whole vec3s: K rounded up to planes of 3
+    images, scale, bias = _quantised_planes(planes, channels)
+    info: dict = {"type": relight_type}
     if basis.type == "bln":
         info["resolution"] = int(basis.resolution)
     info["colorspace"] = colorspace
@@ -603,13 +683,46 @@ def export_relightable(
         info["basis"], material["range"] = _basis_bytes(np.asarray(basis.basis, dtype=np.float64), channels)
     material.update({"scale": scale, "bias": bias})
     info["materials"] = [material]
-    extras: dict = {"encoding": basis.encoding, "layers": {}, "basis": basis.name or basis.type, "terms": int(k)}
-    if basis.type == "hsh":
-        extras["order"] = int(basis.order)
-    _layout(extras, tiled, (h, w))
-    folder = Path(folder)
-    _make_folder(folder)
-    return _write_planes(folder, images, quality, tiled) + _finish(folder, info, extras)
+    return images, info
+
+
+def _float32_list(values: np.ndarray) -> list[float]:
+    """Numbers for JSON, each the shortest decimal that reads back as the same float32 (NumPy's
+    ``str`` of a float32): a third of the digits of the float64 it widens to, and exact."""
+    return [float(str(v)) for v in np.asarray(values, np.float32).ravel()]
+
+
+def _neural_network(layers: list[tuple[np.ndarray, np.ndarray]]) -> tuple[list[list[float]], list[list[float]]]:
+    """The decoder's ``weights`` and ``biases`` as ShaderNeural reads them (module docstring):
+    each matrix outputs × inputs, row-major, the hidden width and the inputs padded with zeros
+    to multiples of 4."""
+    n4 = 4 * -(-layers[1][0].shape[0] // 4)
+    inputs = [4 * -(-layers[0][0].shape[0] // 4), n4, n4]
+    outputs = [n4, n4, 3]
+    weights, biases = [], []
+    for (w, b), rows, cols in zip(layers, outputs, inputs):
+        matrix = np.zeros((rows, cols), np.float32)
+        matrix[: w.shape[1], : w.shape[0]] = w.T  # ours are (inputs, outputs)
+        vector = np.zeros(rows, np.float32)
+        vector[: b.size] = b
+        weights.append(_float32_list(matrix))
+        biases.append(_float32_list(vector))
+    return weights, biases
+
+
+def _neural_planes(codes: np.ndarray, network: object, quality: int) -> tuple[list[np.ndarray], dict]:
+    """A NeuralRTI basis' three JPEG images of codes and its ``info.json`` keys after the
+    image's, in OpenLIME's format (module docstring)."""
+    from ptmcore.neural import quantize_codes
+
+    layers = _checked_network(network, codes.shape[2])
+    quantised, low, high = quantize_codes(codes)
+    images = [np.ascontiguousarray(quantised[..., j : j + 3]) for j in range(0, NEURAL_PLANES, 3)]
+    weights, biases = _neural_network(layers)
+    info = {"type": "neural", "colorspace": "rgb", "planes": NEURAL_PLANES, "samples": int(layers[1][0].shape[0]),
+            "quality": int(quality), "min": _float32_list(low), "max": _float32_list(high),
+            "weights": weights, "biases": biases}
+    return images, info
 
 
 def _write_viewer_json(folder: Path, extras: dict) -> Path:
