@@ -404,19 +404,21 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
 
 def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Sequence[str] = AUTO,
                  encodings: Sequence[str] = ENCODINGS, mask: np.ndarray | None = None,
-                 pixels: int = SAMPLE_PIXELS, threads: int | None = None) -> BasisChoice:
+                 pixels: int = SAMPLE_PIXELS, threads: int | None = None,
+                 neural: NeuralParameters | None = None) -> BasisChoice:
     """The basis and encoding that relight this capture most faithfully (:func:`score_bases`,
     and :func:`score_neural` when ``neural`` is a candidate).
 
     With one candidate and one encoding the choice is that one, still scored (``neural`` asked
     for alone is not: scoring it is a second training). Falls back to the PTM in sRGB when no
-    candidate can be scored (as few lights as terms). ``neural`` is fitted to sRGB values only.
+    candidate can be scored (as few lights as terms). ``neural`` is fitted to sRGB values only,
+    with the parameters ``neural`` (:class:`~ptmcore.neural.NeuralParameters`'s defaults).
     """
     luminance, chroma = sample_stack(stack, pixels, mask)
     scores = score_bases(luminance, chroma, directions, candidates, encodings)
     if "neural" in candidates and len(candidates) > 1 and "srgb" in encodings:
-        neural = score_neural(luminance, chroma, directions, threads=threads)
-        scores = sorted(scores + ([neural] if neural is not None else []), key=lambda s: s.rms)
+        learned = score_neural(luminance, chroma, directions, params=neural, threads=threads)
+        scores = sorted(scores + ([learned] if learned is not None else []), key=lambda s: s.rms)
     if list(candidates) == ["neural"]:
         return BasisChoice("neural", "srgb", (), luminance.shape[1], "asked")
     chosen_by = scores[0].measured_by if scores and len(candidates) * len(encodings) > 1 else "asked"
@@ -428,7 +430,7 @@ def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Seque
 
 def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding: str = "srgb", *,
                   threads: int | None = None, progress: Callable[[int], None] | None = None,
-                  pixels: int = SAMPLE_PIXELS) -> PublishedBasis:
+                  pixels: int = SAMPLE_PIXELS, neural: NeuralParameters | None = None) -> PublishedBasis:
     """Fit one basis to a whole stack, in the form viewers read.
 
     Parameters
@@ -447,6 +449,8 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         Called with the number of rows done after each band.
     pixels : int
         Pixels of the grid the principal components of ``rbf`` and ``bilinear`` are found on.
+    neural : NeuralParameters, optional
+        How ``neural`` is trained (default: :class:`~ptmcore.neural.NeuralParameters`).
 
     Returns
     -------
@@ -458,7 +462,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     if name == "neural":
         if encoding != "srgb":
             raise ValueError("the neural basis is fitted to sRGB values only, as NeuralRTI is")
-        return _fit_neural(stack, directions, threads=threads, progress=progress)
+        return _fit_neural(stack, directions, params=neural, threads=threads, progress=progress)
     n = len(stack)
     h, w = stack.shape
     if name in ("rbf", "bilinear"):

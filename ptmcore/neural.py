@@ -81,7 +81,8 @@ class NeuralParameters:
         and what dominates training time. A multiple of 4 wastes nothing in OpenLIME, which
         pads it to one; at most 52 for OpenLIME's uniforms (module docstring).
     epochs : int
-        Passes over the training pixels.
+        Passes over the training pixels (more of them in each epoch for a small capture:
+        ``min_steps``).
     batch_size : int
         Pixels per step; each contributes all its lights to the loss.
     learning_rate : float
@@ -93,6 +94,12 @@ class NeuralParameters:
         Pixels sampled (uniformly, without replacement) to train on; all of them when there
         are fewer. Neighbouring pixels are much alike, so a sample of tens of thousands learns
         nearly what all of them would, in a fraction of the time.
+    min_steps : int
+        The fewest steps of training: a capture with too few pixels for them in ``epochs``
+        passes has as many passes in each epoch as it takes. The default is the steps of the
+        default ``training_pixels`` and ``epochs``: a 40 × 48 capture trained for 20 passes over
+        its 1,920 pixels relit its photographs 12–17 levels off, where HSH of order 3 is 3.4
+        levels off; with as many steps as a large capture, 1.9–2.9.
     seed : int
         Seeds the pixel sample, the initial weights and the order of the batches.
     """
@@ -105,10 +112,11 @@ class NeuralParameters:
     learning_rate: float = 3e-3
     final_rate: float = 0.02
     training_pixels: int = 65536
+    min_steps: int = 20480
     seed: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("code_size", "hidden", "epochs", "batch_size", "training_pixels"):
+        for name in ("code_size", "hidden", "epochs", "batch_size", "training_pixels", "min_steps"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"NeuralParameters.{name} must be at least 1, not {getattr(self, name)}")
         if len(self.encoder_widths) < 1 or min(int(w) for w in self.encoder_widths) < 1:
@@ -367,17 +375,23 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
     moments = [(np.zeros_like(w), np.zeros_like(b), np.zeros_like(w), np.zeros_like(b)) for w, b in layers]
     n = samples.shape[0]
     batch = min(params.batch_size, n)
-    steps = params.epochs * math.ceil(n / batch)
+    # A pass is ceil(n / batch) steps; a small capture takes more per epoch, from as many
+    # shuffles of its pixels as they need.
+    per_epoch = max(math.ceil(n / batch), math.ceil(params.min_steps / params.epochs))
+    shuffles = 1 if per_epoch == math.ceil(n / batch) else math.ceil(per_epoch * batch / n)
+    steps = params.epochs * per_epoch
     losses = np.zeros(params.epochs, np.float32)
     step = 0
     workers = thread_count(threads)
     # BLAS kept to one thread: the batch's parts already occupy the cores.
     with ThreadPoolExecutor(max_workers=workers) as pool, threadpool_limits(1 if workers > 1 else None):
         for epoch in range(params.epochs):
-            order = rng.permutation(n)
+            order = np.concatenate([rng.permutation(n) for _ in range(shuffles)])
             total = 0.0
-            for s in range(0, n, batch):
+            seen = 0
+            for s in range(0, per_epoch * batch, batch):
                 rows = order[s:s + batch]
+                seen += len(rows)
                 loss, grads = _batch_gradients(encoder, decoder, inputs[rows], samples[rows], lights, pool, workers)
                 total += loss * len(rows)
                 step += 1
@@ -392,7 +406,7 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
                         v *= ADAM_BETA2
                         v += (1 - ADAM_BETA2) * (g * g)
                         p -= alpha * m / (np.sqrt(v) + ADAM_EPSILON)
-            losses[epoch] = total / n
+            losses[epoch] = total / seen
     return NeuralModel(encoder, decoder, dirs, offset.astype(np.float32), scale, losses)
 
 

@@ -19,6 +19,7 @@ from ptmcore.bases import (
     score_bases,
 )
 from ptmcore.images import LUMA_WEIGHTS, ImageStack, linear_to_srgb
+from ptmcore.neural import NeuralParameters
 from ptmcore.interpolation import bilinear_loo_matrix, default_sigma, pca, rbf_loo_matrix
 from ptmcore.published import ptm_weights
 
@@ -203,3 +204,34 @@ def test_bad_names_and_encodings_are_refused():
         fit_published(_stack(lum, chroma), DIRS, "ptm", "gamma")
     with pytest.raises(ValueError, match="chroma"):
         score_bases(lum.reshape(len(DIRS), -1), chroma[:2].reshape(-1, 3), DIRS)
+
+
+#: Training for these tests' 900 pixels: 20 passes, not the steps of a large capture.
+FEW_STEPS = NeuralParameters(min_steps=1)
+
+
+def test_fit_published_neural_relights_the_photographs():
+    lum, chroma = _ptm_scene(shape=(30, 30), seed=8)
+    basis = fit_published(_stack(lum, chroma), DIRS, "neural", threads=2, neural=FEW_STEPS)
+    assert (basis.type, basis.colorspace, basis.name, basis.planes.shape) == ("neural", "rgb", "neural", (30, 30, 9))
+    errors = [np.abs(basis.display(DIRS[i]).astype(np.float64)
+                     - 255 * linear_to_srgb(np.clip(chroma * lum[i][..., None], 0, 1))).mean() for i in (0, 9, 30)]
+    # 900 pixels, a few hundred steps of training: a rough fit, far better than a flat image.
+    flat = np.abs(255 * linear_to_srgb(np.clip(chroma * lum[0][..., None], 0, 1)) - 128).mean()
+    assert max(errors) < 12 and max(errors) < flat / 3, errors
+    with pytest.raises(ValueError, match="sRGB"):
+        fit_published(_stack(lum, chroma), DIRS, "neural", "linear")
+
+
+def test_choose_basis_scores_neural_on_held_out_lights():
+    lum, chroma = _ptm_scene(shape=(30, 30), seed=9)
+    choice = choose_basis(_stack(lum, chroma), DIRS, candidates=("ptm", "hsh3", "neural"), threads=2,
+                          neural=FEW_STEPS)
+    by = {(s.name, s.encoding): s for s in choice.scores}
+    neural = by["neural", "srgb"]
+    assert neural.measured_by == "held-out lights" and ("neural", "linear") not in by
+    assert neural.planes == 9 and neural.storage > 0 and np.isfinite(neural.psnr)
+    assert choice.name == "ptm" and choice.chosen_by == "leave-one-out"  # the scene is a PTM
+    # Too few lights to hold a sixth out: neural is left out, the others still scored.
+    few = choose_basis(_stack(lum[:12], chroma), DIRS[:12], candidates=("ptm", "neural"))
+    assert [s.name for s in few.scores] == ["ptm", "ptm"]

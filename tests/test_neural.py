@@ -20,7 +20,10 @@ from ptmcore.published import neural_basis
 
 from helpers import dome
 
-SMALL = NeuralParameters(encoder_widths=(16, 16), hidden=16, epochs=4, batch_size=32, learning_rate=1e-2)
+# min_steps=1: one pass over these tests' few pixels per epoch, not the steps a large capture
+# is given.
+SMALL = NeuralParameters(encoder_widths=(16, 16), hidden=16, epochs=4, batch_size=32, learning_rate=1e-2,
+                         min_steps=1)
 
 
 def lambertian(pixels: int, directions: np.ndarray, seed: int = 0) -> np.ndarray:
@@ -92,7 +95,8 @@ def test_lambertian_learned_at_held_out_lights():
     # quadratic); the network gets 7.4, and keeps improving with more epochs.
     d = dome(40, seed=1)
     samples = lambertian(3000, d, seed=0)
-    params = NeuralParameters(encoder_widths=(32, 32), hidden=32, epochs=60, batch_size=64, learning_rate=1e-2)
+    params = NeuralParameters(encoder_widths=(32, 32), hidden=32, epochs=60, batch_size=64, learning_rate=1e-2,
+                              min_steps=1)
     assert held_out_error(samples, d, np.arange(0, 40, 4), params) < 8.0
 
 
@@ -218,3 +222,18 @@ def test_bad_input_raises():
         decode(model, np.zeros((3, 4, 8)), d[0])
     with pytest.raises(ValueError, match="zero vector"):
         decode(model, np.zeros((3, 9)), np.zeros(3))
+
+
+def test_a_small_capture_gets_min_steps(monkeypatch):
+    import ptmcore.neural as neural
+
+    calls = []
+    real = neural._batch_gradients
+    monkeypatch.setattr(neural, "_batch_gradients", lambda *a: calls.append(1) or real(*a))
+    d = dome(12, seed=2)
+    samples = lambertian(100, d, seed=2)  # 4 batches of 32 a pass, the last of 4 pixels
+    model = train_neural(samples, d, NeuralParameters(**{**SMALL.__dict__, "epochs": 2, "min_steps": 40}))
+    assert len(calls) == 40 and model.loss.shape == (2,)
+    calls.clear()
+    train_neural(samples, d, NeuralParameters(**{**SMALL.__dict__, "epochs": 2, "min_steps": 1}))
+    assert len(calls) == 8

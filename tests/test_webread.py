@@ -226,6 +226,73 @@ def test_max_side_must_be_positive(tmp_path):
 # --- the types' table ---------------------------------------------------------------------------
 
 
+def _neural_basis(h=40, w=60, seed=0):
+    """A NeuralRTI basis of random smooth codes and a random decoder of hidden width 10 (padded
+    to 12 in info.json, so the unpadding is tested)."""
+    rng = np.random.default_rng(seed)
+    codes = (2 * _smooth(h, w, 9, rng)).astype(np.float32)
+    codes[..., 4] = 0.7  # a constant code number: bytes 0 and min = max
+    sizes = [(11, 10), (10, 10), (10, 3)]
+    network = [((rng.normal(size=s) / np.sqrt(s[0])).astype(np.float32), rng.normal(0, 0.1, s[1]).astype(np.float32))
+               for s in sizes]
+    network[2] = (network[2][0] * 0.2, network[2][1] + 0.5)
+    return PublishedBasis("neural", "rgb", codes, network=network, name="neural")
+
+
+@pytest.mark.parametrize("tiles", [False, True])
+def test_neural_round_trip(tmp_path, tiles):
+    basis = _neural_basis(w=300 if tiles else 60)
+    folder = tmp_path / "web"
+    export_relightable(folder, basis, quality=100, tiles=tiles)
+    assert (folder / "plane_1.dzi").is_file() == tiles and not (folder / "plane_0.jpg").exists()
+    read = read_relightable(folder)
+    assert (read.type, read.colorspace, read.name, read.planes.shape) == ("neural", "rgb", "neural", (40, basis.shape[1], 9))
+    for (w0, b0), (w1, b1) in zip(basis.network, read.network):
+        np.testing.assert_array_equal(w1, w0)
+        np.testing.assert_array_equal(b1, b0)
+    info = json.loads((folder / "info.json").read_text())
+    step = (np.array(info["max"]) - np.array(info["min"])) / 255
+    assert np.all(np.abs(read.planes - basis.planes) <= step * (0.5 + JPEG_LEVELS[tiles]) + 1e-5)
+    np.testing.assert_allclose(read.planes[..., 4], 0.7, atol=1e-6)
+    for light in LIGHTS[:3]:
+        assert np.abs(read.display(light).astype(int) - basis.display(light)).mean() < 1.5
+    if not tiles:  # (a pyramid's smallest level is its one-tile level, 150 pixels here)
+        small = read_relightable(folder, max_side=20)
+        assert 20 <= max(small.shape) < 40 and small.network is not None
+
+
+def test_neural_bgr_folder_is_read_in_its_order(tmp_path):
+    """NeuralRTI's own folders say "bgr": OpenLIME swizzles the planes' texels and the output
+    alike, so relabelled planes and output give the same image."""
+    basis = _neural_basis()
+    export_relightable(tmp_path / "rgb", basis, quality=100, tiles=False)
+    codes = basis.planes.reshape(40, 60, 3, 3)[..., ::-1].reshape(40, 60, 9)
+    (w3, b3) = basis.network[2]
+    swapped = PublishedBasis("neural", "rgb", codes, network=[*basis.network[:2], (w3[:, ::-1].copy(), b3[::-1].copy())])
+    export_relightable(tmp_path / "bgr", swapped, quality=100, tiles=False)
+    info = json.loads((tmp_path / "bgr" / "info.json").read_text())
+    info["colorspace"] = "bgr"
+    (tmp_path / "bgr" / "info.json").write_text(json.dumps(info))
+    a, b = read_relightable(tmp_path / "rgb"), read_relightable(tmp_path / "bgr")
+    np.testing.assert_allclose(b.render(LIGHTS[0]), a.render(LIGHTS[0]), atol=2e-3)
+
+
+@pytest.mark.parametrize("change, needles", [
+    (lambda i: i.pop("min"), ["info.json", "'min'"]),
+    (lambda i: i.update(planes=6), ["planes"]),
+    (lambda i: i["weights"].pop(), ["weights and biases"]),
+    (lambda i: i["weights"][1].pop(), ["weights[1]"]),
+    (lambda i: i.update(samples=0), ["samples"]),
+    (lambda i: i.update(colorspace="rgba"), ["colorspace"]),
+])
+def test_bad_neural_info(tmp_path, change, needles):
+    export_relightable(tmp_path, _neural_basis(), tiles=False)
+    info = json.loads((tmp_path / "info.json").read_text())
+    change(info)
+    (tmp_path / "info.json").write_text(json.dumps(info))
+    _one_line_error(lambda: read_relightable(tmp_path), *needles)
+
+
 def test_a_new_type_is_one_function(tmp_path, monkeypatch):
     export_relightable(tmp_path, make_basis("rbf"), tiles=False)
     info = json.loads((tmp_path / "info.json").read_text())

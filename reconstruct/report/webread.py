@@ -41,6 +41,7 @@ import numpy as np
 from ptmcore.decoders import JPEG_PIXELS_PER_BYTE, MAX_PIXELS
 from ptmcore.errors import InputError, open_input_file, read_input_file, read_input_text
 from ptmcore.published import PublishedBasis
+from reconstruct.report.web import NEURAL_PLANES
 
 __all__ = ["READERS", "WebFolder", "find_web_folder", "published_folder", "read_relightable", "relightable_shape"]
 
@@ -244,9 +245,13 @@ class WebFolder:
     nplanes : int
         Channels in the planes (``ceil(nplanes / 3)`` JPEGs).
     scale, bias : ndarray, shape (nplanes,)
-        Each channel's value is ``(byte/255 − bias) · scale``.
+        Each channel's value is ``(byte/255 − bias) · scale + offset``.
     max_side : int or None
         The longer side wanted (None: full size).
+    offset : ndarray, shape (nplanes,), optional
+        Added to each channel (NeuralRTI's ``min``; zero for Relight's other types).
+    first_plane : int
+        The number in the first plane's name (NeuralRTI's planes are named from 1).
     """
 
     folder: Path
@@ -258,6 +263,8 @@ class WebFolder:
     scale: np.ndarray
     bias: np.ndarray
     max_side: int | None = None
+    offset: np.ndarray | None = None
+    first_plane: int = 0
     _laid_out: bool = field(default=False, repr=False)
     _pyramids: list[_Pyramid] = field(default_factory=list, repr=False)
     _level: int | None = field(default=None, repr=False)
@@ -277,7 +284,10 @@ class WebFolder:
         return InputError(problem, path or self.info_path)
 
     def _plane_path(self, j: int) -> Path:
-        return self.folder / f"plane_{j}.{self.info['format']}"
+        return self.folder / f"plane_{j + self.first_plane}.{self.info['format']}"
+
+    def _dzi_path(self, j: int) -> Path:
+        return self.folder / f"plane_{j + self.first_plane}.dzi"
 
     def layout(self) -> None:
         """Find each plane (a whole JPEG or a pyramid, as ``viewer.json``'s ``layout`` says, else
@@ -290,9 +300,9 @@ class WebFolder:
         self._laid_out = True
         tiled = self.extras.get("layout") == "deepzoom" or (
             "layout" not in self.extras and not self._plane_path(0).is_file()
-            and (self.folder / "plane_0.dzi").is_file())
+            and self._dzi_path(0).is_file())
         for j in range(self.njpegs):
-            path = self.folder / f"plane_{j}.dzi" if tiled else self._plane_path(j)
+            path = self._dzi_path(j) if tiled else self._plane_path(j)
             if not path.is_file():
                 raise InputError(f"missing: the folder's info.json declares {self.nplanes} channels "
                                  f"in {self.njpegs} planes", path)
@@ -313,7 +323,7 @@ class WebFolder:
     def _choose_level(self) -> None:
         pyramid = self._pyramids[0]
         if any(p.tile != pyramid.tile for p in self._pyramids):
-            raise self.fail("the planes' pyramids have different tile sizes", self.folder / "plane_1.dzi")
+            raise self.fail("the planes' pyramids have different tile sizes", self._dzi_path(1))
         levels = _levels(self.width, self.height, pyramid.tile)
         top = len(levels) - 1
         wanted = self.max_side or max(self.width, self.height)
@@ -327,7 +337,8 @@ class WebFolder:
                         raise InputError(f"missing tile of level {self._level} ({lw} × {lh} pixels)", tile)
 
     def _tile_path(self, j: int, column: int, row: int) -> Path:
-        return self.folder / f"plane_{j}_files" / str(self._level) / f"{column}_{row}.{self._pyramids[j].suffix}"
+        return (self.folder / f"plane_{j + self.first_plane}_files" / str(self._level)
+                / f"{column}_{row}.{self._pyramids[j].suffix}")
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -382,6 +393,8 @@ class WebFolder:
                     np.multiply(image[..., c], np.float32(1.0 / 255.0), out=out[..., k - first], casting="unsafe")
                     out[..., k - first] -= b
                     out[..., k - first] *= s
+                    if self.offset is not None:
+                        out[..., k - first] += np.float32(self.offset[k])
         return out
 
     def colour(self) -> np.ndarray:
@@ -404,7 +417,8 @@ def _open(source: Path, max_side: int | None) -> WebFolder:
         raise InputError("no info.json here: not a web/ folder of reconstruct run or of Relight", source)
     info = _load_json(info_path, "info.json")
     extras = _load_json(folder / "viewer.json", "viewer.json") if (folder / "viewer.json").exists() else {}
-    for key in ("width", "height", "type", "colorspace", "nplanes", "materials"):
+    neural = info.get("type") == "neural"
+    for key in ("width", "height", "type", "colorspace", *(("planes", "min", "max") if neural else ("nplanes", "materials"))):
         if key not in info:
             raise InputError(f"no {key!r} in it", info_path)
     width = _whole(info["width"], "width", info_path, 1, MAX_SIDE)
@@ -419,12 +433,19 @@ def _open(source: Path, max_side: int | None) -> WebFolder:
         raise InputError(f"unknown type {info['type']!r} (reads {', '.join(READERS)})", info_path)
     if not isinstance(info["colorspace"], str):
         raise InputError(f"colorspace must be a name, not {info['colorspace']!r}", info_path)
-    nplanes = _whole(info["nplanes"], "nplanes", info_path, 1, MAX_CHANNELS)
-    materials = info["materials"]
-    if not isinstance(materials, list) or not materials or not isinstance(materials[0], dict):
-        raise InputError("materials must be a list holding one object of scale and bias", info_path)
-    scale = _numbers(materials[0].get("scale"), "materials[0].scale", info_path, nplanes)
-    bias = _numbers(materials[0].get("bias"), "materials[0].bias", info_path, nplanes)
+    offset = None
+    if neural:  # code = byte/255 · (max − min) + min, planes named from 1 (OpenLIME's LayerNeuralRTI)
+        nplanes = _whole(info["planes"], "planes", info_path, NEURAL_PLANES, NEURAL_PLANES)
+        offset = _numbers(_flat(info["min"]), "min", info_path, nplanes)
+        scale = _numbers(_flat(info["max"]), "max", info_path, nplanes) - offset
+        bias = np.zeros(nplanes)
+    else:
+        nplanes = _whole(info["nplanes"], "nplanes", info_path, 1, MAX_CHANNELS)
+        materials = info["materials"]
+        if not isinstance(materials, list) or not materials or not isinstance(materials[0], dict):
+            raise InputError("materials must be a list holding one object of scale and bias", info_path)
+        scale = _numbers(materials[0].get("scale"), "materials[0].scale", info_path, nplanes)
+        bias = _numbers(materials[0].get("bias"), "materials[0].bias", info_path, nplanes)
     encoding = extras.get("encoding", "srgb")
     if encoding not in ("srgb", "linear"):
         raise InputError(f"encoding must be 'srgb' or 'linear', not {encoding!r}", folder / "viewer.json")
@@ -432,7 +453,14 @@ def _open(source: Path, max_side: int | None) -> WebFolder:
                                  or max_side < 1):
         raise ValueError(f"max_side must be a positive whole number of pixels, not {max_side!r}")
     return WebFolder(folder, info, extras, width, height, nplanes, scale, bias,
-                     None if max_side is None else int(max_side))
+                     None if max_side is None else int(max_side), offset, 1 if neural else 0)
+
+
+def _flat(value: object) -> object:
+    """OpenLIME's ``min``/``max``: flat, or one list per plane (its ``flat(1)``)."""
+    if isinstance(value, list) and value and all(isinstance(v, list) for v in value):
+        return [x for v in value for x in v]
+    return value
 
 
 def _terms(web: WebFolder, low: int, high: int) -> int | None:
@@ -524,6 +552,36 @@ def _read_mrgb(web: WebFolder) -> PublishedBasis:
                           resolution=resolution, basis=basis, name=_name(web, "rbf" if kind == "rbf" else "bilinear"))
 
 
+def _read_neural(web: WebFolder) -> PublishedBasis:
+    """NeuralRTI: the 9-number codes in three planes and the decoder in ``info.json``, padded
+    as OpenLIME's ShaderNeural reads it (:mod:`reconstruct.report.web`)."""
+    info, path = web.info, web.info_path
+    if not (isinstance(info["colorspace"], str) and sorted(info["colorspace"]) == ["b", "g", "r"]):
+        raise web.fail(f"colorspace must order r, g and b, not {info['colorspace']!r}")
+    k = web.nplanes
+    hidden = _whole(info.get("samples"), "samples", path, 1, 1 << 10)
+    n4, c4 = 4 * -(-hidden // 4), 4 * -(-(k + 2) // 4)
+    weights, biases = info.get("weights"), info.get("biases")
+    if not (isinstance(weights, list) and isinstance(biases, list) and len(weights) == len(biases) == 3):
+        raise web.fail("weights and biases must be lists of three layers")
+    network = []
+    for i, (rows, cols) in enumerate([(n4, c4), (n4, n4), (3, n4)]):
+        w = _numbers(weights[i], f"weights[{i}]", path, rows * cols).reshape(rows, cols)
+        b = _numbers(biases[i], f"biases[{i}]", path, rows)
+        inputs, outputs = (k + 2 if i == 0 else hidden), (3 if i == 2 else hidden)
+        network.append((np.ascontiguousarray(w[:outputs, :inputs].T, np.float32), b[:outputs].astype(np.float32)))
+    # OpenLIME swizzles the planes' texels and the network's output alike: a "bgr" folder (as
+    # NeuralRTI's own) holds each plane's numbers and the output in that order.
+    order = ["rgb".index(c) for c in info["colorspace"]]
+    h, w = web.shape
+    _check_memory(h * w * 4 * (k + 3), path)
+    codes = web.values(0, k).reshape(h, w, k // 3, 3)[..., order].reshape(h, w, k)
+    last_w, last_b = network[2]  # shown channel i is output order[i]
+    network[2] = (np.ascontiguousarray(last_w[:, order]), np.ascontiguousarray(last_b[order]))
+    return PublishedBasis("neural", "rgb", codes, web.extras.get("encoding", "srgb"), network=network,
+                          name=_name(web, "neural"))
+
+
 #: Relight's ``type`` → the function reading a folder of it (after :class:`WebFolder` has checked
 #: what every type shares). A new type is one function of a ``WebFolder`` and one entry here.
 READERS: dict[str, Callable[[WebFolder], PublishedBasis]] = {
@@ -531,6 +589,7 @@ READERS: dict[str, Callable[[WebFolder], PublishedBasis]] = {
     "hsh": _read_lrgb,
     "rbf": _read_mrgb,
     "bilinear": _read_mrgb,
+    "neural": _read_neural,
 }
 
 
