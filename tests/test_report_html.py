@@ -175,8 +175,8 @@ def test_run_with_scan_writes_a_complete_self_contained_report(scanned):
     # for display.
     chosen = report["relighting"]
     relit = " ".join(checker.text).split("Relit under several lights")[1].split("Specular enhancement, albedo")[0]
-    assert f"published in web/, {report_figures.basis_words(chosen['name'])} (chosen by {chosen['chosen_by']})" \
-        in relit, relit
+    assert (f"published in web/, {report_figures.basis_words(chosen['name'])} (chosen by {chosen['chosen_by']}: "
+            f"{chosen['margin_db']:.1f} dB better than {chosen['runner_up']})") in relit, relit
     assert ("shown sRGB-encoded" in relit) == (chosen["encoding"] == "linear")
 
 
@@ -402,9 +402,11 @@ def test_relit_pictures_are_the_published_basis(scanned, tmp_path, encoding):
                   basis=None, lights=None, sigma=None, resolution=None)
     export_relightable(copy / "web", hsh, tiles=False)
     report = json.loads((copy / "report.json").read_text())
-    report["relighting"].update(name="hsh2", encoding=encoding, chosen_by="leave-one-out")
+    report["relighting"].update(name="hsh2", encoding=encoding, chosen_by="leave-one-out", margin_db=1.3,
+                                runner_up="rbf (srgb)")
     text = html.unescape(report_html(copy, report=report))
-    assert "The relighting basis published in web/, HSH order 2 (chosen by leave-one-out)" in text
+    assert ("The relighting basis published in web/, HSH order 2 (chosen by leave-one-out: 1.3 dB better than "
+            "rbf (srgb))") in text
     assert ("fitted to linear light and shown sRGB-encoded" in text) == (encoding == "linear")
     shown = _relit_images(text)
     expected = dict(report_figures.relit_from_basis(copy / "web"))

@@ -277,7 +277,8 @@ def relit_from_ptm(ptm: str | os.PathLike | PTMFile, max_side: int = 480, *, lin
 
 #: The published bases as a caption names them (``reconstruct run --basis``'s names).
 BASIS_WORDS = {"ptm": "PTM", "hsh2": "HSH order 2", "hsh3": "HSH order 3", "hsh4": "HSH order 4",
-               "rbf": "RBF interpolation of the photographs", "bilinear": "bilinear interpolation of the photographs"}
+               "rbf": "RBF interpolation of the photographs", "bilinear": "bilinear interpolation of the photographs",
+               "neural": "NeuralRTI's learned basis"}
 
 
 def basis_words(name: str) -> str:
