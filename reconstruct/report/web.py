@@ -140,6 +140,7 @@ import numpy as np
 from ptmcore.atomic import atomic_write
 from ptmcore.errors import InputError
 from ptmcore.png import write_png
+from ptmcore.published import OPENLIME_PTM_ORDER
 from reconstruct.report.figures import normal_colors, thin
 
 if TYPE_CHECKING:
@@ -159,8 +160,9 @@ __all__ = [
     "pyramid_levels",
 ]
 
-#: Coefficient index (a0..a5) in each channel of plane_1 and plane_2: (1, x, y) and (x², xy, y²).
-PLANE_TERMS = ((5, 3, 4), (0, 2, 1))
+#: Coefficient index (a0..a5) in each channel of plane_1 and plane_2: (1, x, y) and (x², xy, y²),
+#: OpenLIME's order of the PTM's terms.
+PLANE_TERMS = (tuple(OPENLIME_PTM_ORDER[:3]), tuple(OPENLIME_PTM_ORDER[3:]))
 
 # Number of planes, counting the colour planes, as OpenLIME and Relight count them.
 _NPLANES = 9
