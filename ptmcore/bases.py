@@ -40,6 +40,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .bands import BAND_BYTES, band_rows, run_bands
 from .hsh import RCOND, hsh_basis
@@ -57,6 +58,7 @@ from .loo import loo_residuals
 from .lp import as_directions
 from .neural import NeuralParameters
 from .published import PublishedBasis, ptm_weights
+from .resources import thread_count
 
 __all__ = ["AUTO", "CANDIDATES", "ENCODINGS", "NAMES", "BasisChoice", "BasisScore", "choose_basis", "fit_published",
            "sample_stack", "score_bases", "score_neural"]
@@ -357,8 +359,9 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
 def _rgb_samples(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
     """Display-encoded RGB ``(P, N, 3)`` of linear luminance ``(N, P)`` and chroma ``(P, 3)``:
     what NeuralRTI trains on (the photographs' 8-bit values)."""
-    rgb = _display(chroma[None] * luminance[..., None], "srgb")
-    return np.ascontiguousarray(rgb.transpose(1, 0, 2), dtype=np.float32)
+    from .displaykernel import display_samples
+
+    return np.ascontiguousarray(display_samples(luminance, chroma, "srgb").transpose(1, 0, 2))
 
 
 def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarray, *,
@@ -456,6 +459,8 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     -------
     PublishedBasis
     """
+    from .displaykernel import display_samples, lrgb_samples
+
     _check_name(name)
     _check_encoding(encoding)
     directions = as_directions(directions, len(stack))
@@ -472,7 +477,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         luminance, chroma = sample_stack(stack, pixels)
 
         def vectors_of(lum: np.ndarray, chr_: np.ndarray) -> np.ndarray:
-            rgb = _display(chr_[None] * lum[..., None], encoding).transpose(1, 0, 2)  # (P, N, 3)
+            rgb = display_samples(lum, chr_, encoding).transpose(1, 0, 2)  # (P, N, 3)
             if grid is not None:  # one matrix product (an einsum here took seconds a megapixel)
                 p_, n_, _ = rgb.shape
                 rgb = (rgb.transpose(0, 2, 1).reshape(-1, n_) @ grid_t).reshape(p_, 3, -1).transpose(0, 2, 1)
@@ -488,7 +493,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
             planes[r0:r1] = ((vectors - mean32) @ comp32).reshape(r1 - r0, w, PCA_PLANES)
 
         rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
-        run_bands(h, rows, work, threads=threads, progress=progress)
+        _run_bands(h, rows, work, threads, progress)
         dims = len(directions) if grid is None else BILINEAR_RESOLUTION ** 2
         basis = np.concatenate([mean[None], components]).reshape(PCA_PLANES + 1, dims, 3).astype(np.float32)
         if grid is None:
@@ -505,16 +510,24 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
 
     def work(r0: int, r1: int) -> None:
         lum, _ = stack.band(r0, r1)
-        rgb = _display(stack.chroma[r0:r1][None] * lum[..., None], encoding).reshape(n, -1, 3)
-        values, col = _lrgb(rgb)
+        values, col = lrgb_samples(lum.reshape(n, -1), stack.chroma[r0:r1].reshape(-1, 3), encoding)
         planes[r0:r1] = (fit @ values).T.reshape(r1 - r0, w, k)
         colour[r0:r1] = np.rint(255.0 * col).reshape(r1 - r0, w, 3).astype(np.uint8)
 
     rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
-    run_bands(h, rows, work, threads=threads, progress=progress)
+    _run_bands(h, rows, work, threads, progress)
     kind = "ptm" if name == "ptm" else "hsh"
     return PublishedBasis(kind, "lrgb", planes, encoding, colour=colour,
                           order=_hsh_order(name) if kind == "hsh" else None, name=name)
+
+
+def _run_bands(h: int, rows: int, work: Callable[[int, int], None], threads: int | None,
+               progress: Callable[[int], None] | None) -> None:
+    """:func:`~ptmcore.bands.run_bands` with BLAS kept to one thread when the bands run in
+    several: the bands' matrix products are small, and OpenBLAS's own threads inside each
+    band's thread made two threads no faster than one (2.7 s both, a 6-megapixel PTM)."""
+    with threadpool_limits(1 if thread_count(threads) > 1 else None):
+        run_bands(h, rows, work, threads=threads, progress=progress)
 
 
 def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralParameters | None = None,
@@ -537,5 +550,5 @@ def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralPara
         codes[r0:r1] = encode(model, rgb, threads=1).reshape(r1 - r0, w, -1)
 
     rows = band_rows(n, w, bytes_per_sample=60, budget=BAND_BYTES)
-    run_bands(h, rows, work, threads=threads, progress=progress)
+    _run_bands(h, rows, work, threads, progress)
     return neural_basis(model, codes, name="neural")
