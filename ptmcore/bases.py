@@ -459,7 +459,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     -------
     PublishedBasis
     """
-    from .displaykernel import display_samples, lrgb_samples
+    from .displaykernel import display_by_pixel, lrgb_samples
 
     _check_name(name)
     _check_encoding(encoding)
@@ -477,11 +477,12 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         luminance, chroma = sample_stack(stack, pixels)
 
         def vectors_of(lum: np.ndarray, chr_: np.ndarray) -> np.ndarray:
-            rgb = display_samples(lum, chr_, encoding).transpose(1, 0, 2)  # (P, N, 3)
-            if grid is not None:  # one matrix product (an einsum here took seconds a megapixel)
-                p_, n_, _ = rgb.shape
-                rgb = (rgb.transpose(0, 2, 1).reshape(-1, n_) @ grid_t).reshape(p_, 3, -1).transpose(0, 2, 1)
-            return np.ascontiguousarray(rgb).reshape(len(rgb), -1)
+            # Each pixel's vector channel by channel, (P, 3·D): no copy for the bilinear
+            # resampling's product; the components are put back in relight's order, D × 3, below.
+            rgb = display_by_pixel(lum, chr_, encoding)  # (P, 3, N)
+            if grid is not None:
+                rgb = rgb.reshape(-1, n) @ grid_t
+            return rgb.reshape(lum.shape[1], -1)
 
         mean, components = pca(vectors_of(luminance, chroma).astype(np.float64), PCA_PLANES)
         mean32, comp32 = mean.astype(np.float32), components.T.astype(np.float32)
@@ -495,7 +496,8 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
         _run_bands(h, rows, work, threads, progress)
         dims = len(directions) if grid is None else BILINEAR_RESOLUTION ** 2
-        basis = np.concatenate([mean[None], components]).reshape(PCA_PLANES + 1, dims, 3).astype(np.float32)
+        basis = np.concatenate([mean[None], components]).reshape(PCA_PLANES + 1, 3, dims).transpose(0, 2, 1)
+        basis = np.ascontiguousarray(basis, dtype=np.float32)
         if grid is None:
             return PublishedBasis("rbf", "mrgb", planes, encoding, lights=directions.copy(), sigma=sigma,
                                   basis=basis, name=name)

@@ -7,8 +7,9 @@ three float32 arrays of N × P × 3 per band and a power per value: of the 21 s 
 megapixels (48 photographs, one thread), the curve alone was 8 and the LRGB split's sums 5.
 Here each sample is read once and its three channels made in registers:
 
-* :func:`display_samples` — the ``(N, P, 3)`` display values (for the RBF and bilinear bases,
-  which keep every channel);
+* :func:`display_samples` — the ``(N, P, 3)`` display values, and :func:`display_by_pixel` the
+  same laid out ``(P, 3, N)`` (for the learned, RBF and bilinear bases, which keep every
+  channel);
 * :func:`lrgb_samples` — the same values split at once into a luminance ``(N, P)`` and a colour
   ``(P, 3)`` as :func:`ptmcore.bases._lrgb` splits them (for the PTM and HSH), without ever
   holding the ``(N, P, 3)`` array.
@@ -28,7 +29,7 @@ import numpy as np
 
 from .images import LUMA_WEIGHTS
 
-__all__ = ["CURVE_POINTS", "display_samples", "lrgb_samples"]
+__all__ = ["CURVE_POINTS", "display_by_pixel", "display_samples", "lrgb_samples"]
 
 #: Intervals of the tabulated sRGB curve on [0, 1].
 CURVE_POINTS = 4096
@@ -69,6 +70,19 @@ def _display_kernel(lum, chroma, table, out):
             out[i, j, 0] = _encode(chroma[j, 0] * v, table)
             out[i, j, 1] = _encode(chroma[j, 1] * v, table)
             out[i, j, 2] = _encode(chroma[j, 2] * v, table)
+
+
+@numba.njit(nogil=True, cache=True)
+def _by_pixel_kernel(lum, chroma, table, out):
+    n, p = lum.shape
+    # Pixel by pixel, each one's row written in order. Reading down lum's column j touches n
+    # cache lines that the next pixels read too, so they stay in the L1 cache (light by light
+    # over blocks of pixels, writing across the rows, took 30 % longer).
+    for j in range(p):
+        for c in range(3):
+            k = chroma[j, c]
+            for i in range(n):
+                out[j, c, i] = _encode(k * lum[i, j], table)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -128,6 +142,15 @@ def display_samples(lum: np.ndarray, chroma: np.ndarray, encoding: str = "srgb")
     lum, chroma = _inputs(lum, chroma)
     out = np.empty((*lum.shape, 3), np.float32)
     _display_kernel(lum, chroma, _table(encoding), out)
+    return out
+
+
+def display_by_pixel(lum: np.ndarray, chroma: np.ndarray, encoding: str = "srgb") -> np.ndarray:
+    """:func:`display_samples` laid out by pixel, then channel: ``(P, 3, N)`` float32, each
+    pixel's row the vector an interpolating basis compresses (its channels' N values in turn)."""
+    lum, chroma = _inputs(lum, chroma)
+    out = np.empty((lum.shape[1], 3, lum.shape[0]), np.float32)
+    _by_pixel_kernel(lum, chroma, _table(encoding), out)
     return out
 
 

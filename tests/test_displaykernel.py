@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from ptmcore.bases import _display, _lrgb
-from ptmcore.displaykernel import CURVE_POINTS, display_samples, lrgb_samples
+from ptmcore.displaykernel import CURVE_POINTS, display_by_pixel, display_samples, lrgb_samples
 from ptmcore.images import linear_to_srgb
 
 
@@ -30,6 +30,13 @@ def test_display_samples_match_numpy(encoding):
     lum, chroma = _samples()
     expected = _display(chroma[None].astype(np.float64) * lum[..., None], encoding)
     np.testing.assert_allclose(display_samples(lum, chroma, encoding), expected, atol=2e-5)
+
+
+@pytest.mark.parametrize("encoding", ["srgb", "linear"])
+def test_display_by_pixel_is_the_same_values_by_pixel_then_channel(encoding):
+    lum, chroma = _samples(n=7, p=500, seed=3)
+    np.testing.assert_array_equal(display_by_pixel(lum, chroma, encoding),
+                                  display_samples(lum, chroma, encoding).transpose(1, 2, 0))
 
 
 @pytest.mark.parametrize("encoding", ["srgb", "linear"])
