@@ -225,11 +225,14 @@ def test_cli_batch_on_a_separate_scheduler_and_worker(collection, tmp_path, caps
             p.wait(timeout=30)
 
 
-def test_cli_refuses_bad_batch_arguments(collection, tmp_path, capsys):
+def test_cli_refuses_bad_batch_arguments(collection, tmp_path, capsys, monkeypatch):
     code, _, err = run_cli(["batch", tmp_path / "nothing", "-o", tmp_path / "out"], capsys)
     assert code == 2 and "no such" in err
     code, _, err = run_cli(["batch", "-o", tmp_path / "out"], capsys)
     assert code == 2 and "--manifest" in err
+    # A refused port is retried until the connection's timeout: a second here, not the 20 s a
+    # scheduler slow to answer is given.
+    monkeypatch.setattr("reconstruct.batch.scheduler.CONNECT_SECONDS", 1)
     code, _, err = run_cli(["batch", collection / "tablet_a", "-o", tmp_path / "out",
                             "--scheduler", "tcp://127.0.0.1:9"], capsys)
     assert code == 2 and "cannot reach the Dask scheduler" in err
