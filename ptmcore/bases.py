@@ -20,6 +20,11 @@ display):
   RGB samples of all lights (``bilinear``: resampled onto a grid over the hemisphere) compressed
   by principal components shared by all pixels (:data:`PCA_PLANES` per-pixel coefficients;
   relight's "mrgb"), relit by interpolating the components between the lights.
+* ``neural`` — NeuralRTI's learned basis (:mod:`ptmcore.neural`): a 9-number code per pixel and
+  a small decoder shared by all pixels, trained on a grid of the stack's pixels; sRGB only.
+
+The samples are display-encoded (and split into LRGB) by compiled kernels,
+:mod:`ptmcore.displaykernel`, band by band.
 
 **Scoring.** On a grid of about :data:`SAMPLE_PIXELS` lit pixels, each photograph is predicted
 by the basis fitted without it, and compared with it in 8-bit sRGB levels, as a screen would
@@ -31,7 +36,8 @@ published ones are those of the grid's values). To that is added the error of st
 8 bits (each plane quantised over its range, and the colour plane of LRGB bases, uniform
 error of a twelfth of a step squared, carried through the basis to the display: in linear encoding it is multiplied by the slope of
 the sRGB curve, steep in the shadows). The viewers' JPEG compression is not counted; it is
-alike for all bases.
+alike for all bases. ``neural`` cannot be refitted per light: :func:`score_neural` trains it
+once without every sixth light and scores it on those.
 """
 
 from __future__ import annotations
@@ -379,7 +385,7 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
     BasisScore or None
         None with fewer than :data:`NEURAL_MIN_LIGHTS` lights.
     """
-    from .neural import decode, encode, quantize_codes, dequantize_codes, train_neural
+    from .neural import decode, dequantize_codes, encode, quantize_codes, train_neural
 
     luminance = np.asarray(luminance, np.float32)
     directions = as_directions(directions, luminance.shape[0])
@@ -387,9 +393,9 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
     if n < NEURAL_MIN_LIGHTS:
         return None
     held = np.arange(n) % NEURAL_HOLD_OUT == NEURAL_HOLD_OUT // 2
-    rgb = _rgb_samples(luminance, np.asarray(chroma, np.float32))
-    model = train_neural(rgb[:, ~held], directions[~held], params, threads=threads)
-    codes = encode(model, rgb[:, ~held])
+    kept = _rgb_samples(luminance[~held], np.asarray(chroma, np.float32))
+    model = train_neural(kept, directions[~held], params, threads=threads)
+    codes = encode(model, kept)
     stored = dequantize_codes(*quantize_codes(codes))
     observed = 255.0 * np.asarray(linear_to_srgb(np.asarray(chroma, np.float32)[None]
                                                  * luminance[held][..., None]), np.float64)
