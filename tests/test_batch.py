@@ -24,6 +24,9 @@ from reconstruct.pipeline import RunOptions
 from helpers import run_cli
 
 distributed = pytest.importorskip("distributed")
+import dask  # noqa: E402  (with distributed)
+
+from reconstruct.batch.scheduler import LOCAL_CONFIG  # noqa: E402
 
 OPT = RunOptions(pixel_size=0.05)
 
@@ -43,8 +46,9 @@ def collection(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def client():
     """An in-process local cluster (threads), quick to start."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
-                                  dashboard_address=":0", silence_logs=40) as cluster:
+    # The batch's own settings (its profiler off: reconstruct.batch.scheduler.LOCAL_CONFIG).
+    with dask.config.set(LOCAL_CONFIG), distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=False, dashboard_address=":0", silence_logs=40) as cluster:
         with distributed.Client(cluster) as c:
             yield c
 

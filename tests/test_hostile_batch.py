@@ -30,6 +30,9 @@ from reconstruct.pipeline import RunOptions
 from helpers import run_cli
 
 distributed = pytest.importorskip("distributed")
+import dask  # noqa: E402  (with distributed)
+
+from reconstruct.batch.scheduler import LOCAL_CONFIG  # noqa: E402
 
 OPT = RunOptions(pixel_size=0.05)
 FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -46,8 +49,9 @@ def capture(tmp_path_factory) -> Path:
 @pytest.fixture(scope="module")
 def client():
     """An in-process local cluster (threads), quick to start."""
-    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
-                                  dashboard_address=":0", silence_logs=40) as cluster:
+    # The batch's own settings (its profiler off: reconstruct.batch.scheduler.LOCAL_CONFIG).
+    with dask.config.set(LOCAL_CONFIG), distributed.LocalCluster(
+            n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0", silence_logs=40) as cluster:
         with distributed.Client(cluster) as c:
             yield c
 

@@ -32,6 +32,12 @@ LOCK_NAME = ".batch.lock"
 #: Tries of an object whose worker died, after the first (the local cluster's setting; an
 #: existing scheduler has its own, distributed.scheduler.allowed-failures).
 RETRIES = 1
+#: The local cluster's settings. Dask's statistical profiler is off: it calls
+#: ``sys._current_frames()`` every 10 ms, and on CPython 3.11 a garbage collection during that
+#: call that frees a ``threading.local`` deadlocks the worker (the interpreter's thread-list
+#: lock taken twice by one thread: seen as a batch test hung for good, at 0 % CPU, in gdb
+#: ``local_clear`` waiting on the lock ``_current_frames`` held). Nothing here reads the profiles.
+LOCAL_CONFIG = {"distributed.scheduler.allowed-failures": RETRIES, "distributed.worker.profile.enabled": False}
 #: How long a batch tries to reach a scheduler given by its address, in seconds.
 CONNECT_SECONDS = 20
 #: Bytes the batch adds to an object's name in names it cannot shorten: its thumbnails',
@@ -196,7 +202,7 @@ def _client(client, scheduler: str | None, items: list[BatchItem], workers: int 
     # system killed. One Dask thread each: an object's own threads do the parallel work.
     # A worker's death counts against its task: after RETRIES more, the object is failed
     # (Dask's default would run an object that exhausts the memory four times).
-    with dask.config.set({"distributed.scheduler.allowed-failures": RETRIES}), ExitStack() as stack:
+    with dask.config.set(LOCAL_CONFIG), ExitStack() as stack:
         with _ctrl_c_blocked():
             cluster = stack.enter_context(LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
                                                        dashboard_address=":0", memory_limit=0, silence_logs=40))
