@@ -371,7 +371,8 @@ def _rgb_samples(luminance: np.ndarray, chroma: np.ndarray) -> np.ndarray:
 
 
 def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarray, *,
-                 params: NeuralParameters | None = None, threads: int | None = None) -> BasisScore | None:
+                 params: NeuralParameters | None = None, threads: int | None = None,
+                 progress: Callable[[int], None] | None = None) -> BasisScore | None:
     """Score the learned basis (:mod:`ptmcore.neural`) on samples of a capture.
 
     A network cannot be refitted once per left-out light, so it is trained once without every
@@ -379,6 +380,8 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
     :func:`score_bases`. That leaves it fewer lights than the others' leave-one-out, so the
     comparison, if anything, favours the fitted bases. The storage error is measured, not
     modelled: the codes quantised to 8 bits as they are published, decoded again.
+
+    ``progress`` is called with 1 after each epoch of the training.
 
     Returns
     -------
@@ -394,7 +397,7 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
         return None
     held = np.arange(n) % NEURAL_HOLD_OUT == NEURAL_HOLD_OUT // 2
     kept = _rgb_samples(luminance[~held], np.asarray(chroma, np.float32))
-    model = train_neural(kept, directions[~held], params, threads=threads)
+    model = train_neural(kept, directions[~held], params, threads=threads, progress=progress)
     codes = encode(model, kept)
     stored = dequantize_codes(*quantize_codes(codes))
     observed = 255.0 * np.asarray(linear_to_srgb(np.asarray(chroma, np.float32)[None]
@@ -414,19 +417,23 @@ def score_neural(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarr
 def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Sequence[str] = AUTO,
                  encodings: Sequence[str] = ENCODINGS, mask: np.ndarray | None = None,
                  pixels: int = SAMPLE_PIXELS, threads: int | None = None,
-                 neural: NeuralParameters | None = None) -> BasisChoice:
+                 neural: NeuralParameters | None = None, progress: Callable[[int], None] | None = None,
+                 ) -> BasisChoice:
     """The basis and encoding that relight this capture most faithfully (:func:`score_bases`,
     and :func:`score_neural` when ``neural`` is a candidate).
 
     With one candidate and one encoding the choice is that one, still scored (``neural`` asked
     for alone is not: scoring it is a second training). Falls back to the PTM in sRGB when no
     candidate can be scored (as few lights as terms). ``neural`` is fitted to sRGB values only,
-    with the parameters ``neural`` (:class:`~ptmcore.neural.NeuralParameters`'s defaults).
+    with the parameters ``neural`` (:class:`~ptmcore.neural.NeuralParameters`'s defaults);
+    its training calls ``progress`` with rows of the image, ``stack.shape[0]`` in all, as
+    :func:`fit_published` reports (nothing else here takes long enough to report).
     """
     luminance, chroma = sample_stack(stack, pixels, mask)
     scores = score_bases(luminance, chroma, directions, candidates, encodings)
     if "neural" in candidates and len(candidates) > 1 and "srgb" in encodings:
-        learned = score_neural(luminance, chroma, directions, params=neural, threads=threads)
+        learned = score_neural(luminance, chroma, directions, params=neural, threads=threads,
+                               progress=_epochs_as_rows(stack.shape[0], neural, progress))
         scores = sorted(scores + ([learned] if learned is not None else []), key=lambda s: s.rms)
     if list(candidates) == ["neural"]:
         return BasisChoice("neural", "srgb", (), luminance.shape[1], "asked")
@@ -459,7 +466,9 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     pixels : int
         Pixels of the grid the principal components of ``rbf`` and ``bilinear`` are found on.
     neural : NeuralParameters, optional
-        How ``neural`` is trained (default: :class:`~ptmcore.neural.NeuralParameters`).
+        How ``neural`` is trained (default: :class:`~ptmcore.neural.NeuralParameters`). Its
+        training reports to ``progress`` as many rows again as the image has, before its
+        encoding reports the rows themselves.
 
     Returns
     -------
@@ -538,6 +547,21 @@ def _run_bands(h: int, rows: int, work: Callable[[int, int], None], threads: int
         run_bands(h, rows, work, threads=threads, progress=progress)
 
 
+def _epochs_as_rows(rows: int, params: NeuralParameters | None,
+                   progress: Callable[[int], None] | None) -> Callable[[int], None] | None:
+    """A training's epochs reported as ``rows`` rows in all, for a progress counted in rows."""
+    if progress is None:
+        return None
+    epochs = (params or NeuralParameters()).epochs
+    done = [0]
+
+    def epoch(_: int) -> None:
+        done[0] += 1
+        progress(rows * done[0] // epochs - rows * (done[0] - 1) // epochs)
+
+    return epoch
+
+
 def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralParameters | None = None,
                 threads: int | None = None, progress: Callable[[int], None] | None = None) -> PublishedBasis:
     """Train the learned basis on a grid of the stack's lit pixels, then encode every pixel,
@@ -547,7 +571,8 @@ def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralPara
 
     params = params or NeuralParameters()
     luminance, chroma = sample_stack(stack, params.training_pixels)
-    model = train_neural(_rgb_samples(luminance, chroma), directions, params, threads=threads)
+    model = train_neural(_rgb_samples(luminance, chroma), directions, params, threads=threads,
+                         progress=_epochs_as_rows(stack.shape[0], params, progress))
     n = len(stack)
     h, w = stack.shape
     codes = np.empty((h, w, model.code_size), np.float32)

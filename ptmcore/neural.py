@@ -30,6 +30,7 @@ element-wise work, which NumPy does on one core, costs more than the products.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -329,7 +330,8 @@ def _standardised(samples: np.ndarray, offset: np.ndarray, scale: np.ndarray) ->
 
 
 def train_neural(samples: np.ndarray, directions: np.ndarray,
-                 params: NeuralParameters | None = None, *, threads: int | None = None) -> NeuralModel:
+                 params: NeuralParameters | None = None, *, threads: int | None = None,
+                 progress: Callable[[int], None] | None = None) -> NeuralModel:
     """Train a NeuralRTI autoencoder on pixels' RGB samples.
 
     Each step takes ``batch_size`` pixels, encodes their samples and decodes the codes at every
@@ -346,6 +348,8 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
     params : NeuralParameters, optional
     threads : int, optional
         Threads that share each batch; default: the number of CPUs.
+    progress : callable, optional
+        Called with 1 after each epoch.
 
     Returns
     -------
@@ -407,6 +411,8 @@ def train_neural(samples: np.ndarray, directions: np.ndarray,
                         v += (1 - ADAM_BETA2) * (g * g)
                         p -= alpha * m / (np.sqrt(v) + ADAM_EPSILON)
             losses[epoch] = total / seen
+            if progress is not None:
+                progress(1)
     return NeuralModel(encoder, decoder, dirs, offset.astype(np.float32), scale, losses)
 
 

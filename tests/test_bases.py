@@ -235,3 +235,16 @@ def test_choose_basis_scores_neural_on_held_out_lights():
     # Too few lights to hold a sixth out: neural is left out, the others still scored.
     few = choose_basis(_stack(lum[:12], chroma), DIRS[:12], candidates=("ptm", "neural"))
     assert [s.name for s in few.scores] == ["ptm", "ptm"]
+
+
+def test_the_learned_basis_reports_its_training_as_rows():
+    """Training reports the image's rows once more (an epoch a share), then the encoding its rows:
+    a progress bar in rows moves while the network trains."""
+    lum, chroma = _ptm_scene(shape=(30, 30), seed=8)
+    few = NeuralParameters(min_steps=1, epochs=7)
+    fitted: list[int] = []
+    fit_published(_stack(lum, chroma), DIRS, "neural", neural=few, progress=fitted.append)
+    assert sum(fitted) == 2 * 30 and len(fitted) > 7
+    scored: list[int] = []
+    choose_basis(_stack(lum, chroma), DIRS, candidates=("ptm", "neural"), neural=few, progress=scored.append)
+    assert sum(scored) == 30 and len(scored) == 7

@@ -66,6 +66,7 @@ from reconstruct.pipeline.report import (
 from reconstruct.pipeline.staging import StagedOutput, staged_output
 from reconstruct.pipeline.stages import (
     Relighting,
+    basis_stage_rows,
     estimate_normals,
     fit_relighting,
     integrate_surface,
@@ -288,7 +289,7 @@ def run_capture(
             with stages("ptm", len(loaded.lights)) as advance:
                 relit = fit_relighting(loaded.lights, opt, staged.staging, progress=advance, fits=loaded.fits)
             loaded.fits = None
-        with stages("basis", h) as advance:
+        with stages("basis", basis_stage_rows(opt, h)) as advance:
             web_names, choice = publish_relighting(loaded, opt, staged.staging, progress=advance)
         if opt.outputs == "relight":
             return _relight_only(loaded, opt, staged, stages, writer, relit, web_names, choice,

@@ -68,6 +68,7 @@ __all__ = [
     "Relighting",
     "Surface",
     "auto_step",
+    "basis_stage_rows",
     "estimate_normals",
     "fit_relighting",
     "integrate_surface",
@@ -320,12 +321,23 @@ def publish_relighting(capture: Capture, options: RunOptions, folder: str | os.P
     candidates = CANDIDATES[options.basis_candidates] if options.basis == "auto" else (options.basis,)
     encodings = ENCODINGS if options.basis_encoding == "auto" else (options.basis_encoding,)
     choice = choose_basis(capture.stack, directions, candidates=candidates, encodings=encodings, mask=capture.mask,
-                          threads=options.threads)
+                          threads=options.threads, progress=progress)
     basis = fit_published(capture.stack, directions, choice.name, choice.encoding, threads=options.threads,
                           progress=progress)
     folder = Path(folder)
     written = export_relightable(folder / "web", basis, pixel_size_mm=options.pixel_size)
     return [p.relative_to(folder).as_posix() for p in written], choice
+
+
+def basis_stage_rows(options: RunOptions, height: int) -> int:
+    """The rows :func:`publish_relighting` reports in all: the fit's, and as many again for each
+    training of the learned basis it may do (scoring it, fitting it). When auto scores it and
+    chooses another basis, the stage ends a third short."""
+    if options.basis == "neural":
+        return 2 * height
+    if options.basis == "auto" and "neural" in CANDIDATES[options.basis_candidates]:
+        return 3 * height
+    return height
 
 
 def web_export(folder: Path, coefficients: np.ndarray, rgb: np.ndarray, pixel_size: float | None,
