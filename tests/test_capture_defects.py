@@ -355,3 +355,25 @@ def test_align_off_reports_the_drift_without_undoing_it(tmp_path):
         assert drift["largest_px"] > 4 and drift["aligned"] == (align == "auto")
         assert any("the camera moved" in w for w in report["warnings"])
     assert any("not aligned" in w for w in reports["off"]["warnings"])
+
+
+def test_a_glossy_sheen_on_a_whole_ring_is_not_an_exposure_change():
+    """The photographs of a ring of high lights all bright (a glossy flat object's sheen) are
+    not odd; one photograph of a ring made darker still is."""
+    from data_synthetic import dome_lights
+    from reconstruct.pipeline.defects import exposure_finding
+
+    dirs = dome_lights(49)
+    names = [f"img_{k:03d}.tif" for k in range(49)]
+    rng = np.random.default_rng(0)
+    luminance = (0.3 * dirs[:, 2][:, None, None] * rng.uniform(0.8, 1.2, (49, 8, 8))).astype(np.float32)
+    top = np.flatnonzero(dirs[:, 2] > 0.95)
+    assert len(top) >= 3
+    luminance[top] *= 2.9  # the sheen: every photograph of the top ring
+    finding, warnings = exposure_finding(luminance, np.zeros(49), dirs, names)
+    assert finding["odd_brightness"] == {} and warnings == []
+    ring = np.flatnonzero(np.abs(dirs[:, 2] - dirs[5, 2]) < 1e-6)
+    assert 5 in ring and len(ring) >= 3
+    luminance[5] /= 3  # a lamp that fired weakly
+    finding, warnings = exposure_finding(luminance, np.zeros(49), dirs, names)
+    assert list(finding["odd_brightness"]) == [names[5]] and len(warnings) == 1

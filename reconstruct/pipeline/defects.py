@@ -47,6 +47,11 @@ DARK_SHARE = 0.5
 #: A photograph whose brightness, divided by what its light's elevation explains (the sine),
 #: is off the capture's median by more than this factor either way.
 EXPOSURE_FACTOR = 2.0
+#: ... and off its peers by as much: the photographs whose lights are within this many degrees
+#: of its elevation (a dome's ring), when it has two or more. A glossy flat object under a ring of
+#: high lights shows its sheen on most pixels of all of them (a steady rendered glossy tablet: the
+#: 75° ring 2.9× what the sine explains); a lamp or exposure that changed lifts one photograph.
+EXPOSURE_PEER_DEG = 5.0
 
 
 def frame_shape(paths: Sequence[Path]) -> tuple[int, int]:
@@ -203,7 +208,8 @@ def exposure_finding(luminance: np.ndarray, clipped: np.ndarray, directions: np.
     finding : dict
         ``clipped`` and ``dark`` (name → share, for those over :data:`CLIPPED_SHARE` and
         :data:`DARK_SHARE`) and ``odd_brightness`` (name → brightness over the capture's median,
-        for those off by more than :data:`EXPOSURE_FACTOR`).
+        for those off by more than :data:`EXPOSURE_FACTOR`, and as much off the photographs of
+        their elevation, :data:`EXPOSURE_PEER_DEG`, where there are two or more).
     warnings : list of str
         For the dark and oddly bright photographs (clipping is warned of by the caller, whose
         advice depends on what it does with clipped samples).
@@ -213,9 +219,22 @@ def exposure_finding(luminance: np.ndarray, clipped: np.ndarray, directions: np.
     n = len(luminance)
     flat = luminance.reshape(n, -1)
     dark = (flat < 0.005).mean(axis=1)
-    brightness = np.median(flat, axis=1) / np.maximum(np.asarray(directions, np.float64)[:, 2], 0.1)
+    z = np.asarray(directions, np.float64)[:, 2]
+    level = np.median(flat, axis=1)
+    brightness = level / np.maximum(z, 0.1)
     relative = brightness / max(float(np.median(brightness)), 1e-9)
     odd = np.flatnonzero((relative > EXPOSURE_FACTOR) | (relative < 1 / EXPOSURE_FACTOR))
+    elevation = np.degrees(np.arcsin(np.clip(z, -1.0, 1.0)))
+    peers = np.abs(elevation[:, None] - elevation[None, :]) <= EXPOSURE_PEER_DEG
+    np.fill_diagonal(peers, False)
+
+    def like_its_peers(k: int) -> bool:
+        if peers[k].sum() < 2:
+            return False
+        local = level[k] / max(float(np.median(level[peers[k]])), 1e-9)
+        return 1 / EXPOSURE_FACTOR <= local <= EXPOSURE_FACTOR
+
+    odd = np.array([k for k in odd if not like_its_peers(int(k))], dtype=np.int64)
     finding = {
         "clipped": {m: round(float(c), 4) for m, c in zip(names, clipped) if c > CLIPPED_SHARE},
         "dark": {m: round(float(d), 4) for m, d in zip(names, dark) if d > DARK_SHARE},
