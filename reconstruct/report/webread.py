@@ -41,7 +41,7 @@ import numpy as np
 from ptmcore.decoders import JPEG_PIXELS_PER_BYTE, MAX_PIXELS
 from ptmcore.errors import InputError, open_input_file, read_input_file, read_input_text
 from ptmcore.published import PublishedBasis
-from reconstruct.report.web import NEURAL_PLANES
+from reconstruct.report.web import NEURAL_PLANES, pyramid_levels
 
 __all__ = ["READERS", "WebFolder", "find_web_folder", "published_folder", "read_relightable", "relightable_shape"]
 
@@ -209,14 +209,6 @@ def _read_dzi(path: Path, width: int, height: int) -> _Pyramid:
     return _Pyramid(tile, overlap, suffix)
 
 
-def _levels(width: int, height: int, tile: int) -> list[tuple[int, int]]:
-    """The pyramid's ``(width, height)`` levels, level 0 the first to fit in one tile (libvips'
-    ``depth="onetile"``, Relight's numbering; :func:`reconstruct.report.web.pyramid_levels`)."""
-    from reconstruct.report.web import pyramid_levels
-
-    return pyramid_levels(width, height, tile)
-
-
 def _tile_spans(length: int, tile: int, overlap: int) -> list[tuple[int, int, int]]:
     """For each tile along a side of ``length``: the first pixel it holds, its length with the
     overlap, and where its own pixels start in it."""
@@ -324,7 +316,7 @@ class WebFolder:
         pyramid = self._pyramids[0]
         if any(p.tile != pyramid.tile for p in self._pyramids):
             raise self.fail("the planes' pyramids have different tile sizes", self._dzi_path(1))
-        levels = _levels(self.width, self.height, pyramid.tile)
+        levels = pyramid_levels(self.width, self.height, pyramid.tile)
         top = len(levels) - 1
         wanted = self.max_side or max(self.width, self.height)
         self._level = next((i for i, size in enumerate(levels) if max(size) >= wanted), top)
@@ -345,7 +337,7 @@ class WebFolder:
         """``(h, w)`` of what the planes decode to."""
         self.layout()
         if self._level is not None:
-            lw, lh = _levels(self.width, self.height, self._pyramids[0].tile)[self._level]
+            lw, lh = pyramid_levels(self.width, self.height, self._pyramids[0].tile)[self._level]
             return lh, lw
         n = self._eighths
         h, w = -(-self.height * n // 8), -(-self.width * n // 8)

@@ -426,8 +426,9 @@ def _published(folder: Path, shape: tuple[int, int], tex: tuple[int, int]) -> Pu
     web = published_folder(folder)
     if web is None:
         return None
-    if relightable_shape(web) != shape:
-        raise InputError(f"web/info.json is {relightable_shape(web)}, height.tif {shape}", folder)
+    declared = relightable_shape(web)
+    if declared != shape:
+        raise InputError(f"web/info.json is {declared}, height.tif {shape}", folder)
     basis = read_relightable(web, max_side=max(tex))
     planes = _resize(basis.planes, tex).astype(np.float32)
     colour = None if basis.colour is None else _resize(basis.colour, tex)
