@@ -68,7 +68,9 @@ def _march_right(field: np.ndarray, pixel_size: float, rows_per_col: float, tan_
     h, w = field.shape
     lo, hi = float(field.min()), float(field.max())
     rise = tan_elevation * np.hypot(1.0, rows_per_col) * pixel_size  # ray climb per step, mm
-    n_steps = min(int(np.ceil((hi - lo) / rise)), w - 1)
+    # Compared before dividing: a light a hair above the horizon (2·10⁻³¹³ degrees) climbs a
+    # subnormal distance per step, and the quotient overflows to infinity.
+    n_steps = w - 1 if hi - lo >= rise * (w - 1) else int(np.ceil((hi - lo) / rise))
     if n_steps <= 0:
         return np.zeros((h, w), dtype=bool)
 

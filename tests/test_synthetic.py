@@ -384,3 +384,14 @@ def test_spheres_that_do_not_fit_are_refused(tmp_path: Path) -> None:
         write_capture(tmp_path / "a", "tablet", SHAPE, n_lights=6, spheres=5, scan_points=0)
     with pytest.raises(InputError, match="corner"):
         write_capture(tmp_path / "b", "tablet", SHAPE, n_lights=6, spheres=1, scan_points=0)
+
+
+def test_a_light_a_hair_above_the_horizon_casts_shadows_without_overflow():
+    """Found by hypothesis (``--ring-elevation 2.2e-313``): the ray's climb per step is subnormal."""
+    from data_synthetic.shadows import cast_shadow_mask
+
+    height = np.zeros((8, 12))
+    height[:, 6] = 1.0  # a wall
+    tiny = np.radians(2.2250738585e-313)
+    mask = cast_shadow_mask(height, 5.0, np.array([np.cos(tiny), 0.0, np.sin(tiny)]))
+    assert mask.shape == (8, 12) and mask[:, :6].all() and not mask[:, 7:].any()
