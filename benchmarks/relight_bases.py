@@ -15,14 +15,16 @@ photograph, encoded the same way. ``auto`` is the basis and encoding
 :func:`ptmcore.bases.choose_basis` picks from the fitting photographs alone (leave-one-out) among
 the default candidates (:data:`ptmcore.bases.AUTO`), ``auto (all)`` among all of them with the
 learned basis (``--basis-candidates all``: ``neural`` scored on lights held out of one training);
-the seconds of each fit and choice are recorded in the JSON; "best of relight's" is the best on held-out lights of the bases relight builds (PTM, HSH 3, RBF,
-bilinear; fitted to sRGB, as relight does). The planes are not quantised here (the JPEG planes
+the seconds of each fit and choice are recorded in the JSON; "best of relight's" is the best on
+held-out lights of the bases relight builds by default (PTM, HSH 3, RBF and bilinear with 9
+planes, ``rbf9`` and ``bilinear9``; fitted to sRGB, as relight does), in PSNR and, separately,
+in SSIM. The planes are not quantised here (the JPEG planes
 of ``web/`` add their own error, alike for all bases).
 
 Then the fit's time per basis at 24 MP (6000 × 4000, 48 photographs: a rendered 600 × 400
 capture tiled), median of three runs, choice included for ``auto``.
 
-Run: ``.venv/bin/python benchmarks/relight_bases.py [--quick] [--no-24mp]``.
+Run: ``.venv/bin/python benchmarks/relight_bases.py [--quick] [--no-24mp] [--only-24mp BASES]``.
 Prints Markdown tables and writes ``benchmarks/results/relight_bases.json``.
 """
 
@@ -45,6 +47,7 @@ sys.path.insert(0, str(ROOT))
 
 from data_synthetic import clay_tablet, dome_lights, render, sphere_cap  # noqa: E402
 from ptmcore.bases import AUTO, CANDIDATES, ENCODINGS, NAMES, choose_basis, fit_published  # noqa: E402
+from ptmcore.interpolation import DEFAULT_PLANES  # noqa: E402
 from ptmcore.images import ImageStack, linear_to_srgb, load_stack, read_image  # noqa: E402
 from ptmcore.lp import read_lp, write_lp  # noqa: E402
 
@@ -52,10 +55,19 @@ REAL = ROOT.parent / "shared" / "real"
 SHAPE = (320, 320)
 FIT_LIGHTS = 49
 HELD_OUT = 20
-#: The bases relight builds, as it fits them (to the photographs as displayed).
-RELIGHT = (("ptm", "srgb"), ("hsh3", "srgb"), ("rbf", "srgb"), ("bilinear", "srgb"))
+#: The bases relight builds, as it fits them by default (to the photographs as displayed; RBF
+#: and bilinear with relight's 9 planes, "rbf9" and "bilinear9" here, where this project's
+#: have :data:`ptmcore.bases.PCA_PLANES`).
+RELIGHT = (("ptm", "srgb"), ("hsh3", "srgb"), ("rbf9", "srgb"), ("bilinear9", "srgb"))
 #: Every (basis, encoding) measured: the learned basis is fitted to sRGB only.
-KEYS = [(n, e) for n in NAMES for e in ENCODINGS if n != "neural" or e == "srgb"]
+KEYS = [(n, e) for n in NAMES for e in ENCODINGS if n != "neural" or e == "srgb"] + [("rbf9", "srgb"), ("bilinear9", "srgb")]
+
+
+def fit(stack: ImageStack, directions: np.ndarray, key: str, encoding: str):
+    """:func:`fit_published`, with "rbf9"/"bilinear9" the basis with relight's 9 planes."""
+    if key in ("rbf9", "bilinear9"):
+        return fit_published(stack, directions, key[:-1], encoding, planes=DEFAULT_PLANES)
+    return fit_published(stack, directions, key, encoding)
 
 
 def held_out_lights(count: int, seed: int) -> np.ndarray:
@@ -126,7 +138,7 @@ def measure(stack: ImageStack, fit_dirs: np.ndarray, truths: np.ndarray, held_di
     result = {"bases": {}, "fit_seconds": {}}
     for name, encoding in KEYS:
         t0 = time.perf_counter()
-        published = fit_published(stack, fit_dirs, name, encoding)
+        published = fit(stack, fit_dirs, name, encoding)
         result["fit_seconds"][f"{name}/{encoding}"] = round(time.perf_counter() - t0, 2)
         psnr, ssim = scores(published, truths, held_dirs)
         result["bases"][f"{name}/{encoding}"] = {"psnr": round(psnr, 2), "ssim": round(ssim, 4)}
@@ -193,8 +205,9 @@ def real(which: str = "all") -> dict:
     return out
 
 
-def timing_24mp(repeats: int = 3) -> dict:
-    """Seconds of choose_basis and of fit_published per basis on a 6000 × 4000 × 48 stack."""
+def timing_24mp(repeats: int = 3, keys=NAMES) -> dict:
+    """Seconds of choose_basis and of fit_published per basis (``keys``, as :func:`fit` names
+    them) on a 6000 × 4000 × 48 stack."""
     small_shape, tiles = (400, 600), (10, 10)
     surface = clay_tablet(small_shape, seed=0)
     dirs = dome_lights(48)
@@ -213,11 +226,11 @@ def timing_24mp(repeats: int = 3) -> dict:
         choose_basis(stack, dirs)
         t.append(time.perf_counter() - t0)
     out["choose (auto)"] = round(float(np.median(t)), 2)
-    for name in NAMES:
+    for name in keys:
         t = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            fit_published(stack, dirs, name, "srgb")
+            fit(stack, dirs, name, "srgb")
             t.append(time.perf_counter() - t0)
         out[name] = round(float(np.median(t)), 2)
     return out
@@ -235,13 +248,15 @@ def machine() -> str:
 
 
 def table(results: dict) -> str:
-    lines = ["| capture | auto's choice | auto PSNR / SSIM | auto − best of relight's | "
+    lines = ["| capture | auto's choice | auto PSNR / SSIM | auto − best of relight's (PSNR / SSIM) | "
              "auto (all)'s choice | auto (all) PSNR / SSIM | auto (all) − best | best of relight's PSNR / SSIM | "
              "best SSIM of relight's |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name, r in results.items():
         a, x, b, s = r["auto"], r["auto_all"], r["best_relight"], r["best_relight_ssim"]
-        lines.append(f"| {name} | {a['choice']} | {a['psnr']:.2f} dB / {a['ssim']:.3f} | {a['psnr'] - b['psnr']:+.2f} dB | "
-                     f"{x['choice']} | {x['psnr']:.2f} dB / {x['ssim']:.3f} | {x['psnr'] - b['psnr']:+.2f} dB | "
+        lines.append(f"| {name} | {a['choice']} | {a['psnr']:.2f} dB / {a['ssim']:.3f} | "
+                     f"{a['psnr'] - b['psnr']:+.2f} dB / {a['ssim'] - s['ssim']:+.3f} | "
+                     f"{x['choice']} | {x['psnr']:.2f} dB / {x['ssim']:.3f} | "
+                     f"{x['psnr'] - b['psnr']:+.2f} dB / {x['ssim'] - s['ssim']:+.3f} | "
                      f"{b['basis']} {b['psnr']:.2f} dB / {b['ssim']:.3f} | {s['basis']} {s['ssim']:.3f} |")
     return "\n".join(lines)
 
@@ -261,7 +276,14 @@ def main() -> None:
     parser.add_argument("--no-24mp", action="store_true", help="skip the 24 MP timing")
     parser.add_argument("--real", choices=("all", "icon", "none"), default="all",
                         help="which real captures of ../shared/real to measure (default all)")
+    parser.add_argument("--only-24mp", metavar="BASES",
+                        help="only the 24 MP timing, of these comma-separated bases (e.g. ptm,rbf,rbf9)")
     args = parser.parse_args()
+    if args.only_24mp:
+        seconds = timing_24mp(keys=args.only_24mp.split(","))
+        print(f"Machine: {machine()}; {time.strftime('%Y-%m-%d')}\nSeconds at 24 MP (48 photographs), median of 3: "
+              + json.dumps(seconds))
+        return
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, spec in list(SCENES.items())[:3 if args.quick else None]:

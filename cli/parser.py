@@ -474,7 +474,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
             help="the relighting basis of web/ (the page and OpenLIME's files), the report and `reconstruct relight`: "
                  "auto (default) = the one that best predicts each photograph left out of its fit, measured on this "
                  "capture, among --basis-candidates; ptm; hsh2, hsh3, hsh4 (hemispherical harmonics; OpenLIME shows up "
-                 "to hsh3); rbf, bilinear (relight's interpolation of the photographs, compressed to 9 planes); neural "
+                 "to hsh3); rbf, bilinear (relight's interpolation of the photographs, compressed to 18 planes); neural "
                  "(NeuralRTI's learned basis: tens of seconds of training)")
     _choice(p, RunOptions, "basis_candidates",
             help="what --basis auto chooses from: standard (default: every basis but neural), openlime (only those "

@@ -85,8 +85,13 @@ CANDIDATES = {
 }
 #: What a basis may be fitted to.
 ENCODINGS = ("srgb", "linear")
-#: Per-pixel coefficient planes of the interpolating bases (relight's default for "mrgb").
-PCA_PLANES = DEFAULT_PLANES
+#: Per-pixel coefficient planes of the interpolating bases: twice relight's default of 9
+#: (:data:`~ptmcore.interpolation.DEFAULT_PLANES`, which relight-cli's ``-p`` raises up to 27,
+#: as here), so that they are stored in as many channels as ``hsh4`` (16 planes and a colour)
+#: and the choice among bases compares them at equal size. Nine components lose what sets
+#: these bases apart: on lights held out of rendered glossy tablets, 9 → 18 planes gained
+#: 0.8–1.2 dB for RBF and 0.4–2.4 dB for bilinear (``benchmarks/relight_bases.py``).
+PCA_PLANES = 2 * DEFAULT_PLANES
 #: Side of the bilinear basis's grid of light directions (relight's default).
 BILINEAR_RESOLUTION = DEFAULT_RESOLUTION
 #: Pixels scored (and from which the principal components are found).
@@ -266,12 +271,12 @@ def _storage_var(planes: np.ndarray) -> np.ndarray:
 
 
 def _compress(fitted: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The samples ``(N, P, 3)`` through :data:`PCA_PLANES` principal components, as the
-    interpolating bases store them: the compressed samples, the components at the lights
-    ``(K, N, 3)`` and the per-pixel coefficients ``(P, K)``."""
+    """The samples ``(N, P, 3)`` through :data:`PCA_PLANES` principal components (at most
+    3·N), as the interpolating bases store them: the compressed samples, the components at the
+    lights ``(K, N, 3)`` and the per-pixel coefficients ``(P, K)``."""
     n, p, _ = fitted.shape
     vectors = fitted.transpose(1, 0, 2).reshape(p, -1)  # (P, N·3)
-    mean, components = pca(vectors, PCA_PLANES)
+    mean, components = pca(vectors, _pca_planes(PCA_PLANES, n))
     coefficients = (vectors - mean) @ components.T
     compressed = (mean + coefficients @ components).reshape(p, n, 3).transpose(1, 0, 2)
     return compressed, components.reshape(len(components), n, 3), coefficients
@@ -286,7 +291,7 @@ def _score(name: str, encoding: str, fitted: np.ndarray, observed: np.ndarray, d
         predicted = np.einsum("ij,jpc->ipc", _loo_predictor(name, directions), compressed)
         used = np.arange(len(directions))
         variance = np.einsum("knc,k->nc", at_lights ** 2, _storage_var(coefficients))[:, None, :]
-        planes = PCA_PLANES
+        planes = len(at_lights)
     else:
         matrix = least_squares_matrix(name, directions)
         values, colour = _lrgb(fitted)
@@ -348,7 +353,10 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
     for name in names:
         if _check_name(name) == "neural":  # trained, not fitted: :func:`score_neural`
             continue
-        terms = PCA_PLANES + 1 if name in ("rbf", "bilinear") else least_squares_matrix(name, directions[:1]).shape[1]
+        # A fitted basis needs more lights than terms; an interpolating one more lights than
+        # relight's nine planes and a mean (fewer leave the hemisphere too coarsely sampled to
+        # interpolate; the PTM's six terms are the fallback).
+        terms = DEFAULT_PLANES + 1 if name in ("rbf", "bilinear") else least_squares_matrix(name, directions[:1]).shape[1]
         if len(directions) > terms:
             scorable.append(name)
     observed_linear = chroma[None] * luminance[..., None]  # (N, P, 3)
@@ -446,7 +454,8 @@ def choose_basis(stack: ImageStack, directions: np.ndarray, *, candidates: Seque
 
 def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding: str = "srgb", *,
                   threads: int | None = None, progress: Callable[[int], None] | None = None,
-                  pixels: int = SAMPLE_PIXELS, neural: NeuralParameters | None = None) -> PublishedBasis:
+                  pixels: int = SAMPLE_PIXELS, neural: NeuralParameters | None = None,
+                  planes: int = PCA_PLANES) -> PublishedBasis:
     """Fit one basis to a whole stack, in the form viewers read.
 
     Parameters
@@ -465,6 +474,9 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         Called with the number of rows done after each band.
     pixels : int
         Pixels of the grid the principal components of ``rbf`` and ``bilinear`` are found on.
+    planes : int
+        Principal components (per-pixel planes) of ``rbf`` and ``bilinear``, at most three per
+        basis direction (relight: 9).
     neural : NeuralParameters, optional
         How ``neural`` is trained (default: :class:`~ptmcore.neural.NeuralParameters`). Its
         training reports to ``progress`` as many rows again as the image has, before its
@@ -499,24 +511,25 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
                 rgb = rgb.reshape(-1, n) @ grid_t
             return rgb.reshape(lum.shape[1], -1)
 
-        mean, components = pca(vectors_of(luminance, chroma).astype(np.float64), PCA_PLANES)
+        dims = len(directions) if grid is None else BILINEAR_RESOLUTION ** 2
+        k = _pca_planes(planes, dims)
+        mean, components = pca(vectors_of(luminance, chroma).astype(np.float64), k)
         mean32, comp32 = mean.astype(np.float32), components.T.astype(np.float32)
-        planes = np.empty((h, w, PCA_PLANES), np.float32)
+        coefficients = np.empty((h, w, k), np.float32)
 
         def work(r0: int, r1: int) -> None:
             lum, _ = stack.band(r0, r1)
             vectors = vectors_of(lum.reshape(n, -1), stack.chroma[r0:r1].reshape(-1, 3))
-            planes[r0:r1] = ((vectors - mean32) @ comp32).reshape(r1 - r0, w, PCA_PLANES)
+            coefficients[r0:r1] = ((vectors - mean32) @ comp32).reshape(r1 - r0, w, k)
 
         rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
         _run_bands(h, rows, work, threads, progress)
-        dims = len(directions) if grid is None else BILINEAR_RESOLUTION ** 2
-        basis = np.concatenate([mean[None], components]).reshape(PCA_PLANES + 1, 3, dims).transpose(0, 2, 1)
+        basis = np.concatenate([mean[None], components]).reshape(k + 1, 3, dims).transpose(0, 2, 1)
         basis = np.ascontiguousarray(basis, dtype=np.float32)
         if grid is None:
-            return PublishedBasis("rbf", "mrgb", planes, encoding, lights=directions.copy(), sigma=sigma,
+            return PublishedBasis("rbf", "mrgb", coefficients, encoding, lights=directions.copy(), sigma=sigma,
                                   basis=basis, name=name)
-        return PublishedBasis("bln", "mrgb", planes, encoding, resolution=BILINEAR_RESOLUTION, basis=basis,
+        return PublishedBasis("bln", "mrgb", coefficients, encoding, resolution=BILINEAR_RESOLUTION, basis=basis,
                               name=name)
 
     matrix = least_squares_matrix(name, directions)
@@ -536,6 +549,14 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
     kind = "ptm" if name == "ptm" else "hsh"
     return PublishedBasis(kind, "lrgb", planes, encoding, colour=colour,
                           order=_hsh_order(name) if kind == "hsh" else None, name=name)
+
+
+def _pca_planes(planes: int, dims: int) -> int:
+    """``planes`` checked, and at most the 3 · ``dims`` numbers a pixel's samples have (a
+    capture of few lights keeps them all)."""
+    if isinstance(planes, bool) or int(planes) != planes or int(planes) < 1:
+        raise ValueError(f"planes must be a positive integer, got {planes!r}")
+    return min(int(planes), 3 * dims)
 
 
 def _run_bands(h: int, rows: int, work: Callable[[int, int], None], threads: int | None,

@@ -159,6 +159,32 @@ def test_published_forms_match_openlime():
     assert (bln.type, bln.resolution, bln.basis.shape) == ("bln", 8, (PCA_PLANES + 1, 64, 3))
 
 
+def test_interpolating_bases_keep_more_planes_than_relight_and_lose_less():
+    # A scene outside the span of 9 components: each pixel's response is a lobe at its own
+    # direction, so more principal components must reproduce the photographs more closely.
+    rng = np.random.default_rng(4)
+    normals = rng.normal(size=(12 * 12, 3)) * [0.5, 0.5, 0.0] + [0.0, 0.0, 1.0]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    lum = (0.1 + 0.8 * np.clip(DIRS @ normals.T, 0, 1) ** 20).reshape(len(DIRS), 12, 12).astype(np.float32)
+    chroma = np.ones((12, 12, 3), np.float32)
+    stack = _stack(lum, chroma)
+    assert PCA_PLANES == 18
+    for name in ("rbf", "bilinear"):
+        few = fit_published(stack, DIRS, name, planes=9)
+        many = fit_published(stack, DIRS, name)
+        assert few.planes.shape[2] == 9 and many.planes.shape[2] == PCA_PLANES == many.basis.shape[0] - 1
+        if name == "rbf":  # at the lights an RBF basis reproduces its compressed photographs
+            truth = 255 * linear_to_srgb(np.clip(lum[..., None] * chroma, 0, 1))
+            err = [np.mean([np.abs(b.display(d).astype(float) - t).mean() for d, t in zip(DIRS[::5], truth[::5])])
+                   for b in (few, many)]
+            assert err[1] < err[0], err
+    # A capture of few lights keeps every number of its pixels, not more.
+    small = fit_published(_stack(lum[:4], chroma), DIRS[:4], "rbf")
+    assert small.planes.shape[2] == 12
+    with pytest.raises(ValueError, match="planes"):
+        fit_published(stack, DIRS, "rbf", planes=0)
+
+
 def test_choose_basis_reports_every_candidate_best_first():
     lum, chroma = _ptm_scene(shape=(30, 30), seed=6)
     choice = choose_basis(_stack(lum, chroma), DIRS)
