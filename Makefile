@@ -20,8 +20,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(BIN)/reconstruct demo -o demo_output
 
+# Two test processes: the suite's time budget (5 minutes) is set for a 2-core machine, and its
+# slowest tests wait on subprocesses, browsers and clusters more than they compute.
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 # The numbers in BENCHMARKS.md (the speed benchmark renders 48 photographs of 24 MP first).
 bench: $(STAMP)
