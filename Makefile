@@ -15,6 +15,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q -e '.[all,test]'
 	bash tools/system-libs.sh $(BIN)/python
+	$(BIN)/reconstruct warm-up
 	touch $(STAMP)
 
 demo: $(STAMP)

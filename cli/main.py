@@ -461,6 +461,18 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_warm_up(args: argparse.Namespace) -> int:
+    from reconstruct.pipeline.warmup import warm_up
+
+    print("Compiling the numerical kernels for this machine (a few synthetic runs, about half a minute) ...",
+          flush=True)
+    result = warm_up(progress=lambda done, total: print(f"  {done}/{total}", flush=True))
+    for failure in result.failed:
+        print(f"reconstruct: warning: warm-up run failed: {failure}", file=sys.stderr)
+    print(f"Done in {result.seconds:.0f} s: the next runs start without compiling.")
+    return 0
+
+
 def _cmd_preview(args: argparse.Namespace) -> int:
     from ptmcore.relight import light_direction
     from reconstruct.viewer.preview import (
@@ -512,7 +524,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     allow_large_images()
     commands = {"run": _cmd_run, "batch": _cmd_batch, "relight": _cmd_relight, "integrate": _cmd_integrate, "compare": _cmd_compare,
                 "calibrate": _cmd_calibrate, "preview": _cmd_preview,
-                "lights": _cmd_lights, "check": _cmd_check, "demo": _cmd_demo}
+                "lights": _cmd_lights, "check": _cmd_check, "demo": _cmd_demo, "warm-up": _cmd_warm_up}
     with handlers():
         try:
             return commands[args.command](args)

@@ -186,6 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_check_command(sub)
     _add_demo_command(sub)
     _add_preview_command(sub)
+    _add_warm_up_command(sub)
     return parser
 
 
@@ -388,6 +389,16 @@ def _add_demo_command(sub: argparse._SubParsersAction) -> None:
     demo.add_argument("--seed", type=_whole(0), default=0, help="random seed of the scene, 0 or more (default: 0)")
     _choice(demo, RunOptions, "normals", help="normal method (default: ps)")
     _choice(demo, RunOptions, "integrator", help="integrator (default: auto)")
+
+
+def _add_warm_up_command(sub: argparse._SubParsersAction) -> None:
+    sub.add_parser(
+        "warm-up",
+        help="compile the numerical kernels now, so that the first run does not (once per installation)",
+        description="Reconstruct a few small synthetic captures, so that the compiled kernels every run uses "
+        "are compiled and cached (beside the installed sources, or in NUMBA_CACHE_DIR). `make install` does it; "
+        "run it again on a machine or container whose cache starts empty (a new cluster node).",
+    )
 
 
 def _add_preview_command(sub: argparse._SubParsersAction) -> None:
