@@ -17,10 +17,19 @@ from ptmcore.bases import (
     least_squares_matrix,
     sample_stack,
     score_bases,
+    viewer_distance_weights,
 )
 from ptmcore.images import LUMA_WEIGHTS, ImageStack, linear_to_srgb
 from ptmcore.neural import NeuralParameters
-from ptmcore.interpolation import bilinear_loo_matrix, default_sigma, pca, rbf_loo_matrix
+from ptmcore.interpolation import (
+    bilinear_loo_matrix,
+    bilinear_weights,
+    default_sigma,
+    pca,
+    rbf_loo_matrix,
+    rbf_weights,
+    resample_matrix,
+)
 from ptmcore.published import ptm_weights
 
 DIRS = dome_lights(36)
@@ -115,9 +124,43 @@ def test_interpolation_prediction_matches_interpolating_the_other_lights(name):
     compressed = (mean + (vectors - mean) @ comp.T @ comp).reshape(-1, len(DIRS), 3).transpose(1, 0, 2)
     sigma = default_sigma(DIRS)
     p = rbf_loo_matrix(DIRS, sigma) if name == "rbf" else bilinear_loo_matrix(DIRS, 8, sigma)
-    predicted = np.einsum("ij,jpc->ipc", p, compressed)
-    err = 255 * linear_to_srgb(np.clip(predicted, 0, 1)) - 255 * linear_to_srgb(observed)
-    assert score.prediction == pytest.approx(float(np.sqrt(np.mean(err ** 2))), rel=1e-4)
+    # ... and relight it at the lights themselves from all of them.
+    q = (rbf_weights(DIRS, DIRS, sigma) if name == "rbf"
+         else bilinear_weights(DIRS, 8) @ resample_matrix(DIRS, 8, sigma))
+
+    def square_error(matrix):  # per light, in 8-bit sRGB levels
+        shown = 255 * linear_to_srgb(np.clip(np.einsum("ij,jpc->ipc", matrix, compressed), 0, 1))
+        return np.mean((shown - 255 * linear_to_srgb(observed)) ** 2, axis=(1, 2))
+
+    left_out, at_light = square_error(p), square_error(q)
+    share, spread = viewer_distance_weights(DIRS)
+    expected = np.sqrt(np.sum(share * at_light + spread * np.maximum(left_out - at_light, 0)))
+    assert score.prediction == pytest.approx(float(expected), rel=1e-4)
+    # Between the error at the lights and the leave-one-out error.
+    assert np.sqrt(np.mean(at_light)) * 0.9 < score.prediction < np.sqrt(np.mean(left_out))
+
+
+def test_viewer_lights_fall_among_the_capture_lights_as_a_brute_force_count_says():
+    rng = np.random.default_rng(3)
+    lights = np.vstack([DIRS, [0.0, 0.0, 1.0]])
+    share, spread = viewer_distance_weights(lights, count=2000)
+    assert share.shape == spread.shape == (len(lights),) and share.sum() == pytest.approx(1.0)
+    # Monte Carlo over random directions of the hemisphere, as the docstring defines it.
+    v = rng.normal(size=(100_000, 3))
+    v[:, 2] = np.abs(v[:, 2])
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    gaps = np.linalg.norm(lights[:, None] - lights[None], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    spacing = gaps.min(axis=1)
+    dist = np.linalg.norm(v[:, None] - lights[None], axis=2)
+    near, d = dist.argmin(axis=1), dist.min(axis=1)
+    keep = d <= spacing.max()
+    mc_share = np.bincount(near[keep], minlength=len(lights)) / keep.sum()
+    mc_spread = np.bincount(near[keep], weights=(d[keep] / spacing[near[keep]]) ** 2, minlength=len(lights)) / keep.sum()
+    np.testing.assert_allclose(share, mc_share, atol=0.01)
+    assert spread.sum() == pytest.approx(mc_spread.sum(), rel=0.05)
+    # A viewer's light is on average well within a spacing of the nearest photograph.
+    assert 0.1 < spread.sum() < 0.5
 
 
 def test_storage_in_8_bit_linear_planes_costs_the_shadows_levels():
