@@ -97,8 +97,8 @@ ENCODINGS = ("srgb", "linear")
 #: (:data:`~ptmcore.interpolation.DEFAULT_PLANES`, which relight-cli's ``-p`` raises up to 27,
 #: as here), so that they are stored in as many channels as ``hsh4`` (16 planes and a colour)
 #: and the choice among bases compares them at equal size. Nine components lose what sets
-#: these bases apart: on lights held out of rendered glossy tablets, 9 → 18 planes gained
-#: 0.8–1.2 dB for RBF and 0.4–2.4 dB for bilinear (``benchmarks/relight_bases.py``).
+#: these bases apart: on lights held out of nine captures, 9 → 18 planes gained 0.3–1.3 dB
+#: for RBF and 0.4–2.6 dB for bilinear (``benchmarks/relight_bases.py``, BENCHMARKS.md).
 PCA_PLANES = 2 * DEFAULT_PLANES
 #: Side of the bilinear basis's grid of light directions (relight's default).
 BILINEAR_RESOLUTION = DEFAULT_RESOLUTION
