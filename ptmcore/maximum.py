@@ -284,8 +284,17 @@ def maximum_bands(
             raise ValueError(f"an output of shape {out.shape} for coefficients of shape {coefficients.shape}")
 
     def work(r0: int, r1: int) -> None:
-        maximum_rows(_kernel_input(coefficients[r0:r1]), _TABLES, lu[r0:r1], lv[r0:r1],
-                     None if nz is None else nz[r0:r1], None if interior is None else interior[r0:r1],
-                     None if valid is None else valid[r0:r1])
+        # The kernel always gets contiguous outputs, those not asked for as scratch rows rather
+        # than None: numba compiles (and caches) a specialisation of its own for each
+        # combination of None and memory layout, seconds each on its first use; the outputs'
+        # values and a copy of them cost little beside the search. (The coefficients are read
+        # where they are, whatever their strides: a copy of the map is what this avoids.)
+        outputs = [(lu, np.float32), (lv, np.float32), (nz, np.float32), (interior, np.bool_), (valid, np.bool_)]
+        direct = [array is not None and array[r0:r1].flags.c_contiguous for array, _ in outputs]
+        rows = [array[r0:r1] if use else np.empty((r1 - r0, w), dtype) for (array, dtype), use in zip(outputs, direct)]
+        maximum_rows(_kernel_input(coefficients[r0:r1]), _TABLES, *rows)
+        for (array, _), row, use in zip(outputs, rows, direct):
+            if array is not None and not use:
+                array[r0:r1] = row
 
     run_bands(h, max(1, _BAND_PIXELS // max(1, w)), work, threads=threads)
