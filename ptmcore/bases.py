@@ -52,7 +52,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from .bands import BAND_BYTES, band_rows, run_bands
 from .hsh import RCOND, hsh_basis
@@ -72,7 +71,6 @@ from .loo import loo_residuals
 from .lp import as_directions
 from .neural import NeuralParameters
 from .published import PublishedBasis, ptm_weights
-from .resources import thread_count
 
 __all__ = ["AUTO", "CANDIDATES", "ENCODINGS", "NAMES", "BasisChoice", "BasisScore", "choose_basis", "fit_published",
            "sample_stack", "score_bases", "score_neural", "viewer_distance_weights"]
@@ -345,15 +343,19 @@ def _compress(fitted: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _score(name: str, encoding: str, fitted: np.ndarray, observed: np.ndarray, directions: np.ndarray,
-           compression: tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> BasisScore:
+           compression: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+           interpolation: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None) -> BasisScore:
     """One basis's score; ``fitted`` the samples in ``encoding``, ``observed`` in 8-bit sRGB
-    levels, ``compression`` :func:`_compress` of ``fitted`` (for ``rbf`` and ``bilinear``)."""
+    levels; for ``rbf`` and ``bilinear``, ``compression`` :func:`_compress` of ``fitted`` and
+    ``interpolation`` the basis's :func:`_loo_predictor`, :func:`_relit_at_lights` and the
+    lights' :func:`viewer_distance_weights` (the same for every encoding)."""
     relit = None
     if name in ("rbf", "bilinear"):
         compressed, at_lights, coefficients = compression
+        loo_matrix, relit_matrix, (share, spread) = interpolation
         flat = compressed.reshape(len(compressed), -1)
-        predicted = (_loo_predictor(name, directions) @ flat).reshape(compressed.shape)
-        relit = (_relit_at_lights(name, directions) @ flat).reshape(compressed.shape)
+        predicted = (loo_matrix @ flat).reshape(compressed.shape)
+        relit = (relit_matrix @ flat).reshape(compressed.shape)
         used = np.arange(len(directions))
         variance = np.einsum("knc,k->nc", at_lights ** 2, _storage_var(coefficients))[:, None, :]
         planes = len(at_lights)
@@ -387,7 +389,6 @@ def _score(name: str, encoding: str, fitted: np.ndarray, observed: np.ndarray, d
         # light. Modelled as the square error growing with the squared distance, weighed over
         # the viewer's lights of the hemisphere the capture covers.
         at_light = np.mean((shown(relit) - observed[used]) ** 2, axis=(1, 2))
-        share, spread = viewer_distance_weights(directions[used])
         prediction = float(np.sqrt(np.sum(share * at_light + spread * np.maximum(left_out - at_light, 0.0))))
     storage = float(np.sqrt(np.mean(variance * slope ** 2)))
     rms = float(np.hypot(prediction, storage))
@@ -438,12 +439,17 @@ def score_bases(luminance: np.ndarray, chroma: np.ndarray, directions: np.ndarra
             scorable.append(name)
     observed_linear = chroma[None] * luminance[..., None]  # (N, P, 3)
     observed = 255.0 * linear_to_srgb(observed_linear)
+    interpolating = [name for name in scorable if name in ("rbf", "bilinear")]
+    viewer = viewer_distance_weights(directions) if interpolating else None
+    interpolation = {name: (_loo_predictor(name, directions), _relit_at_lights(name, directions), viewer)
+                     for name in interpolating}
     scores = []
     for encoding in encodings:
         fitted = _display(observed_linear, _check_encoding(encoding)).astype(np.float64)
         # One compression of the samples serves both interpolating bases.
-        compression = _compress(fitted) if {"rbf", "bilinear"} & set(scorable) else None
-        scores += [_score(name, encoding, fitted, observed, directions, compression) for name in scorable]
+        compression = _compress(fitted) if interpolating else None
+        scores += [_score(name, encoding, fitted, observed, directions, compression, interpolation.get(name))
+                   for name in scorable]
     return sorted(scores, key=lambda s: s.rms)
 
 
@@ -600,7 +606,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
             coefficients[r0:r1] = ((vectors - mean32) @ comp32).reshape(r1 - r0, w, k)
 
         rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
-        _run_bands(h, rows, work, threads, progress)
+        run_bands(h, rows, work, threads=threads, progress=progress)
         basis = np.concatenate([mean[None], components]).reshape(k + 1, 3, dims).transpose(0, 2, 1)
         basis = np.ascontiguousarray(basis, dtype=np.float32)
         if grid is None:
@@ -622,7 +628,7 @@ def fit_published(stack: ImageStack, directions: np.ndarray, name: str, encoding
         colour[r0:r1] = np.rint(255.0 * col).reshape(r1 - r0, w, 3).astype(np.uint8)
 
     rows = band_rows(n, w, bytes_per_sample=40, budget=BAND_BYTES)
-    _run_bands(h, rows, work, threads, progress)
+    run_bands(h, rows, work, threads=threads, progress=progress)
     kind = "ptm" if name == "ptm" else "hsh"
     return PublishedBasis(kind, "lrgb", planes, encoding, colour=colour,
                           order=_hsh_order(name) if kind == "hsh" else None, name=name)
@@ -634,15 +640,6 @@ def _pca_planes(planes: int, dims: int) -> int:
     if isinstance(planes, bool) or int(planes) != planes or int(planes) < 1:
         raise ValueError(f"planes must be a positive integer, got {planes!r}")
     return min(int(planes), 3 * dims)
-
-
-def _run_bands(h: int, rows: int, work: Callable[[int, int], None], threads: int | None,
-               progress: Callable[[int], None] | None) -> None:
-    """:func:`~ptmcore.bands.run_bands` with BLAS kept to one thread when the bands run in
-    several: the bands' matrix products are small, and OpenBLAS's own threads inside each
-    band's thread made two threads no faster than one (2.7 s both, a 6-megapixel PTM)."""
-    with threadpool_limits(1 if thread_count(threads) > 1 else None):
-        run_bands(h, rows, work, threads=threads, progress=progress)
 
 
 def _epochs_as_rows(rows: int, params: NeuralParameters | None,
@@ -681,5 +678,5 @@ def _fit_neural(stack: ImageStack, directions: np.ndarray, *, params: NeuralPara
         codes[r0:r1] = encode(model, rgb, threads=1).reshape(r1 - r0, w, -1)
 
     rows = band_rows(n, w, bytes_per_sample=60, budget=BAND_BYTES)
-    _run_bands(h, rows, work, threads, progress)
+    run_bands(h, rows, work, threads=threads, progress=progress)
     return neural_basis(model, codes, name="neural")
