@@ -27,7 +27,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .images import LUMA_WEIGHTS
+from .images import LUMA_WEIGHTS, linear_to_srgb
 
 __all__ = ["CURVE_POINTS", "display_by_pixel", "display_samples", "lrgb_samples"]
 
@@ -36,10 +36,9 @@ CURVE_POINTS = 4096
 
 
 def _curve_tables() -> dict[str, np.ndarray]:
-    v = np.linspace(0.0, 1.0, CURVE_POINTS + 1)
-    srgb = np.where(v <= 0.0031308, 12.92 * v, 1.055 * np.maximum(v, 0.0031308) ** (1 / 2.4) - 0.055)
+    v = np.linspace(0.0, 1.0, CURVE_POINTS + 1)  # float64: the curve computed in float64
     # Linear values through the same code: the identity, interpolated exactly.
-    return {"srgb": srgb.astype(np.float32), "linear": v.astype(np.float32)}
+    return {"srgb": linear_to_srgb(v).astype(np.float32), "linear": v.astype(np.float32)}
 
 
 _TABLES = _curve_tables()
@@ -49,6 +48,8 @@ def _table(encoding: str) -> np.ndarray:
     if encoding not in _TABLES:
         raise ValueError(f"encoding must be one of {sorted(_TABLES)}, not {encoding!r}")
     return _TABLES[encoding]
+
+
 _WEIGHTS = LUMA_WEIGHTS.astype(np.float32)
 
 
