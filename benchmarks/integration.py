@@ -15,12 +15,19 @@ rule, unweighted equations, edge-weight floor 1e-3, 51 solves); "bilateral" is t
 (BiNI: depth-difference rule, equations weighted by nz², energy stop); "masked nz²" is
 :func:`masked_poisson` with the same nz² per-pixel weights (BiNI's k = 0 limit).
 
+``--integrator auto`` (:func:`reconstruct.surface.integrate_auto`): the same steep-walled
+scenes, a clay tablet (``data_synthetic.clay_tablet``, 384×512 at 0.05 mm, true normals and
+photometric stereo), a sphere to its outline, the analytic cap and scissor step, a perspective
+scissor step and BiNI's real objects (``../shared/real/bini_depth``, when present): masked
+least squares, bilateral integration and auto's choice with the edges bilateral cut
+(``--only-auto`` prints only this table).
+
 Scaling: time and peak RSS of :func:`masked_poisson` at 1, 6 and 24 megapixels (a disk-with-
 notch domain, bump on a tilted plane), each size in a fresh process, the peak read from
 ``VmHWM`` after resetting it through ``/proc/self/clear_refs``.
 
 Run: ``.venv/bin/python benchmarks/integration.py [--sizes 1 6 24] [--preconditioners ...]
-[--no-walls]``. Prints Markdown.
+[--no-walls] [--only-auto]``. Prints Markdown.
 """
 
 from __future__ import annotations
@@ -165,6 +172,86 @@ def walls_table() -> str:
     return "\n".join(lines)
 
 
+def auto_table() -> str:
+    """``integrate_auto`` against masked least squares and bilateral integration: smooth
+    reliefs, steep walls from photometric stereo, steps, and BiNI's real objects."""
+    from real_integration import REAL, made, scissor_scene
+    from data_synthetic import clay_tablet
+    from helpers import sphere_normals
+    from ptmcore.images import read_image
+    from reconstruct.calibration.camera import Intrinsics
+    from reconstruct.surface import integrate, integrate_auto, integrate_perspective, read_normal_map
+
+    def normals_of(p, q):
+        n = np.stack([-p, -q, np.ones_like(p)], axis=-1)
+        return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+    def rmse(height, z, mask):
+        e = np.where(mask, height - z, np.nan)
+        return float(np.sqrt(np.nanmean((e - np.nanmean(e)) ** 2)))
+
+    scenes = []  # (name, normals, mask, error of a height, camera or None)
+    tablet = clay_tablet((384, 512), pixel_size=0.05)
+    tz = tablet.height / tablet.pixel_size
+    scenes.append(("clay tablet 384×512, true normals", tablet.normals, tablet.mask,
+                   lambda h, z=tz, m=tablet.mask: rmse(h, z, m), None))
+    scenes.append(("clay tablet 384×512, photometric stereo 0.5 %", _ps_normals(tz, 0.005), tablet.mask,
+                   lambda h, z=tz, m=tablet.mask: rmse(h, z, m), None))
+    n, m = sphere_normals(256, 256, 100.0)
+    rows, cols = np.mgrid[0:256, 0:256]
+    sz = np.sqrt(np.clip(100.0 ** 2 - (cols - 127.5) ** 2 - (rows - 127.5) ** 2, 0, None))
+    scenes.append(("sphere to its outline (r 100 px), true normals", n, m, lambda h, z=sz, m=m: rmse(h, z, m), None))
+    z, p, q = _cap_on_tilted_plane()
+    p, q = _noisy(p, q, 0.005)
+    for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
+        scenes.append((f"cap on tilted plane, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
+                       lambda h, z=z, m=dom(): rmse(h, z, m), None))
+    coin, coin_mask = coin_relief()
+    cap = sphere_cap((256, 256), max_slope_deg=80.0)
+    walls = {"coin 75°": (coin, coin_mask), "wedges 75°": (wedge_plate() / 0.05, None),
+             "sphere cap 80°": (cap.height / cap.pixel_size, cap.mask)}
+    for name, (wz, wm) in walls.items():
+        wm = np.ones(wz.shape, bool) if wm is None else wm
+        for noise in (0.005, 0.02):
+            scenes.append((f"{name}, photometric stereo {noise:.1%}", _ps_normals(wz, noise), wm,
+                           lambda h, z=wz, m=wm: rmse(h, z, m), None))
+    z, p, q = _step()
+    p, q = _noisy(p, q, 0.005)
+    for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
+        scenes.append((f"scissor step, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
+                       lambda h, z=z, m=dom(): rmse(h, z, m), None))
+    cam = Intrinsics(160.0, 160.0, 79.5, 59.5)
+    depth, sn, sm = scissor_scene(cam, (120, 160))
+    sn = sn + np.random.default_rng(0).normal(0.0, 0.005, sn.shape)
+    scenes.append(("scissor step, perspective 160×120 (mm)", sn / np.linalg.norm(sn, axis=-1, keepdims=True), sm,
+                   lambda h, d=depth, m=sm: made(h, d, m), cam))
+    for folder in sorted(REAL.glob("*")) if REAL.is_dir() else []:
+        if not (folder / "depth_gt.npz").is_file():
+            continue
+        rm = read_image(folder / "mask.png") > 0
+        rm = rm[..., 0] if rm.ndim == 3 else rm
+        k = np.loadtxt(folder / "K.txt")
+        depth = np.load(folder / "depth_gt.npz")["depth_gt"]
+        scenes.append((f"{folder.name} (real, DiLiGenT, perspective, mm)", read_normal_map(folder / "normal_map.png"),
+                       rm, lambda h, d=depth, m=rm: made(h, d, m & np.isfinite(h) & np.isfinite(d)),
+                       Intrinsics(k[0, 0], k[1, 1], k[0, 2], k[1, 2])))
+    lines = ["| scene | masked | bilateral | auto's choice (edges cut) | auto | auto ÷ the better |",
+             "|---|---:|---:|---|---:|---:|"]
+    for name, normals, mask, error, camera in scenes:
+        if camera is None:
+            ms, bi = (error(integrate(normals, m, mask=mask)) for m in ("masked", "bilateral"))
+            chosen = integrate_auto(normals, mask)
+        else:
+            ms, bi = (error(integrate_perspective(normals, camera, mask=mask, method=m, distance=1.0))
+                      for m in ("masked", "bilateral"))
+            chosen = integrate_auto(normals, mask, intrinsics=camera, distance=1.0)
+        auto = error(chosen.height)
+        lines.append(f"| {name} | {ms:.4f} | {bi:.4f} | {chosen.method} ({chosen.cut_edges}) | {auto:.4f} | "
+                     f"{auto / min(ms, bi):.2f} |")
+        print(lines[-1], file=sys.stderr, flush=True)
+    return "\n".join(lines)
+
+
 def _scaling_problem(mp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     w = int(round(np.sqrt(mp * 1e6 * 1.5)))
     h = int(round(mp * 1e6 / w))
@@ -200,9 +287,14 @@ def main() -> None:
     ap.add_argument("--preconditioners", nargs="*", default=["multigrid", "dct"])
     ap.add_argument("--child", nargs=2)
     ap.add_argument("--no-walls", action="store_true", help="skip the steep-walls table")
+    ap.add_argument("--only-auto", action="store_true", help="only the table of --integrator auto's choices")
     args = ap.parse_args()
     if args.child:
         child(float(args.child[0]), args.child[1])
+        return
+    if args.only_auto:
+        print(f"{datetime.date.today().isoformat()} — {cpu_model()}, {os.cpu_count()} CPUs\n")
+        print(auto_table())
         return
     print(f"# Integration benchmark\n\n{datetime.date.today().isoformat()} — {cpu_model()}, "
           f"{os.cpu_count()} CPUs, {platform.platform()}, Python {platform.python_version()}, "
@@ -213,6 +305,8 @@ def main() -> None:
         print("\n## Steep walls: height RMSE (pixels) on walls (true slope > 45°) / on the field, "
               "normals from photometric stereo\n")
         print(walls_table(), flush=True)
+        print("\n## `--integrator auto`: the error of each integrator and of auto's choice (pixels unless said)\n")
+        print(auto_table(), flush=True)
     print("\n## masked_poisson scaling (tol 1e-6, warm start from the box DCT)\n")
     print("| MP | preconditioner | shape | mask pixels | time (s) | peak RSS during solve (MB) "
           "| RSS before (MB) | CG iterations | rel. residual | RMSE (px) |")

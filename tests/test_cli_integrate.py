@@ -83,29 +83,22 @@ def test_run_rejects_conflicting_mesh_options(tmp_path, capsys):
     assert code == 2 and "not both" in err
 
 
-def test_auto_integrator_follows_the_mask_and_bilateral_runs(tmp_path, capsys, sphere_maps):
+def test_auto_integrator_follows_the_mask_and_the_normals(tmp_path, capsys, sphere_maps):
     import json
 
     folder, _, _ = sphere_maps
-    # A mask of at most a megapixel: bilateral (it keeps steps and occluding contours).
-    for name, extra, used in [("plain", [], "dct"), ("masked", ["--mask", folder / "n8.png"], "bilateral"),
-                              ("bilateral", ["--integrator", "bilateral"], "bilateral"),
-                              ("least-squares", ["--mask", folder / "n8.png", "--integrator", "masked"], "masked")]:
+    # A sphere inside its outline has no depth step: with the mask, auto tries bilateral
+    # integration, which cuts no edge, and integrates by least squares on the mask.
+    for name, extra, used, why in [
+            ("plain", [], "dct", "no mask"),
+            ("masked", ["--mask", folder / "n8.png"], "masked", "no depth step (0 edges cut"),
+            ("bilateral", ["--integrator", "bilateral"], "bilateral", "chosen"),
+            ("least-squares", ["--mask", folder / "n8.png", "--integrator", "masked"], "masked", "chosen")]:
         out = tmp_path / name
         code, _, err = _run(["integrate", folder / "n16.tif", "-o", out, "-q", *extra], capsys)
         assert code == 0, err
         mesh = json.loads((out / "report.json").read_text())["mesh"]
-        assert mesh["integrator"] == used and mesh["integrator_reason"]
-
-
-def test_auto_integrator_takes_least_squares_for_large_masks():
-    from reconstruct.pipeline.stages import AUTO_BILATERAL_PIXELS, _integrator
-
-    side = int(np.ceil(np.sqrt(AUTO_BILATERAL_PIXELS))) + 1
-    method, why = _integrator("auto", np.ones((side, side), bool))
-    assert method == "masked" and "--integrator bilateral" in why
-    assert _integrator("auto", np.ones((10, 10), bool))[0] == "bilateral"
-    assert _integrator("auto", None)[0] == "dct"
+        assert mesh["integrator"] == used and why in mesh["integrator_reason"]
 
 
 def test_perspective_camera_option(tmp_path, capsys, sphere_maps):

@@ -205,8 +205,9 @@ class RunOptions:
         Least squares on the mask only ("masked", conjugate gradients preconditioned by the
         bounding box's DCT solver), the same with bilateral weights that keep steps sharp
         ("bilateral"), Poisson with Neumann boundary by DCT on the whole frame ("dct"), or
-        Frankot–Chellappa. "auto": bilateral when a mask of at most
-        ``stages.AUTO_BILATERAL_PIXELS`` (a megapixel) is known, masked for a larger one, else dct.
+        Frankot–Chellappa. "auto" (:func:`reconstruct.surface.choose.integrate_auto`): with a
+        mask of at most a megapixel, bilateral where it finds depth steps in the normals, else
+        masked; masked for a larger mask; dct without one.
     step : int or None
         Mesh subsampling; None picks the smallest step that keeps the mesh under
         :data:`reconstruct.pipeline.stages.AUTO_MESH_VERTICES` vertices.

@@ -56,6 +56,7 @@ from reconstruct.pipeline.report import LightModel, PtmSummary
 from reconstruct.pipeline.writer import FileWriter
 from reconstruct.report import outputs
 from reconstruct.report.web import export_openlime, export_relightable
+from reconstruct.surface.choose import integrate_auto
 from reconstruct.surface.flatten import flatten
 from reconstruct.surface.integrate import integrate
 from reconstruct.surface.perspective import integrate_perspective
@@ -407,28 +408,6 @@ class Surface:
     reason: str
 
 
-#: ``auto`` integrates a masked object of at most this many pixels with bilateral normal
-#: integration, a larger one by masked least squares: bilateral took 0.65 s on DiLiGenT's cat
-#: (45,200 pixels) but 52 s and 5 GB on 14 million (BENCHMARKS.md, "Normal integration").
-AUTO_BILATERAL_PIXELS = 1 << 20
-
-
-def _integrator(choice: str, mask: np.ndarray | None) -> tuple[str, str]:
-    """The integrator to use and why (``auto`` decides by whether the object's outline is known,
-    and by its size)."""
-    if choice != "auto":
-        return choice, "chosen"
-    if mask is None:
-        return "dct", "no mask: least squares on the whole frame with a free boundary"
-    pixels = int(np.count_nonzero(mask))
-    if pixels <= AUTO_BILATERAL_PIXELS:
-        return "bilateral", ("a mask is known: bilateral normal integration on the object only, which keeps "
-                             "its steps and occluding contours instead of smoothing across them")
-    return "masked", (f"a mask is known: least squares on the object only ({pixels / 1e6:.1f} million pixels; "
-                      f"bilateral integration, which keeps steps, is chosen up to {AUTO_BILATERAL_PIXELS / 1e6:.1f} "
-                      "million, and takes about a minute beyond: --integrator bilateral)")
-
-
 def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: RunOptions) -> Surface:
     """Integrate normals ``(H, W, 3)`` into a height map, then flatten it if asked.
 
@@ -436,16 +415,24 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     ``options.intrinsics`` a pinhole camera (mm with ``options.distance``, else depth relative
     to the object's median).
     """
-    method, why = _integrator(options.integrator, mask)
     workers = thread_count(options.threads)  # scipy.fft's -1 would be every CPU of the machine
-    if options.intrinsics is not None:  # RunOptions refuses fc with intrinsics
-        camera = parse_intrinsics(options.intrinsics)
-        height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance,
-                                       workers=workers)
+    camera = None if options.intrinsics is None else parse_intrinsics(options.intrinsics)
+    if camera is not None:  # RunOptions refuses fc with intrinsics
         unit = "mm" if options.distance else "relative depth"
     else:
-        height = integrate(normals, method, mask=mask, pixel_size=options.pixel_size or 1.0, workers=workers)
         unit = "mm" if options.pixel_size else "pixel"
+    pixel_size = options.pixel_size or 1.0
+    if options.integrator == "auto":
+        chosen = integrate_auto(normals, mask, pixel_size=pixel_size, intrinsics=camera, distance=options.distance,
+                                workers=workers)
+        height, method, why = chosen.height, chosen.method, chosen.reason
+    else:
+        method, why = options.integrator, "chosen"
+        if camera is not None:
+            height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance,
+                                           workers=workers)
+        else:
+            height = integrate(normals, method, mask=mask, pixel_size=pixel_size, workers=workers)
     if options.flatten is not None:
         extra = {"cutoff_px": options.flatten_cutoff} if options.flatten == "highpass" else {}
         height = flatten(height, options.flatten, mask=mask, **extra)

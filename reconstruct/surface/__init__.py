@@ -1,5 +1,6 @@
 """Surfaces from normal maps: integration into heights for an orthographic camera (whole
-rectangle or masked domain) or a perspective one, flattening, segmentation of the object,
+rectangle or masked domain) or a perspective one, the integrator chosen by the normals,
+flattening, segmentation of the object,
 normal maps made elsewhere, and accuracy against ground truth.
 
 The function :func:`integrate` shares its module's name: the package's attribute is the
@@ -16,6 +17,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "fourier": ["frankot_chellappa", "poisson_dct"],
         "integrate": ["gradients_from_normals", "integrate"],
         "bilateral": ["discontinuity_preserving"],
+        "choose": ["Integration", "integrate_auto"],
         "masked": ["masked_poisson"],
         "multigrid": ["masked_laplacian"],
         "normalmaps": ["read_normal_map", "shaded"],

@@ -29,6 +29,12 @@ so nearly cut edges stay nearly cut on the coarse levels).
 The IRLS stops, as BiNI's, when the weighted energy changes by less than `tol` (relative)
 between two passes. Large masks are first solved on 2×2 blocks (:func:`_multiscale`).
 
+The steps it kept are counted (``info["cut_edges"]``): edges both of whose one-sided
+equations keep less than :data:`CUT_WEIGHT` of their weight, each pixel trusting its other
+side. Where the surface is continuous no edge is cut, even where the weights stray from ½
+(:func:`reconstruct.surface.choose.integrate_auto` uses the count as the evidence of depth
+steps).
+
 Limits. The weights compare differences in pixel footprints, so the same scene behaves
 differently at different resolutions; and the IRLS starts from least squares, which smears a
 step over its surroundings, so where the surface is continuous only along a thin band (a
@@ -37,18 +43,20 @@ sides drift apart by a free constant. Measured on a rendered "scissor" step: kep
 (0.45 mm against 6.33 mm for least squares), lost at 640×480 (6.32 mm against 6.33 mm,
 52 s). A part cut off all around keeps an arbitrary offset, as with any integrator.
 
-Choosing it for ``auto`` (numbers from ``benchmarks/real_integration.py`` and
+Against least squares (numbers from ``benchmarks/real_integration.py`` and
 ``benchmarks/integration.py``, 2 cores). Real data with depth discontinuities and occluding
 contours (DiLiGenT, perspective, mean absolute depth error after the median-ratio scale):
 cat 2.24 → 0.08 mm, harvest 8.15 → 2.70 mm against masked least squares, in 0.65 s and 6 s
-instead of 0.05 s. Smooth synthetic surfaces: a little worse (sphere 0.011 → 0.014 mm, tablet
-relief 0.0011 → 0.0048 mm, orthographic sphere cap on a plane 0.069 → 0.089 px); steep-walled
-reliefs from photometric stereo: mixed (field error lower on wedges and the sphere cap, higher
-on the coin). Cost at 24 Mpixel (tablet relief, 14 Mpixel in the mask): 52 s and 5.1 GB peak
-against 10 s and 2.4 GB. So ``auto`` (:func:`reconstruct.pipeline.stages.integrate_surface`)
-picks ``bilateral`` when a mask of at most a megapixel is known (objects photographed against a
-background, whose outline is an occluding contour, are where least squares fails by millimetres
-and BiNI gains most), and ``masked`` for larger masks, where a minute is too long.
+instead of 0.05 s. Continuous surfaces: worse (a clay tablet's true normals 0.034 → 0.054 px,
+a sphere to its outline 0.004 → 0.015 px, a coin relief from photometric stereo 0.17 →
+0.27 px), for two reasons measured on the tablet: the nz² weights alone (k = 0) take it to
+0.043 px, and the sigmoid weights stray from ½ wherever the slope changes (the two one-sided
+differences differ by about twice slope × curvature), leaning the solution towards the
+flatter side: 0.054 px. Better on some steep walls under noise (wedges cut at 75°, a sphere cap to 80° with 2 %
+noise), where its nz² weighting trusts the noisiest gradients less. Cost at 24 Mpixel (tablet
+relief, 14 Mpixel in the mask): 52 s and 5.1 GB peak against 10 s and 2.4 GB. So ``auto``
+(:func:`reconstruct.surface.choose.integrate_auto`) runs it on masks of at most a megapixel
+and keeps its result only when it cut edges (``info["cut_edges"]``).
 """
 
 from __future__ import annotations
@@ -67,9 +75,15 @@ from reconstruct.surface.masked import (
     _warm_start,
 )
 
-__all__ = ["discontinuity_preserving"]
+__all__ = ["CUT_WEIGHT", "discontinuity_preserving"]
 
 WeightRule = Literal["differences", "residuals"]
+
+#: An edge is cut when the mean weight of its two one-sided equations (w⁺ of the pixel
+#: before it, w⁻ of the pixel after) is below this: both pixels trust their other side. On
+#: the smooth scenes of ``benchmarks/integration.py`` the least such mean was above 0.2; on
+#: steps and occluding contours the cut edges are near 0.
+CUT_WEIGHT = 0.1
 
 
 def _sigmoid(t: np.ndarray) -> np.ndarray:
@@ -187,6 +201,18 @@ def _irls(
     info = {"iterations": [done], "cg_iterations": cg_iterations, "energy": energy,
             "converged": converged}
     return z, wf_row, wf_col, info
+
+
+def _cut_edges(wf_row: np.ndarray, wf_col: np.ndarray, mask: np.ndarray) -> int:
+    """Edges of the mask whose two one-sided equations keep, on average, less than
+    :data:`CUT_WEIGHT` of their weight (w⁺ the forward weights along each axis)."""
+    ex, ey = _edge_masks(mask)
+    cut = 0
+    for w, edges, axis in ((wf_col, ex, 1), (wf_row, ey, 0)):
+        lo, hi = _slices(axis)
+        kept = 0.5 * (w[lo] + (1.0 - w[hi]))
+        cut += int(np.count_nonzero(edges & (kept < CUT_WEIGHT)))
+    return cut
 
 
 def _block_means(a: np.ndarray, weights: np.ndarray) -> np.ndarray:
@@ -324,8 +350,8 @@ def discontinuity_preserving(
         Threads for scipy.fft (the warm start).
     return_info : bool
         Also return a dict with ``iterations`` (the reweighted solves of each level, coarsest
-        first), ``cg_iterations`` (all levels), ``energy`` and ``converged`` (of the
-        full-size level).
+        first), ``cg_iterations`` (all levels), ``energy``, ``converged`` and ``cut_edges``
+        (the edges the full-size level cut: :data:`CUT_WEIGHT`).
 
     Returns
     -------
@@ -359,14 +385,16 @@ def discontinuity_preserving(
     if not m.any():
         empty = np.full(shape, np.nan, dtype=np.float32)
         return (empty, {"iterations": [0], "cg_iterations": 0, "energy": 0.0,
-                        "converged": True}) if return_info else empty
+                        "converged": True, "cut_edges": 0}) if return_info else empty
     c_col = np.where(m, a_col * a_col, 0.0)
     c_row = np.where(m, a_row * a_row, 0.0)
-    z, _, _, info = _multiscale(
+    z, wf_row, wf_col, info = _multiscale(
         gr, gc, c_row, c_col, m, coarse_pixels=coarse_pixels,
         refine_iterations=refine_iterations, k=k, iterations=iterations, tol=tol,
         cg_tol=cg_tol, maxiter=maxiter, min_weight=min_weight, rule=rule, workers=workers,
     )
+    info["cut_edges"] = _cut_edges(wf_row, wf_col, m)
+    del wf_row, wf_col
     z, _, _ = _component_means_removed(z, m)
     height = _embed(z, m, box, shape, pixel_size)
     return (height, info) if return_info else height

@@ -88,7 +88,8 @@ def integrate(
     pixel_size: float = 1.0,
     max_slope_deg: float = 85.0,
     workers: int | None = -1,
-) -> np.ndarray:
+    return_info: bool = False,
+) -> np.ndarray | tuple[np.ndarray, dict]:
     """Height map from a normal map.
 
     Parameters
@@ -111,11 +112,15 @@ def integrate(
         Slope limit passed to :func:`gradients_from_normals`.
     workers : int or None
         Threads for scipy.fft (−1: all CPUs).
+    return_info : bool
+        Also return the solver's info dict (``masked`` and ``bilateral``: iterations and
+        more, ``bilateral`` the edges it cut; an empty dict for ``dct`` and ``fc``).
 
     Returns
     -------
     numpy.ndarray
-        ``(H, W)`` float32 heights, mean 0 over the object, NaN outside it.
+        ``(H, W)`` float32 heights, mean 0 over the object, NaN outside it. With
+        `return_info`, a ``(height, info)`` tuple.
 
     Raises
     ------
@@ -137,7 +142,8 @@ def integrate(
         f, nonfinite = divergence_from_normals(normals, mask, max_slope_deg=max_slope_deg, workers=workers)
         if mask is None and nonfinite:
             mask = np.isfinite(normals).all(axis=-1)
-        return solve_neumann(f, mask, pixel_size, workers=workers)
+        height = solve_neumann(f, mask, pixel_size, workers=workers)
+        return (height, {}) if return_info else height
     if mask is None:
         finite = np.isfinite(normals).all(axis=-1) if normals.ndim == 3 else None
         if finite is not None and not finite.all():
@@ -145,4 +151,7 @@ def integrate(
     p, q = gradients_from_normals(normals, max_slope_deg=max_slope_deg)
     if method in _MASKED_METHODS and mask is None:
         mask = np.ones(p.shape, dtype=bool)  # the whole image is the domain
-    return integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers)
+    if method in _MASKED_METHODS:
+        return integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers, return_info=return_info)
+    height = integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers)
+    return (height, {}) if return_info else height

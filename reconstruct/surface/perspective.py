@@ -117,7 +117,8 @@ def integrate_perspective(
     max_slope_deg: float = 85.0,
     k: float = 2.0,
     workers: int | None = -1,
-) -> np.ndarray:
+    return_info: bool = False,
+) -> np.ndarray | tuple[np.ndarray, dict]:
     """Height map from a normal map taken with a pinhole camera.
 
     Integrates the log-depth gradients of :func:`perspective_gradients` with the existing
@@ -156,6 +157,8 @@ def integrate_perspective(
         Cao et al.'s.
     workers : int or None
         Threads for scipy.fft (−1: all CPUs).
+    return_info : bool
+        Also return the solver's info dict (:func:`integrate`'s).
 
     Returns
     -------
@@ -202,22 +205,26 @@ def integrate_perspective(
     if method == "bilateral":
         f = math.sqrt(intrinsics.fx * intrinsics.fy)
         cosines = (cosine * (intrinsics.fx / f), cosine * (intrinsics.fy / f))
-        log_d = discontinuity_preserving(
-            p * f, q * f, mask, cosines=cosines, k=k, workers=workers
-        ) / np.float32(f)
+        log_d, info = discontinuity_preserving(
+            p * f, q * f, mask, cosines=cosines, k=k, workers=workers, return_info=True
+        )
+        log_d /= np.float32(f)
     else:
         del cosine
         p, q = p.astype(np.float32), q.astype(np.float32)
-        solver = masked_poisson if method == "masked" else poisson_dct
-        log_d = solver(p, q, mask=mask, pixel_size=1.0, workers=workers)
+        if method == "masked":
+            log_d, info = masked_poisson(p, q, mask=mask, pixel_size=1.0, workers=workers, return_info=True)
+        else:
+            log_d, info = poisson_dct(p, q, mask=mask, pixel_size=1.0, workers=workers), {}
     # The masked solver also blanks non-finite gradients; the DCT one only blanks off-mask.
     log_d = np.where(finite, log_d, np.nan)
     inside = np.isfinite(log_d)
     if not inside.any():
-        return np.full(p.shape, np.nan, dtype=np.float32)
+        empty = np.full(p.shape, np.nan, dtype=np.float32)
+        return (empty, info) if return_info else empty
     # The solvers fix the free constant per component by the mean; the median depth is the
     # reference the user can measure (one distance) and the height's zero.
     log_d = log_d.astype(np.float64) - np.median(log_d[inside])
     scale = 1.0 if distance is None else float(distance)
-    height = scale * -np.expm1(log_d)  # d_ref − d with d_ref = scale; expm1 keeps precision
-    return height.astype(np.float32)
+    height = (scale * -np.expm1(log_d)).astype(np.float32)  # d_ref − d, d_ref = scale; expm1 keeps precision
+    return (height, info) if return_info else height
