@@ -1,4 +1,5 @@
-"""Binary PLY export: one general writer, and grid meshes with colours, UVs and normals.
+"""Binary PLY: one general writer, grid meshes with colours, UVs and normals, and a reader of
+binary triangle meshes.
 
 The writers are our own rather than trimesh's exporters: a trimesh mesh holds either UVs
 or vertex colours (its visuals are one or the other), its PLY exporter writes UVs as ``s t``
@@ -17,7 +18,7 @@ import numpy as np
 from ptmcore.atomic import atomic_write
 from reconstruct.mesh.grid import GridMesh
 
-__all__ = ["write_binary_ply", "write_ply"]
+__all__ = ["read_binary_ply", "write_binary_ply", "write_ply"]
 
 # Rows per chunk when writing: bounds the temporary copies (a few tens of MB) while keeping
 # the per-chunk Python overhead negligible.
@@ -29,6 +30,13 @@ _PLY_TYPES = {
     "i4": "int", "u4": "uint", "f4": "float", "f8": "double",
 }
 _FACE_DTYPE = np.dtype([("count", "u1"), ("index", "<i4", (3,))])
+# And back, with PLY's other names for the same types.
+_NUMPY_TYPES = {name: code for code, name in _PLY_TYPES.items()} | {
+    "int8": "i1", "uint8": "u1", "int16": "i2", "uint16": "u2",
+    "int32": "i4", "uint32": "u4", "float32": "f4", "float64": "f8",
+}
+# The header of a PLY file this reader accepts fits in this many bytes.
+_HEADER_BYTES = 1 << 16
 
 
 def _check_comment(text: str) -> str:
@@ -66,6 +74,91 @@ def _vertex_dtype(vertex: Mapping[str, np.ndarray]) -> tuple[np.dtype, int]:
         fields.append((name, dtype))
     # A structured dtype without alignment is packed, like PLY's binary records.
     return np.dtype(fields), next(iter(shapes))[0]
+
+
+def read_binary_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Read a binary PLY file of vertices and triangles.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A ``binary_little_endian`` or ``binary_big_endian`` PLY file whose vertex element has
+        scalar properties and whose face element (if any) has one list property of triangles.
+
+    Returns
+    -------
+    vertex : dict of str to numpy.ndarray
+        Property name → ``(V,)`` values, in file order (native byte order).
+    faces : numpy.ndarray
+        ``(F, 3)`` int64 vertex indices (``(0, 3)`` without a face element).
+
+    Raises
+    ------
+    ValueError
+        For a file this reader does not take (ASCII, other elements, polygons other than
+        triangles), a malformed header, or a size that does not match the header's counts
+        (checked before anything is allocated); indices out of range.
+    OSError
+        If the file cannot be read.
+    """
+    with open(path, "rb") as handle:
+        head = handle.read(_HEADER_BYTES)
+        end = head.find(b"end_header")
+        if not head.startswith(b"ply") or end < 0:
+            raise ValueError("not a PLY file, or its header is longer than 64 KiB")
+        body = end + len(b"end_header")
+        body += 2 if head[body:body + 2] == b"\r\n" else 1
+        lines = [line.split() for line in head[:end].decode("latin-1").splitlines()[1:]]
+        order, elements = None, []
+        for words in lines:
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "format" and len(words) == 3:
+                order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(words[1])
+                if order is None:
+                    raise ValueError(f"{words[1]} PLY is not read here (binary only)")
+            elif words[0] == "element" and len(words) == 3 and words[2].isdigit():
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and elements:
+                elements[-1][2].append(words[1:])
+            else:
+                raise ValueError(f"malformed PLY header line {' '.join(words)!r}")
+        if order is None or not elements or elements[0][0] != "vertex" or len(elements) > 2:
+            raise ValueError("a PLY of a vertex element and, optionally, a face element is read here")
+
+        def scalar(name: str) -> str:
+            try:
+                return order + _NUMPY_TYPES[name]
+            except KeyError:
+                raise ValueError(f"unknown PLY type {name!r}") from None
+
+        _, n_vertices, properties = elements[0]
+        if any(len(words) != 2 for words in properties):
+            raise ValueError("vertex properties must be scalars")
+        vertex_dtype = np.dtype([(name, scalar(kind)) for kind, name in properties])
+        n_faces, face_dtype = 0, None
+        if len(elements) == 2:
+            name, n_faces, properties = elements[1]
+            if name != "face" or len(properties) != 1 or len(properties[0]) != 4 or properties[0][0] != "list":
+                raise ValueError("the face element must hold one list property")
+            face_dtype = np.dtype([("count", scalar(properties[0][1])), ("index", scalar(properties[0][2]), (3,))])
+        expected = body + n_vertices * vertex_dtype.itemsize + n_faces * (face_dtype.itemsize if face_dtype else 0)
+        size = os.fstat(handle.fileno()).st_size
+        if size != expected:
+            raise ValueError(f"{size} bytes where the header calls for {expected} (triangles only)")
+        handle.seek(body)
+        records = np.fromfile(handle, dtype=vertex_dtype, count=n_vertices)
+        faces = np.fromfile(handle, dtype=face_dtype, count=n_faces) if face_dtype else None
+    vertex = {name: records[name].astype(records.dtype[name].newbyteorder("="))
+              for name in records.dtype.names}
+    if faces is None:
+        return vertex, np.empty((0, 3), np.int64)
+    if (faces["count"] != 3).any():
+        raise ValueError("only triangles are read here")
+    indices = faces["index"].astype(np.int64)
+    if indices.size and (indices.min() < 0 or indices.max() >= n_vertices):
+        raise ValueError("face indices out of range")
+    return vertex, indices
 
 
 def write_binary_ply(

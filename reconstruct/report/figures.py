@@ -576,8 +576,8 @@ def mesh_render(
 ) -> np.ndarray:
     """A rendering of a mesh with its colours, seen obliquely from the front.
 
-    Drawn in software (:func:`reconstruct.report.raster.render_mesh`: no OpenGL context, and
-    no pyvista import for an array mesh); a mesh file is read with pyvista.
+    Drawn in software (:func:`reconstruct.report.raster.render_mesh`: no OpenGL context); a
+    binary PLY of triangles is read directly, any other mesh file with pyvista.
 
     Parameters
     ----------
@@ -615,7 +615,23 @@ def mesh_render(
 
 
 def _read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Vertices, triangles and vertex colours (or None) of a mesh file, read by pyvista."""
+    """Vertices, triangles and vertex colours (or None) of a mesh file: a binary PLY of
+    triangles (a run's ``mesh.ply``) read directly, anything else by pyvista."""
+    from reconstruct.mesh.ply import read_binary_ply
+
+    try:
+        vertex, faces = read_binary_ply(path)
+    except ValueError:
+        pass  # another layout or format: pyvista's readers
+    except OSError as exc:
+        raise RuntimeError(f"cannot read the mesh ({exc})") from exc
+    else:
+        if not {"x", "y", "z"} <= vertex.keys():
+            raise RuntimeError("cannot read the mesh (its vertices have no x, y, z)")
+        colours = None
+        if {"red", "green", "blue"} <= vertex.keys() and all(vertex[c].dtype == np.uint8 for c in ("red", "green", "blue")):
+            colours = np.column_stack([vertex[c] for c in ("red", "green", "blue")]).astype(np.uint8)
+        return np.column_stack([vertex["x"], vertex["y"], vertex["z"]]), faces, colours
     try:
         import pyvista as pv
     except ImportError as exc:
