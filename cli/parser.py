@@ -16,6 +16,7 @@ from typing import NoReturn
 
 from ptmcore import __version__
 from ptmcore.relight import DEFAULT_EXPONENT, DEFAULT_GAIN, DEFAULT_KD, DEFAULT_KS
+from ptmcore.normalmethods import FITS, NORMAL_METHODS
 from reconstruct.pipeline.options import BOUNDS, STACK_FILE_MB, CompareOptions, RunOptions, choices, default
 from reconstruct.viewer.preview import MAX_PIXELS as PREVIEW_PIXELS, MAX_SIDE as PREVIEW_SIDE
 from reconstruct.viewer.relighting import BASES as RELIGHT_BASES, MAX_SWEEP, MODES as RELIGHT_MODES
@@ -458,17 +459,9 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="size of one pixel on the object in millimetres (%g to %g); heights and meshes are then in mm "
         "(else in pixels)" % BOUNDS["pixel_size"],
     )
-    _choice(
-        p, RunOptions, "normals",
-        help="ps: photometric stereo (default, the most accurate); ptm: maximum of each pixel's PTM; "
-        "ptm-debiased: that maximum corrected for the PTM's bias towards the view direction",
-    )
-    _choice(
-        p, RunOptions, "fit",
-        help="per-pixel fit: lobe (default: irls with a glossy reflectance lobe shared by the object, estimated "
-        "from the photographs and used only where it explains them), irls (robust, down-weights shadowed, "
-        "clipped and specular samples), trimmed (robust, leaves them out), plain (least squares)",
-    )
+    _choice(p, RunOptions, "normals", help="; ".join(f"{m.name}: {m.help}" for m in NORMAL_METHODS.values()))
+    _choice(p, RunOptions, "fit",
+            help="per-pixel fit: " + ", ".join(f"{f.name} ({f.help})" for f in FITS.values()))
     _choice(
         p, RunOptions, "integrator",
         help="normal integration: masked = least squares on the mask only; bilateral = the same keeping steps "

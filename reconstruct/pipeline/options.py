@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Literal, Union
 
 from ptmcore.errors import InputError
+from ptmcore.normalmethods import FITS, NORMAL_METHODS
 
 #: A stack this large (MiB) or larger goes to a file by default (:mod:`ptmcore.diskstack`,
 #: :func:`reconstruct.pipeline.capture.plan_stack`), whatever memory is free: read from the page
@@ -45,11 +46,13 @@ __all__ = [
     "default",
 ]
 
-#: Normal methods; the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
-NormalMethod = Literal["ps", "ptm", "ptm-debiased"]
-#: Per-pixel fits; the default is the more accurate on the synthetic benchmark with specular
-#: highlights and shadows (BENCHMARKS.md), at about three times the plain fit's time.
-Fit = Literal["lobe", "irls", "trimmed", "plain"]
+#: Normal methods (:data:`ptmcore.normalmethods.NORMAL_METHODS`, where they are
+#: declared); the default is the more accurate on the synthetic benchmark (BENCHMARKS.md).
+NormalMethod = Literal[tuple(NORMAL_METHODS)]
+#: Per-pixel fits (:data:`ptmcore.normalmethods.FITS`); the default is the more
+#: accurate on the synthetic benchmark with specular highlights and shadows (BENCHMARKS.md), at
+#: about three times the plain fit's time.
+Fit = Literal[tuple(FITS)]
 Integrator = Literal["auto", "dct", "fc", "masked", "bilateral"]
 PtmFormat = Literal["lrgb", "rgb"]
 #: The values a .ptm (and .rti, web/) holds: display-encoded, as viewers show them, or linear light.

@@ -28,22 +28,14 @@ import numpy as np
 from ptmcore.atomic import atomic_write
 from ptmcore.corrections import Corrections
 from ptmcore.errors import InputError
-from ptmcore.fit import fit_ptm
 from ptmcore.lp import LightSet
 from ptmcore.png import write_png
-from ptmcore.nearlight import fit_ptm_near, near_lambertian_albedo, near_photometric_stereo, typical_distance
-from ptmcore.normals import lambertian_albedo, normals_from_ptm, photometric_stereo
+from ptmcore.nearlight import typical_distance
+from ptmcore.normalmethods import FITS, NORMAL_METHODS
+from ptmcore.normals import lambertian_albedo
 from ptmcore.bases import CANDIDATES, ENCODINGS, BasisChoice, choose_basis, fit_published
 from ptmcore.ptmencoded import EncodedFits
-from ptmcore import (
-    debiased_normals,
-    fit_ptm_encoded,
-    fit_ptm_rgb_encoded,
-    hemisphere_coefficients,
-    robust_photometric_stereo,
-    robust_ptm,
-    write_ptm,
-)
+from ptmcore import fit_ptm_encoded, fit_ptm_rgb_encoded, write_ptm
 from ptmcore.resources import thread_count
 from ptmcore.rtifile import fit_rti_hsh, write_rti_hsh
 from reconstruct.calibration.camera import parse_intrinsics
@@ -109,11 +101,6 @@ class NormalsResult:
     lobe: dict | None = None
 
 
-def _robust_method(fit: str) -> str:
-    """The robust weighting of ``--fit``: the lobe is fitted with IRLS."""
-    return "irls" if fit == "lobe" else fit
-
-
 def _undetermined(valid: np.ndarray, capture: Capture) -> int:
     """The pixels without a normal (``valid`` false), once it is checked that enough have one.
 
@@ -133,24 +120,10 @@ def _undetermined(valid: np.ndarray, capture: Capture) -> int:
     return int(np.count_nonzero(~valid))
 
 
-def _near_normals(capture: Capture, near: NearLights, opt: RunOptions, advance: Advance | None) -> NormalsResult:
-    """Near lights: every pixel has its own directions and falloff."""
-    if opt.normals == "ptm-debiased":
-        raise InputError("--normals ptm-debiased assumes distant lights; with near lights "
-                         "use ps or ptm (or --light-positions none)")
-    if opt.normals == "ptm":
-        coefficients = fit_ptm_near(capture.stack, near.positions, threads=opt.threads, progress=advance).coefficients
-        valid = np.empty(capture.shape, bool)
-        normals = normals_from_ptm(coefficients, threads=opt.threads, valid=valid)
-        return NormalsResult(normals, near_lambertian_albedo(capture.stack, near.positions, normals, threads=opt.threads),
-                             _undetermined(valid, capture))
-    ps = near_photometric_stereo(capture.stack, near.positions, threads=opt.threads, progress=advance)
-    return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture))
-
-
 def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
                      progress: Advance | None = None) -> NormalsResult:
-    """Normals and albedo of a capture, by ``options.normals`` and ``options.fit``.
+    """Normals and albedo of a capture, by ``options.normals`` and ``options.fit``
+    (:data:`ptmcore.normalmethods.NORMAL_METHODS` and ``FITS``).
 
     Every fit here works on linear light, where a Lambertian surface's shading is n·l; the
     PTM written for viewers is fitted separately (:func:`fit_relighting`), to the photographs
@@ -173,35 +146,26 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
     Raises
     ------
     InputError
-        When (nearly) no normal is determined (:data:`MIN_DETERMINED_FRACTION`).
+        When (nearly) no normal is determined (:data:`MIN_DETERMINED_FRACTION`), or the method
+        assumes distant lights and the capture's are near.
     """
     opt = options or RunOptions()
+    method = NORMAL_METHODS[opt.normals]
+    stack = capture.stack
     if capture.near is not None:
-        return _near_normals(capture, capture.near, opt, progress)
-    stack, directions = capture.stack, capture.lights.directions
-    if opt.normals == "ps":
-        if opt.fit == "plain":
-            ps = photometric_stereo(stack, directions, threads=opt.threads, progress=progress)
-        else:
-            ps = robust_photometric_stereo(stack, directions, method=_robust_method(opt.fit), lobe=opt.fit == "lobe",
-                                           threads=opt.threads, progress=progress)
-        return NormalsResult(ps.normals, ps.albedo, _undetermined(ps.valid, capture),
-                             ps.lobe.summary() if ps.lobe else None)
-    valid = np.empty(stack.shape, bool)
-    if opt.fit == "plain":
-        coefficients = fit_ptm(stack, directions, solver=opt.solver, threads=opt.threads, progress=progress).coefficients
-        if opt.normals == "ptm":
-            normals = normals_from_ptm(coefficients, threads=opt.threads, valid=valid)
-        else:
-            normals = debiased_normals(coefficients, hemisphere_coefficients(directions), valid=valid)
+        if method.near is None:
+            raise InputError(f"--normals {method.name} assumes distant lights; with near lights "
+                             f"use {' or '.join(m.name for m in NORMAL_METHODS.values() if m.near)} "
+                             "(or --light-positions none)")
+        found = method.near(stack, capture.near.positions, opt.threads, progress)
+        albedo = found.albedo
     else:
-        fitted = robust_ptm(stack, directions, method=_robust_method(opt.fit), threads=opt.threads, progress=progress)
-        if opt.normals == "ptm":
-            normals = normals_from_ptm(fitted.ptm.coefficients, threads=opt.threads, valid=valid)
-        else:
-            normals, valid = fitted.normals, fitted.valid
-    return NormalsResult(normals, lambertian_albedo(stack, directions, normals, threads=opt.threads),
-                         _undetermined(valid, capture))
+        directions = capture.lights.directions
+        found = method.distant(stack, directions, FITS[opt.fit], opt.solver, opt.threads, progress)
+        albedo = found.albedo
+        if albedo is None:
+            albedo = lambertian_albedo(stack, directions, found.normals, threads=opt.threads)
+    return NormalsResult(found.normals, albedo, _undetermined(found.valid, capture), found.lobe)
 
 
 def resolve_mask(option: Path | str | None, known: np.ndarray | None,
@@ -390,10 +354,10 @@ def light_model(near: NearLights | None, shape: tuple[int, int], options: RunOpt
     """What report.json says of the light model: distant directions or near point lights."""
     if near is None:
         return LightModel("distant", detail="one light direction per photograph")
-    method = "PTM maximum of a per-pixel fit" if options.normals == "ptm" else "photometric stereo, plain fit"
     return LightModel(
         "near", near.source, typical_distance(near.positions, shape),
-        f"each pixel has its own light direction and inverse-square falloff ({method}); "
+        f"each pixel has its own light direction and inverse-square falloff "
+        f"({NORMAL_METHODS[options.normals].near_words}); "
         "coefficients.ptm and the other relighting files use the direction from the image centre",
     )
 

@@ -16,14 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ptmcore.normalmethods import FITS, NORMAL_METHODS
+
 __all__ = ["FileEntry", "Extent", "extent", "file_entries", "summary_rows", "unit_words"]
 
-_FIT = {
-    "lobe": "robust fit with the object's glossy reflectance lobe",
-    "irls": "robust Lambertian fit (shadows, clipped samples and highlights left out)",
-    "trimmed": "trimmed least squares",
-    "plain": "least squares",
-}
 _INTEGRATORS = {
     "masked": "least squares on the object only",
     "bilateral": "bilateral integration, keeping steps sharp (Cao et al. 2022)",
@@ -136,16 +132,13 @@ def _method(report: dict) -> str:
         normals = f"from the normal map {Path(inputs['normal_map']).name} (made elsewhere)"
     elif "ptm" in inputs and "photographs" not in inputs:
         normals = f"from the maximum of each pixel's polynomial in {Path(inputs['ptm']).name}"
-    elif params.get("normals") == "ptm":
-        normals = "from the maximum of each pixel's PTM polynomial"
-    elif params.get("normals") == "ptm-debiased":
-        normals = "from the maximum of each pixel's PTM polynomial, corrected for its bias"
     else:
+        method = NORMAL_METHODS.get(params.get("normals", "ps"))
         fit = params.get("fit", "lobe")
-        how = _FIT.get(fit, fit)
+        how = FITS[fit].words if fit in FITS else fit
         if fit == "lobe" and not report.get("reflectance_lobe"):
             how = "robust Lambertian fit (no glossy lobe needed)"
-        normals = f"by photometric stereo, {how}"
+        normals = method.words.format(fit=how) if method else f"by {params.get('normals')}"
     mesh = report.get("mesh") or {}
     integrator = mesh.get("integrator")
     surface = _INTEGRATORS.get(integrator, integrator or "?")
