@@ -95,12 +95,16 @@ class LightSet:
         What a user should know about the file that does not stop a run: a light raised from
         just below the horizon, a photograph listed twice, or two photographs with the same
         light direction, naming the lines.
+    names : tuple of str
+        The photographs' names as the file writes them (an RTIBuilder project's are absolute
+        paths on the machine that built it); empty when not read from a file.
     """
 
     paths: list[Path]
     directions: np.ndarray
     source: Path | None = None
     warnings: tuple[str, ...] = ()
+    names: tuple[str, ...] = ()
 
     def __len__(self) -> int:
         return len(self.paths)
@@ -311,7 +315,7 @@ def read_lp(path: str | os.PathLike) -> LightSet:
             path,
         )
     return LightSet(paths=paths, directions=directions, source=path,
-                    warnings=tuple(raised) + duplicate_warnings(paths, directions, numbers))
+                    warnings=tuple(raised) + duplicate_warnings(paths, directions, numbers), names=tuple(names))
 
 
 def _entries(lines: list[tuple[int, str]], count: int, path: Path) -> list[tuple[int, str]]:

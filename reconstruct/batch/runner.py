@@ -88,6 +88,7 @@ def _run_inputs(item: BatchItem) -> tuple[set[Path], set[Path]]:
     """
     from ptmcore.lp import read_lp
     from reconstruct.pipeline.capture import IMAGE_SUFFIXES
+    from reconstruct.pipeline.projects import locate_photographs, project_lp
 
     source, opt = item.source, item.options
     if source.suffix.lower() == ".ptm" and not source.is_dir():
@@ -98,12 +99,16 @@ def _run_inputs(item: BatchItem) -> tuple[set[Path], set[Path]]:
         photographs = {p for p in files if p.suffix.lower() in IMAGE_SUFFIXES}
         others = set(files) - photographs
         lps = [opt.lp] if opt.lp is not None else [p for p in files if p.suffix.lower() == ".lp"]
+        try:
+            lps = lps or [p for p in [project_lp(folder)] if p is not None]  # an RTIBuilder project
+        except InputError:
+            pass  # several: the run fails on them, and names them
         for lp in lps:
             others.add(lp)
             if opt.light_positions == "auto":
                 others.add(lp.parent / "light_positions.csv")
             try:
-                photographs.update(read_lp(lp).paths)
+                photographs.update(locate_photographs(read_lp(lp), source).paths)
             except InputError:
                 pass  # the run fails on it, and names it; its content is in the fingerprint
     truth = opt.ground_truth or (source if source.is_dir() else source.parent) / "ground_truth"

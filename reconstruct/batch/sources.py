@@ -1,7 +1,8 @@
 """What a batch is made of: capture folders found on disk, or the rows of a manifest.
 
 :func:`discover` takes the command line's SOURCEs: a capture folder (with an ``.lp`` file,
-photometric-stereo dataset files, or photographs with spheres), an ``.lp`` or ``.ptm`` file, or a
+photometric-stereo dataset files, photographs with spheres, or an RTIBuilder project's
+``assembly-files/``), an ``.lp`` or ``.ptm`` file, or a
 parent folder whose immediate sub-folders and ``.ptm`` files are the captures. :func:`read_manifest`
 reads a museum's spreadsheet: one row per object, a ``capture`` column, an optional ``name``,
 and any ``run`` option by its long name overriding the command line for that row. Every row is
@@ -23,6 +24,7 @@ from ptmcore.psdataset import is_ps_dataset
 from reconstruct.batch.rows import BatchItem
 from reconstruct.pipeline.capture import IMAGE_SUFFIXES
 from reconstruct.pipeline.options import RunOptions, ScanUnit
+from reconstruct.pipeline.projects import project_lp
 
 __all__ = ["discover", "read_manifest", "unique_names"]
 
@@ -40,10 +42,18 @@ _SHOWN_CHARS = 60
 
 
 def _is_capture(folder: Path) -> bool:
-    """A folder ``run`` can take: an ``.lp`` file, dataset files, or photographs (spheres)."""
+    """A folder ``run`` can take: an ``.lp`` file, dataset files, photographs (spheres), or an
+    RTIBuilder project (an ``.lp`` file in its ``assembly-files/``)."""
     entries = [p for p in folder.iterdir() if p.is_file()]
     return (any(p.suffix.lower() == ".lp" for p in entries) or is_ps_dataset(folder)
-            or any(p.suffix.lower() in IMAGE_SUFFIXES for p in entries))
+            or any(p.suffix.lower() in IMAGE_SUFFIXES for p in entries) or _is_project(folder))
+
+
+def _is_project(folder: Path) -> bool:
+    try:
+        return project_lp(folder) is not None
+    except InputError:
+        return True  # several light files: the run names them
 
 
 def _name_of(source: Path) -> str:
@@ -87,7 +97,10 @@ def discover(sources: list[str | os.PathLike], options: RunOptions,
         except OSError as exc:
             raise InputError(f"cannot read it ({exc.strerror or exc})", exc.filename or source) from None
     if not found:
-        raise InputError("no capture found in " + ", ".join(str(s) for s in sources))
+        why = "; ".join(f"{path.name}: {reason}" for path, reason in skipped[:5])
+        more = f" and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+        raise InputError("no capture found in " + ", ".join(str(s) for s in sources)
+                         + (f" (skipped {why}{more})" if skipped else " (it is empty)"))
     names = unique_names([_name_of(p) for p in found])
     return [BatchItem(n, p, options) for n, p in zip(names, found)], skipped
 
@@ -111,8 +124,8 @@ def _take(source: Path, found: list[Path], skipped: list[tuple[Path, str]]) -> N
             elif child.is_dir() and _is_capture(child):
                 found.append(child)
             else:
-                skipped.append((child, "not a capture (no .lp file, dataset files or photographs)"
-                                if child.is_dir() else "not a .ptm file"))
+                skipped.append((child, "not a capture (no .lp file, dataset files, photographs or "
+                                       "RTIBuilder assembly-files/)" if child.is_dir() else "not a .ptm file"))
 
 
 def _converter(hint: object) -> typing.Callable[[str, Path], object]:

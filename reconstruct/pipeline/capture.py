@@ -42,6 +42,7 @@ from reconstruct.pipeline.defects import (
 )
 from reconstruct.pipeline.options import STACK_FILE_MB, RunOptions
 from reconstruct.pipeline.profiling import Stages
+from reconstruct.pipeline.projects import locate_photographs, project_lp
 from reconstruct.surface.accuracy import GroundTruth, load_ground_truth
 
 __all__ = [
@@ -144,7 +145,8 @@ class Capture:
 
 def find_lp(capture: Path, lp: Path | None = None) -> Path:
     """The light file of a capture: ``lp`` if given, the capture itself if it is an ``.lp``
-    file, else the single ``.lp`` file in the capture folder.
+    file, else the single ``.lp`` file in the capture folder, or in its ``assembly-files/``
+    for an RTIBuilder project (:func:`reconstruct.pipeline.projects.project_lp`).
 
     Anything named ``*.lp`` counts, a broken link or a folder too: reading it then says what
     is wrong with it, where skipping it would say there is no light file, or take another.
@@ -160,6 +162,9 @@ def find_lp(capture: Path, lp: Path | None = None) -> Path:
         raise InputError("capture folder not found", capture)
     found = sorted(p for p in capture.iterdir() if p.suffix.lower() == ".lp")
     if not found:
+        project = project_lp(capture)
+        if project is not None:
+            return project
         raise InputError("no .lp light file in the capture folder (give one with --lp)", capture)
     if len(found) > 1:
         names = ", ".join(p.name for p in found)
@@ -216,7 +221,7 @@ def _layout(capture: Path, opt: RunOptions) -> str:
     if opt.lp is None and capture.is_dir():
         if is_ps_dataset(capture):
             return PS_DATASET
-        if not any(p.suffix.lower() == ".lp" for p in capture.iterdir()):
+        if not any(p.suffix.lower() == ".lp" for p in capture.iterdir()) and project_lp(capture) is None:
             return SPHERE_CAPTURE
     return LP_CAPTURE
 
@@ -325,7 +330,7 @@ def _decode(capture: Path, layout: str, opt: RunOptions, stages: Stages, scratch
         loaded.corrections, loaded.checks = corrections, checks
         return loaded
     lp_path = find_lp(capture, opt.lp)
-    lights = read_lp(lp_path)
+    lights = locate_photographs(read_lp(lp_path), capture)
     near = _near_lights_from_file(lights, lp_path, opt.light_positions)
     # The photographs and their lights are known before decoding, so the files viewers open
     # are fitted in the same pass (with near lights too: they use one direction per photograph).

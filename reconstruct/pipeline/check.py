@@ -110,9 +110,10 @@ def check_capture(capture: str | os.PathLike, *, lp: str | os.PathLike | None = 
     from ptmcore.errors import InputError
     from reconstruct.calibration.lightcheck import check_lights
     from reconstruct.pipeline.defects import colour_of, frame_shape
+    from reconstruct.pipeline.projects import locate_photographs
 
     capture = Path(capture)
-    lights = read_lp(find_lp(capture, None if lp is None else Path(lp)))
+    lights = locate_photographs(read_lp(find_lp(capture, None if lp is None else Path(lp))), capture)
     paths, directions = lights.paths, lights.directions
     with ThreadPoolExecutor(thread_count(threads)) as pool:
         # Camera RAW: one development (the first photograph's white balance) for all of them.
