@@ -158,13 +158,11 @@ def estimate_normals(capture: Capture, options: RunOptions | None = None, *,
                              f"use {' or '.join(m.name for m in NORMAL_METHODS.values() if m.near)} "
                              "(or --light-positions none)")
         found = method.near(stack, capture.near.positions, opt.threads, progress)
-        albedo = found.albedo
     else:
-        directions = capture.lights.directions
-        found = method.distant(stack, directions, FITS[opt.fit], opt.solver, opt.threads, progress)
-        albedo = found.albedo
-        if albedo is None:
-            albedo = lambertian_albedo(stack, directions, found.normals, threads=opt.threads)
+        found = method.distant(stack, capture.lights.directions, FITS[opt.fit], opt.solver, opt.threads, progress)
+    albedo = found.albedo
+    if albedo is None:  # a PTM's normals: the Lambertian albedo under distant lights
+        albedo = lambertian_albedo(stack, capture.lights.directions, found.normals, threads=opt.threads)
     return NormalsResult(found.normals, albedo, _undetermined(found.valid, capture), found.lobe)
 
 
