@@ -128,6 +128,25 @@ def test_resume_skips_complete_objects_and_redoes_changed_or_killed_ones(collect
     assert (out / "tablet_b" / "report.json").is_file() and not list(out.glob(".running-*"))
 
 
+def test_a_finished_batch_run_again_starts_no_cluster(collection, client, tmp_path, monkeypatch):
+    import reconstruct.batch.scheduler as scheduler
+
+    captures = _copy(collection, tmp_path)
+    out = tmp_path / "out"
+    run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT, client=client)
+
+    def no_cluster(*args, **kwargs):
+        raise AssertionError("a cluster was started for a batch with nothing to do")
+
+    monkeypatch.setattr(scheduler, "_client", no_cluster)
+    seen = []
+    rows = run_batch([captures / "tablet_a", captures / "tablet_b"], out, OPT,
+                     progress=lambda row, done, total: seen.append((row.name, done, total)))
+    assert [r.status for r in rows] == ["skipped", "skipped"]
+    assert seen == [("tablet_a", 1, 2), ("tablet_b", 2, 2)]
+    assert (out / "batch.csv").is_file() and (out / "index.html").is_file()
+
+
 def test_manifest_overrides_and_names(collection, client, tmp_path):
     manifest = tmp_path / "objects.csv"
     rel = os.path.relpath(collection, tmp_path)

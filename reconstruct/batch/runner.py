@@ -24,7 +24,7 @@ from ptmcore.errors import InputError, open_input_file, read_input_text
 from reconstruct.batch.rows import DONE, FAILED, SKIPPED, BatchItem, BatchRow
 from reconstruct.pipeline.report import json_safe
 
-__all__ = ["BatchStopped", "choose_workers", "describe_failure", "estimate_peak_mb", "fingerprint", "is_complete",
+__all__ = ["BatchStopped", "already_done", "choose_workers", "describe_failure", "estimate_peak_mb", "fingerprint", "is_complete",
            "run_object", "stop_objects"]
 
 #: Fingerprint format; a new one makes every object run again.
@@ -278,6 +278,21 @@ def _reconstruct(item: BatchItem, folder: Path, print_: str, progress=None) -> N
     step = ScanStep(item.scan, CompareOptions(scan_units=item.scan_units))
     result = run(item.source, folder, item.options, fingerprint=print_, then=step, progress=progress)
     step.result(result.output, result.files)
+
+
+def already_done(item: BatchItem, out: Path) -> BatchRow | None:
+    """The ``skipped`` row of an object whose folder in ``out`` is complete and made from the
+    same inputs and options (:func:`fingerprint`, :func:`is_complete`), else None: what a
+    batch decides before starting any worker. Any problem reading the inputs is left to
+    :func:`run_object`, which reports it."""
+    try:
+        print_ = fingerprint(item)
+        _recover(out, item.name)
+        if is_complete(out / item.name, item, print_):
+            return _row_from_folder(item, out / item.name, SKIPPED)
+    except Exception:  # noqa: BLE001, S110 - run_object meets it again and says what it is
+        pass
+    return None
 
 
 def _recover(out: Path, name: str) -> None:

@@ -22,7 +22,7 @@ from ptmcore.atomic import name_max
 from ptmcore.errors import InputError, first_few
 from ptmcore.resources import available_memory_mb, cpu_count
 from reconstruct.batch.rows import FAILED, BatchItem, BatchRow, write_rows
-from reconstruct.batch.runner import choose_workers, describe_failure, run_object, stop_objects
+from reconstruct.batch.runner import already_done, choose_workers, describe_failure, run_object, stop_objects
 from reconstruct.batch.sources import discover, read_manifest
 from reconstruct.pipeline.options import RunOptions
 
@@ -281,8 +281,10 @@ def _check_shared_paths(client, out: Path, items: list[BatchItem]) -> None:
 
 
 def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads: int,
-                progress: Callable[[BatchRow, int, int], None] | None) -> list[BatchRow]:
-    """One task per object; rows in the items' order, each reported as it finishes.
+                progress: Callable[[BatchRow, int, int], None] | None, counted: int = 0,
+                total: int | None = None) -> list[BatchRow]:
+    """One task per object; rows in the items' order, each reported as it finishes (the
+    count starting after ``counted`` objects reported already, of ``total``).
 
     Interrupted (Ctrl-C), it cancels the objects not started and stops those running
     (:func:`_stop`) before the interruption goes on.
@@ -295,7 +297,7 @@ def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads:
                for k, item in enumerate(items)}
     rows: list[BatchRow | None] = [None] * len(items)
     try:
-        for done, future in enumerate(as_completed(futures), 1):
+        for done, future in enumerate(as_completed(futures), counted + 1):
             k = futures[future]
             try:
                 rows[k] = future.result()
@@ -304,7 +306,7 @@ def _submit_all(client, items: list[BatchItem], out: Path, force: bool, threads:
                                    "the worker running it died, also when retried (killed by the operating "
                                    f"system, perhaps for memory): {describe_failure(exc)}")
             if progress is not None:
-                progress(rows[k], done, len(items))
+                progress(rows[k], done, len(items) if total is None else total)
     except BaseException:
         _stop(client, list(futures), token)
         raise
@@ -388,11 +390,23 @@ def run_batch(
     _check_names(items, out)
     if client is None and scheduler is not None:
         _check_scheduler_address(scheduler)
-    with batch_lock(out), _client(client, scheduler, items, workers, echo) as (dask, threads):
-        _check_shared_paths(dask, out.resolve(), items)
-        threads = opt.threads or threads
-        items = [i if i.options.threads else _with_threads(i, threads) for i in items]
-        rows = _submit_all(dask, items, out.resolve(), force, threads, progress)
+    with batch_lock(out):
+        # What is done already is decided here, before any cluster starts: a finished batch
+        # run again starts none.
+        rows: list[BatchRow | None] = [None if force else already_done(i, out.resolve()) for i in items]
+        skipped = [row for row in rows if row is not None]
+        for done, row in enumerate(skipped, 1):
+            if progress is not None:
+                progress(row, done, len(items))
+        todo = [k for k, row in enumerate(rows) if row is None]
+        if todo:
+            with _client(client, scheduler, [items[k] for k in todo], workers, echo) as (dask, threads):
+                _check_shared_paths(dask, out.resolve(), [items[k] for k in todo])
+                threads = opt.threads or threads
+                run = [items[k] if items[k].options.threads else _with_threads(items[k], threads) for k in todo]
+                for k, row in zip(todo, _submit_all(dask, run, out.resolve(), force, threads, progress,
+                                                    len(skipped), len(items))):
+                    rows[k] = row
         write_rows(out, rows)
         write_index(out, rows, title=f"Batch: {out.resolve().name}")
     return rows
