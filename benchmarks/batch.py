@@ -6,13 +6,15 @@ Makes (once; ``--captures DIR`` keeps and reuses them) 24 captures of 48 JPEGs o
 * the loop: ``reconstruct run`` of each capture in turn, as separate processes, ``--threads 2``;
 * the batch: ``reconstruct batch`` of the 24 on the default local cluster (``--force``);
 * resuming: the same batch again, every object complete (all skipped);
-* Dask's overhead: 1,000 no-op tasks through the batch's own submission code on a local cluster.
+* Dask's overhead: 1,000 no-op tasks through the batch's own submission code on a local cluster;
+* ``--only-resume N``: only resuming, of a finished batch of N small captures (48 × 64, 12
+  photographs, one capture copied under N names), once made (its time is printed too).
 
 Each figure is the median of ``--repeat`` runs (loop and batch alternated); peak memory is the
 largest process's, from ``wait4`` (outside the processes; for the batch, the largest of its
 workers and itself as the operating system reports them to the parent).
 
-Run: ``.venv/bin/python benchmarks/batch.py [--repeat 3] [--captures DIR]``
+Run: ``.venv/bin/python benchmarks/batch.py [--repeat 3] [--captures DIR] [--only-resume N]``
 Writes ``benchmarks/results/batch.json``.
 """
 
@@ -116,11 +118,35 @@ def dask_overhead(tasks: int = 1000) -> float:
         return (time.perf_counter() - t0) * 100 / tasks
 
 
+def only_resume(objects: int, repeat: int) -> None:
+    """Seconds to run a finished batch of ``objects`` small captures again (median of ``repeat``)."""
+    from data_synthetic import write_capture
+
+    tmp = Path(tempfile.mkdtemp(prefix="ptm-resume-"))
+    try:
+        one = tmp / "one"
+        write_capture(one, shape=(48, 64), n_lights=12, seed=3)
+        drawer = tmp / "drawer"
+        for k in range(objects):
+            shutil.copytree(one, drawer / f"object_{k:04d}")
+        made, _ = timed([EXE, "batch", str(drawer), "-o", str(tmp / "out"), "-q"])
+        resumes = [timed([EXE, "batch", str(drawer), "-o", str(tmp / "out"), "-q"])[0] for _ in range(repeat)]
+        print(f"{time.strftime('%Y-%m-%d')}, {platform.machine()}, {os.cpu_count()} cores: a batch of {objects} "
+              f"captures of 12 photographs of 64x48 made in {made:.1f} s; run again, all complete: "
+              f"{statistics.median(resumes):.2f} s (median of {repeat}: {', '.join(f'{r:.2f}' for r in resumes)})")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--captures", type=Path, help="keep the generated captures here and reuse them")
+    ap.add_argument("--only-resume", type=int, metavar="N", help="only resuming a finished batch of N small captures")
     args = ap.parse_args()
+    if args.only_resume:
+        only_resume(args.only_resume, args.repeat)
+        return
     tmp = Path(tempfile.mkdtemp(prefix="ptm-batch-"))
     try:
         folders = make_captures(args.captures or tmp / "captures")
