@@ -15,7 +15,7 @@ tell, and masked least squares (:func:`~reconstruct.surface.masked.masked_poisso
 fraction of the bilateral fit's time) integrates it.
 
 On the scenes of ``benchmarks/integration.py`` no edge was cut on any smooth relief (tablet,
-coin, sphere caps; true normals and photometric stereo with 0.5–2 % noise), and 38–1029 were
+coin, sphere caps; true normals and photometric stereo with 0.5–2 % noise), and 38–1031 were
 on every scene with a step or occluding contour (a scissor step, DiLiGenT's cat and harvest)
 and on wedges cut at 75°.
 """
