@@ -370,7 +370,7 @@ def _add_check_command(sub: argparse._SubParsersAction) -> None:
         "photographs). Exit status 0 whatever is found, 2 for a capture that cannot be read.",
     )
     check.add_argument("capture", type=_path, help="capture folder (photographs and one .lp file) or an .lp file")
-    check.add_argument("--lp", type=_path, metavar="FILE", help="the light file (default: the one .lp in the folder)")
+    check.add_argument("--lp", type=_path, metavar="FILE", help="the light file (default: the one .lp in the folder, or in its assembly-files/ for an RTIBuilder project)")
     check.add_argument("--json", type=_path, metavar="FILE", help="also write the findings as JSON")
 
 
@@ -453,7 +453,9 @@ def _add_camera_options(p: argparse.ArgumentParser) -> None:
 
 
 def _add_run_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--lp", type=_path, help="light file to use (default: the .lp file in the capture folder)")
+    p.add_argument("--lp", type=_path, help="light file to use (default: the .lp file in the capture folder, or "
+                   "in its assembly-files/ for an RTIBuilder project); its photographs are looked for in the "
+                   "capture folder first, then where it says, then in the project's jpeg-exports/")
     p.add_argument(
         "--pixel-size", type=_positive_float, metavar="MM",
         help="size of one pixel on the object in millimetres (%g to %g); heights and meshes are then in mm "
