@@ -342,7 +342,7 @@ def _add_integrate_command(sub: argparse._SubParsersAction) -> None:
     integ.add_argument("-o", "--output", type=_path, required=True, help="output folder (created if needed)")
     integ.add_argument("--mask", metavar="FILE|auto", help="image whose non-zero pixels are the object, or 'auto'")
     integ.add_argument("--pixel-size", type=_positive_float, metavar="MM", help="millimetres per pixel (heights then in mm)")
-    _choice(integ, RunOptions, "integrator", help="normal integration method (default: auto = with a mask of at most 1 megapixel, bilateral when it finds depth steps in the normals, else masked; masked for a larger mask; dct without one)")
+    _choice(integ, RunOptions, "integrator", help="normal integration method (default: auto = with a mask of at most 1 megapixel, bilateral when it finds depth steps in the normals, else masked weighed by nz²; masked for a larger mask; dct without one)")
     integ.add_argument("--step", type=_positive_int, metavar="K", help="mesh vertex every K pixels")
     _add_camera_options(integ)
     integ.add_argument("-q", "--quiet", action="store_true", help="no progress display")
@@ -469,7 +469,7 @@ def _add_run_options(p: argparse.ArgumentParser) -> None:
         help="normal integration: masked = least squares on the mask only; bilateral = the same keeping steps "
         "sharp; dct = least squares on the whole frame, free boundary; fc = Frankot-Chellappa; "
         "auto (default) = with a mask of at most 1 megapixel, bilateral when it finds depth steps in the normals, "
-        "else masked; masked for a larger mask; dct without one",
+        "else masked weighed by nz²; masked for a larger mask; dct without one",
     )
     p.add_argument(
         "--step", type=_positive_int, metavar="K",

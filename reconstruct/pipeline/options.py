@@ -210,7 +210,7 @@ class RunOptions:
         ("bilateral"), Poisson with Neumann boundary by DCT on the whole frame ("dct"), or
         Frankot–Chellappa. "auto" (:func:`reconstruct.surface.choose.integrate_auto`): with a
         mask of at most a megapixel, bilateral where it finds depth steps in the normals, else
-        masked; masked for a larger mask; dct without one.
+        masked weighed by nz²; masked for a larger mask; dct without one.
     step : int or None
         Mesh subsampling; None picks the smallest step that keeps the mesh under
         :data:`reconstruct.pipeline.stages.AUTO_MESH_VERTICES` vertices.

@@ -57,7 +57,8 @@ sphere cap to 80° with 2 % noise), where its nz² weighting trusts the noisiest
 less. Cost at 24 Mpixel (tablet
 relief, 14 Mpixel in the mask): 52 s and 5.1 GB peak against 10 s and 2.4 GB. So ``auto``
 (:func:`reconstruct.surface.choose.integrate_auto`) runs it on masks of at most a megapixel
-and keeps its result only when it cut edges (``info["cut_edges"]``).
+and keeps its result only when it cut edges (``info["cut_edges"]``); else it integrates by
+masked least squares with the same nz² weights.
 """
 
 from __future__ import annotations

@@ -89,6 +89,7 @@ def integrate(
     max_slope_deg: float = 85.0,
     workers: int | None = -1,
     return_info: bool = False,
+    steep_weights: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, dict]:
     """Height map from a normal map.
 
@@ -115,6 +116,10 @@ def integrate(
     return_info : bool
         Also return the solver's info dict (``masked`` and ``bilateral``: iterations and
         more, ``bilateral`` the edges it cut; an empty dict for ``dct`` and ``fc``).
+    steep_weights : bool
+        ``masked`` only: weigh each pixel's equations by nz² (of its normal after the slope
+        limit), as bilateral integration does: a normal's error δ moves its gradient by about
+        δ/nz², so the steepest normals' gradients are the least sure.
 
     Returns
     -------
@@ -133,6 +138,8 @@ def integrate(
         raise ValueError(
             f"unknown integration method {method!r}; use one of {list(_METHODS)}"
         ) from None
+    if steep_weights and method != "masked":
+        raise ValueError(f"steep_weights applies to the masked integrator, not {method!r}")
     normals = np.asarray(normals)
     if method == "dct":
         # The same arithmetic as below in two compiled passes instead of a dozen NumPy ones.
@@ -152,6 +159,7 @@ def integrate(
     if method in _MASKED_METHODS and mask is None:
         mask = np.ones(p.shape, dtype=bool)  # the whole image is the domain
     if method in _MASKED_METHODS:
-        return integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers, return_info=return_info)
+        extra = {"weights": 1.0 / (1.0 + p * p + q * q)} if steep_weights else {}
+        return integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers, return_info=return_info, **extra)
     height = integrator(p, q, mask=mask, pixel_size=pixel_size, workers=workers)
     return (height, {}) if return_info else height

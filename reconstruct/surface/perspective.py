@@ -118,6 +118,7 @@ def integrate_perspective(
     k: float = 2.0,
     workers: int | None = -1,
     return_info: bool = False,
+    steep_weights: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, dict]:
     """Height map from a normal map taken with a pinhole camera.
 
@@ -159,6 +160,9 @@ def integrate_perspective(
         Threads for scipy.fft (−1: all CPUs).
     return_info : bool
         Also return the solver's info dict (:func:`integrate`'s).
+    steep_weights : bool
+        ``masked`` only: weigh each pixel's equations by the square of the cosine between its
+        normal and its line of sight, as bilateral integration does.
 
     Returns
     -------
@@ -190,6 +194,8 @@ def integrate_perspective(
             f"unknown perspective integration method {method!r}; "
             "use 'masked', 'dct' or 'bilateral'"
         )
+    if steep_weights and method != "masked":
+        raise ValueError(f"steep_weights applies to the masked integrator, not {method!r}")
     if distance is not None and not (math.isfinite(distance) and distance > 0):
         raise ValueError(f"distance must be a positive number of mm, not {distance}")
     normals = np.asarray(normals)
@@ -210,10 +216,12 @@ def integrate_perspective(
         )
         log_d /= np.float32(f)
     else:
+        weights = np.where(np.isfinite(cosine), cosine * cosine, 0.0) if steep_weights else None
         del cosine
         p, q = p.astype(np.float32), q.astype(np.float32)
         if method == "masked":
-            log_d, info = masked_poisson(p, q, mask=mask, pixel_size=1.0, workers=workers, return_info=True)
+            log_d, info = masked_poisson(p, q, mask=mask, pixel_size=1.0, workers=workers, return_info=True,
+                                         weights=weights)
         else:
             log_d, info = poisson_dct(p, q, mask=mask, pixel_size=1.0, workers=workers), {}
     # The masked solver also blanks non-finite gradients; the DCT one only blanks off-mask.
