@@ -72,6 +72,18 @@ def test_other_files_are_refused(tmp_path, content, match):
         read_binary_ply(tmp_path / "x.ply")
 
 
+def test_a_named_pipe_is_refused_not_waited_on(tmp_path):
+    import os
+
+    from ptmcore.errors import InputError
+
+    os.mkfifo(tmp_path / "mesh.ply")
+    with pytest.raises(InputError, match="named pipe"):
+        read_binary_ply(tmp_path / "mesh.ply")
+    with pytest.raises(InputError, match="not found"):
+        read_binary_ply(tmp_path / "none.ply")
+
+
 def test_the_report_draws_a_run_mesh_without_pyvista(tmp_path):
     height = np.add.outer(np.arange(30.0), np.arange(40.0)).astype(np.float32)
     write_ply(tmp_path / "mesh.ply", grid_mesh(height, texture=np.full((30, 40, 3), 90, np.uint8)))

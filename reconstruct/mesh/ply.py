@@ -16,6 +16,7 @@ from collections.abc import Iterable, Mapping
 import numpy as np
 
 from ptmcore.atomic import atomic_write
+from ptmcore.errors import open_input_file
 from reconstruct.mesh.grid import GridMesh
 
 __all__ = ["read_binary_ply", "write_binary_ply", "write_ply"]
@@ -98,10 +99,11 @@ def read_binary_ply(path: str | os.PathLike) -> tuple[dict[str, np.ndarray], np.
         For a file this reader does not take (ASCII, other elements, polygons other than
         triangles), a malformed header, or a size that does not match the header's counts
         (checked before anything is allocated); indices out of range.
-    OSError
-        If the file cannot be read.
+    InputError
+        If the file is missing, not a regular file (a named pipe is refused, not waited on) or
+        cannot be read (:func:`ptmcore.errors.open_input_file`).
     """
-    with open(path, "rb") as handle:
+    with open_input_file(path, "PLY file") as handle:
         head = handle.read(_HEADER_BYTES)
         end = head.find(b"end_header")
         if not head.startswith(b"ply") or end < 0:

@@ -88,27 +88,28 @@ def locate_photographs(lights: LightSet, capture: Path | None = None) -> LightSe
         Naming the first photograph found in none of them, and where it was looked for.
     """
     names = [p.name for p in lights.paths]
-    candidates: list[Path] = []
-    if capture is not None:
-        capture = Path(capture)
-        candidates.append(capture if capture.is_dir() else capture.parent)
-    if all(p.is_file() for p in lights.paths) and (not candidates or not _holds(candidates[0], names)):
+    first = None if capture is None else (Path(capture) if Path(capture).is_dir() else Path(capture).parent)
+    if first is not None and _holds(first, names):
+        return _moved(lights, first, names)
+    if all(p.is_file() for p in lights.paths):
         return lights
-    project = lights.source.parent.parent if lights.source is not None else None
-    if project is not None:
-        named = _named_folder(lights.names)
-        candidates += [project / f for f in (named, PHOTOGRAPH_FOLDER) if f]
-    for folder in dict.fromkeys(candidates):  # in order, once each
-        if _holds(folder, names):
-            if [folder / n for n in names] == list(lights.paths):
-                return lights
-            return dataclasses.replace(lights, paths=[folder / n for n in names])
+    project = [] if lights.source is None else [
+        lights.source.parent.parent / f for f in (_named_folder(lights.names), PHOTOGRAPH_FOLDER) if f]
+    for folder in dict.fromkeys(project):  # in order, once each
+        if folder != first and _holds(folder, names):
+            return _moved(lights, folder, names)
     missing = next((p for p in lights.paths if not _exists(p)), None)
     if missing is None:  # all there, some not regular files: decoding says what they are
         return lights
-    looked = [str(missing.parent)] + [str(f) for f in dict.fromkeys(candidates) if f != missing.parent]
+    looked = [str(f) for f in dict.fromkeys([missing.parent, *([first] if first else []), *project])]
     raise InputError(f"photograph {missing.name} not found; looked in {first_few(looked, 4)}",
                      lights.source or missing)
+
+
+def _moved(lights: LightSet, folder: Path, names: list[str]) -> LightSet:
+    """``lights`` with every photograph in ``folder`` (the same object when they are there)."""
+    paths = [folder / n for n in names]
+    return lights if paths == list(lights.paths) else dataclasses.replace(lights, paths=paths)
 
 
 def _exists(path: Path) -> bool:

@@ -623,8 +623,8 @@ def _read_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndar
         vertex, faces = read_binary_ply(path)
     except ValueError:
         pass  # another layout or format: pyvista's readers
-    except OSError as exc:
-        raise RuntimeError(f"cannot read the mesh ({exc})") from exc
+    except InputError as exc:
+        raise RuntimeError(f"cannot read the mesh ({exc.problem})") from exc
     else:
         if not {"x", "y", "z"} <= vertex.keys():
             raise RuntimeError("cannot read the mesh (its vertices have no x, y, z)")
