@@ -186,26 +186,22 @@ def auto_table() -> str:
         n = np.stack([-p, -q, np.ones_like(p)], axis=-1)
         return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
 
-    def rmse(height, z, mask):
-        e = np.where(mask, height - z, np.nan)
-        return float(np.sqrt(np.nanmean((e - np.nanmean(e)) ** 2)))
-
     scenes = []  # (name, normals, mask, error of a height, camera or None)
     tablet = clay_tablet((384, 512), pixel_size=0.05)
     tz = tablet.height / tablet.pixel_size
     scenes.append(("clay tablet 384×512, true normals", tablet.normals, tablet.mask,
-                   lambda h, z=tz, m=tablet.mask: rmse(h, z, m), None))
+                   lambda h, z=tz, m=tablet.mask: _rmse(h, z, m), None))
     scenes.append(("clay tablet 384×512, photometric stereo 0.5 %", _ps_normals(tz, 0.005), tablet.mask,
-                   lambda h, z=tz, m=tablet.mask: rmse(h, z, m), None))
+                   lambda h, z=tz, m=tablet.mask: _rmse(h, z, m), None))
     n, m = sphere_normals(256, 256, 100.0)
     rows, cols = np.mgrid[0:256, 0:256]
     sz = np.sqrt(np.clip(100.0 ** 2 - (cols - 127.5) ** 2 - (rows - 127.5) ** 2, 0, None))
-    scenes.append(("sphere to its outline (r 100 px), true normals", n, m, lambda h, z=sz, m=m: rmse(h, z, m), None))
+    scenes.append(("sphere to its outline (r 100 px), true normals", n, m, lambda h, z=sz, m=m: _rmse(h, z, m), None))
     z, p, q = _cap_on_tilted_plane()
     p, q = _noisy(p, q, 0.005)
     for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
         scenes.append((f"cap on tilted plane, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
-                       lambda h, z=z, m=dom(): rmse(h, z, m), None))
+                       lambda h, z=z, m=dom(): _rmse(h, z, m), None))
     coin, coin_mask = coin_relief()
     cap = sphere_cap((256, 256), max_slope_deg=80.0)
     walls = {"coin 75°": (coin, coin_mask), "wedges 75°": (wedge_plate() / 0.05, None),
@@ -214,12 +210,12 @@ def auto_table() -> str:
         wm = np.ones(wz.shape, bool) if wm is None else wm
         for noise in (0.005, 0.02):
             scenes.append((f"{name}, photometric stereo {noise:.1%}", _ps_normals(wz, noise), wm,
-                           lambda h, z=wz, m=wm: rmse(h, z, m), None))
+                           lambda h, z=wz, m=wm: _rmse(h, z, m), None))
     z, p, q = _step()
     p, q = _noisy(p, q, 0.005)
     for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
         scenes.append((f"scissor step, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
-                       lambda h, z=z, m=dom(): rmse(h, z, m), None))
+                       lambda h, z=z, m=dom(): _rmse(h, z, m), None))
     cam = Intrinsics(160.0, 160.0, 79.5, 59.5)
     depth, sn, sm = scissor_scene(cam, (120, 160))
     sn = sn + np.random.default_rng(0).normal(0.0, 0.005, sn.shape)

@@ -48,10 +48,8 @@ from reconstruct.pipeline.report import LightModel, PtmSummary
 from reconstruct.pipeline.writer import FileWriter
 from reconstruct.report import outputs
 from reconstruct.report.web import export_openlime, export_relightable
-from reconstruct.surface.choose import integrate_auto
+from reconstruct.surface.choose import integrate_with
 from reconstruct.surface.flatten import flatten
-from reconstruct.surface.integrate import integrate
-from reconstruct.surface.perspective import integrate_perspective
 from reconstruct.surface.segment import foreground_mask
 
 __all__ = [
@@ -377,28 +375,19 @@ def integrate_surface(normals: np.ndarray, mask: np.ndarray | None, options: Run
     ``options.intrinsics`` a pinhole camera (mm with ``options.distance``, else depth relative
     to the object's median).
     """
-    workers = thread_count(options.threads)  # scipy.fft's -1 would be every CPU of the machine
+    # RunOptions refuses fc with intrinsics; thread_count, as scipy.fft's -1 would be every CPU.
     camera = None if options.intrinsics is None else parse_intrinsics(options.intrinsics)
-    if camera is not None:  # RunOptions refuses fc with intrinsics
+    if camera is not None:
         unit = "mm" if options.distance else "relative depth"
     else:
         unit = "mm" if options.pixel_size else "pixel"
-    pixel_size = options.pixel_size or 1.0
-    if options.integrator == "auto":
-        chosen = integrate_auto(normals, mask, pixel_size=pixel_size, intrinsics=camera, distance=options.distance,
-                                workers=workers)
-        height, method, why = chosen.height, chosen.method, chosen.reason
-    else:
-        method, why = options.integrator, "chosen"
-        if camera is not None:
-            height = integrate_perspective(normals, camera, mask=mask, method=method, distance=options.distance,
-                                           workers=workers)
-        else:
-            height = integrate(normals, method, mask=mask, pixel_size=pixel_size, workers=workers)
+    chosen = integrate_with(normals, options.integrator, mask, pixel_size=options.pixel_size or 1.0,
+                            intrinsics=camera, distance=options.distance, workers=thread_count(options.threads))
+    height = chosen.height
     if options.flatten is not None:
         extra = {"cutoff_px": options.flatten_cutoff} if options.flatten == "highpass" else {}
         height = flatten(height, options.flatten, mask=mask, **extra)
-    return Surface(height, unit, method, why)
+    return Surface(height, unit, chosen.method, chosen.reason)
 
 
 def auto_step(shape: tuple[int, int], max_vertices: int = AUTO_MESH_VERTICES) -> int:

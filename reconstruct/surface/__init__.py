@@ -17,7 +17,7 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(
         "fourier": ["frankot_chellappa", "poisson_dct"],
         "integrate": ["gradients_from_normals", "integrate"],
         "bilateral": ["discontinuity_preserving"],
-        "choose": ["Integration", "integrate_auto"],
+        "choose": ["Integration", "integrate_auto", "integrate_with"],
         "masked": ["masked_poisson"],
         "multigrid": ["masked_laplacian"],
         "normalmaps": ["read_normal_map", "shaded"],

@@ -34,7 +34,7 @@ from reconstruct.calibration.camera import Intrinsics
 from reconstruct.surface.integrate import integrate
 from reconstruct.surface.perspective import integrate_perspective
 
-__all__ = ["BILATERAL_PIXELS", "MIN_CUT_EDGES", "Integration", "integrate_auto"]
+__all__ = ["BILATERAL_PIXELS", "MIN_CUT_EDGES", "Integration", "integrate_auto", "integrate_with"]
 
 #: Masks of at most this many pixels are tried with bilateral integration; larger ones are
 #: integrated by masked least squares: bilateral took 0.65 s on DiLiGenT's cat (45,200 pixels)
@@ -140,3 +140,23 @@ def integrate_auto(
         "surface is continuous, integrated by least squares on the object, which is more accurate there, each "
         "pixel's equations weighed by nz² as bilateral integration weighs them (steep normals' gradients are "
         "the least sure)"), cut)
+
+
+def integrate_with(
+    normals: np.ndarray,
+    method: str,
+    mask: np.ndarray | None = None,
+    *,
+    pixel_size: float = 1.0,
+    intrinsics: Intrinsics | None = None,
+    distance: float | None = None,
+    workers: int | None = -1,
+) -> Integration:
+    """Integrate normals with ``method`` (``"auto"``: :func:`integrate_auto`; else the
+    integrator named, orthographic or, with ``intrinsics``, perspective), as ``reconstruct``'s
+    ``--integrator`` does. The parameters are :func:`integrate_auto`'s."""
+    if method == "auto":
+        return integrate_auto(normals, mask, pixel_size=pixel_size, intrinsics=intrinsics, distance=distance,
+                              workers=workers)
+    height, _ = _integrate(normals, method, mask, pixel_size, intrinsics, distance, workers)
+    return Integration(height, method, "chosen")
