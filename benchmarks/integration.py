@@ -178,13 +178,10 @@ def auto_table() -> str:
     from real_integration import REAL, made, scissor_scene
     from data_synthetic import clay_tablet
     from helpers import sphere_normals
+    from test_integrate_auto import _normals
     from ptmcore.images import read_image
     from reconstruct.calibration.camera import Intrinsics
     from reconstruct.surface import integrate, integrate_auto, integrate_perspective, read_normal_map
-
-    def normals_of(p, q):
-        n = np.stack([-p, -q, np.ones_like(p)], axis=-1)
-        return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
 
     scenes = []  # (name, normals, mask, error of a height, camera or None)
     tablet = clay_tablet((384, 512), pixel_size=0.05)
@@ -200,7 +197,7 @@ def auto_table() -> str:
     z, p, q = _cap_on_tilted_plane()
     p, q = _noisy(p, q, 0.005)
     for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
-        scenes.append((f"cap on tilted plane, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
+        scenes.append((f"cap on tilted plane, {dname}, 0.5 % gradient noise", _normals(p, q), dom(),
                        lambda h, z=z, m=dom(): _rmse(h, z, m), None))
     coin, coin_mask = coin_relief()
     cap = sphere_cap((256, 256), max_slope_deg=80.0)
@@ -214,7 +211,7 @@ def auto_table() -> str:
     z, p, q = _step()
     p, q = _noisy(p, q, 0.005)
     for dname, dom in (("disk", _disk), ("L-shape", _l_shape)):
-        scenes.append((f"scissor step, {dname}, 0.5 % gradient noise", normals_of(p, q), dom(),
+        scenes.append((f"scissor step, {dname}, 0.5 % gradient noise", _normals(p, q), dom(),
                        lambda h, z=z, m=dom(): _rmse(h, z, m), None))
     cam = Intrinsics(160.0, 160.0, 79.5, 59.5)
     depth, sn, sm = scissor_scene(cam, (120, 160))
