@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 from data_synthetic import write_capture  # noqa: E402
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from relight_bases import machine  # noqa: E402
+from procinfo import cpu_model, measured_run  # noqa: E402
 
 SHAPE = (384, 512)
 LIGHTS = 49
@@ -46,13 +46,7 @@ RUNS = (("default, 16-bit TIFF", "tiff16", ()), ("default, 8-bit JPEG", "jpeg8",
 
 def cpu_seconds(args: list[str], env: dict) -> float:
     """User + system CPU seconds of a child process (and its children), from wait4."""
-    proc = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    _, status, usage = os.wait4(proc.pid, 0)
-    proc.returncode = os.waitstatus_to_exitcode(status)
-    err = proc.stderr.read()
-    proc.stderr.close()
-    if proc.returncode != 0:
-        raise RuntimeError(f"{' '.join(args)} failed: {err}")
+    usage = measured_run(args, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)[2]
     return usage.ru_utime + usage.ru_stime
 
 
@@ -61,8 +55,8 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     args = parser.parse_args()
     exe = [sys.executable, "-m", "reconstruct"]
-    result = {"machine": machine(), "date": time.strftime("%Y-%m-%d"), "shape": list(SHAPE), "lights": LIGHTS,
-              "runs": {}}
+    result = {"machine": f"{cpu_model()}, {os.cpu_count()} CPUs", "date": time.strftime("%Y-%m-%d"),
+              "shape": list(SHAPE), "lights": LIGHTS, "runs": {}}
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         captures = {}
